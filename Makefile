@@ -1,0 +1,40 @@
+# landbench: `make demo` runs the main job, `make test` the tests.
+# Both bootstrap .venv (and Mesa's headless OpenGL through apt) on first use.
+VENV := .venv
+LB := $(VENV)/bin/landbench
+PYTEST := $(VENV)/bin/python -m pytest
+OUT ?= out/demo
+
+.PHONY: all bootstrap demo test test-slow test-all perf clean
+
+all: test
+
+bootstrap:
+	@./scripts/bootstrap.sh
+
+## demo: render the default scenario's camera view from a few altitudes, and the terrain map
+demo: bootstrap
+	@mkdir -p $(OUT)
+	$(LB) world --out $(OUT)/world.png
+	@for h in 500 200 100 30; do \
+	  $(LB) render --altitude $$h --out $(OUT)/camera_$${h}m.png || exit 1; \
+	done
+	@echo "demo: PNGs written to $(OUT)/"
+
+## test: the fast suite (CI runs this; well under 10 minutes on 2 cores)
+test: bootstrap
+	$(PYTEST) -q
+
+## test-slow: the long checks (full descents, campaigns), marked @pytest.mark.slow
+test-slow: bootstrap
+	$(PYTEST) -q -m slow
+
+test-all: bootstrap
+	$(PYTEST) -q -m "slow or not slow"
+
+## perf: benchmark figures quoted in the README
+perf: bootstrap
+	$(LB) perf
+
+clean:
+	rm -rf $(VENV) out .pytest_cache *.egg-info

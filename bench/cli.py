@@ -1,0 +1,124 @@
+"""The ``landbench`` command line.
+
+Every sub-command validates all of its input (scenario, overrides, paths)
+before it writes anything; a user mistake prints one ``landbench: error:``
+line and exits with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from bench.scenario import ScenarioError, load_scenario, scenario_to_toml
+
+EXIT_USAGE = 2
+
+
+def _add_scenario_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scenario", nargs="?", default=None, help="scenario TOML file (default: the bundled default)")
+    p.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+        help="override a scenario field, e.g. --set seed=7 --set sun.elevation_deg=20 (repeatable)",
+    )
+
+
+def _check_out(path: str, suffixes: tuple[str, ...], flag: str) -> Path:
+    out = Path(path)
+    if out.suffix.lower() not in suffixes:
+        raise ValueError(f"{flag} {path!r}: expected a file ending in {' or '.join(suffixes)}")
+    if out.exists() and out.is_dir():
+        raise ValueError(f"{flag} {path!r} is a folder; give a file name")
+    return out
+
+
+# --------------------------------------------------------------------------- commands
+def cmd_scenario_show(args: argparse.Namespace) -> int:
+    scenario = load_scenario(args.scenario, args.overrides)
+    sys.stdout.write(scenario_to_toml(scenario))
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from bench.render import render_view
+
+    out = _check_out(args.out, (".png",), "--out")
+    depth_out = _check_out(args.depth, (".npy",), "--depth") if args.depth else None
+    if not args.altitude > 0:
+        raise ValueError(f"--altitude {args.altitude}: must be > 0 m above the landing site")
+    scenario = load_scenario(args.scenario, args.overrides)
+    written = render_view(scenario, args.altitude, out, depth_out, noise=not args.no_noise)
+    for p in written:
+        print(p)
+    return 0
+
+
+def cmd_world(args: argparse.Namespace) -> int:
+    from bench.render import draw_world
+
+    out = _check_out(args.out, (".png",), "--out")
+    scenario = load_scenario(args.scenario, args.overrides)
+    print(draw_world(scenario, out))
+    return 0
+
+
+def cmd_perf(args: argparse.Namespace) -> int:
+    from bench.perf import format_perf, run_perf
+
+    scenario = load_scenario(args.scenario, args.overrides)
+    result = run_perf(scenario, frames=args.frames)
+    print(json.dumps(result, indent=2) if args.json else format_perf(result))
+    return 0
+
+
+# --------------------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="landbench", description="Closed-loop lunar-landing GNC testbench (MuJoCo, vision, filterpy)."
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("scenario", help="inspect scenarios")
+    ssub = p.add_subparsers(dest="scenario_command", required=True, metavar="ACTION")
+    ps = ssub.add_parser("show", help="print the resolved scenario as TOML")
+    _add_scenario_args(ps)
+    ps.set_defaults(func=cmd_scenario_show)
+
+    p = sub.add_parser("render", help="render the camera view from H metres above the landing site")
+    _add_scenario_args(p)
+    p.add_argument("--altitude", type=float, required=True, metavar="H", help="camera height above the target [m]")
+    p.add_argument("--out", required=True, help="output PNG")
+    p.add_argument("--depth", default=None, help="also write the z-depth image [m] as .npy")
+    p.add_argument("--no-noise", action="store_true", help="skip the detector noise model")
+    p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("world", help="draw the terrain as a hillshade with the landing target")
+    _add_scenario_args(p)
+    p.add_argument("--out", required=True, help="output PNG")
+    p.set_defaults(func=cmd_world)
+
+    p = sub.add_parser("perf", help="benchmark rendering and physics speed")
+    _add_scenario_args(p)
+    p.add_argument("--frames", type=int, default=60, help="frames timed per resolution")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=cmd_perf)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (ScenarioError, ValueError) as exc:
+        print(f"landbench: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("landbench: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

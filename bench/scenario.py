@@ -1,0 +1,273 @@
+"""The scenario: one typed, validated description of a landing, seed included.
+
+A scenario is loaded from TOML (or the bundled default), patched by
+``--set a.b=value`` overrides, and validated by pydantic models with
+``extra="forbid"``. Every field carries its unit in its name or description.
+
+Time is an integer number of nanoseconds. Every periodic component (IMU,
+altimeter, star tracker, camera, control) must run at a whole multiple of the
+physics step, checked here at load time, as dm_control's ``compute_n_steps``
+does: a rate that does not divide evenly would otherwise be silently rounded.
+
+Any user mistake surfaces as :class:`ScenarioError`, whose message is one line
+naming the field, the bad value and what is allowed.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from models.camera import CameraConfig
+from models.lander import LanderConfig
+from models.sensors import SensorsConfig
+from models.terrain import TerrainConfig
+from models.world import SunConfig
+
+NS_PER_S = 1_000_000_000
+DEFAULT_SCENARIO = "default.toml"
+
+
+class ScenarioError(ValueError):
+    """A scenario file, override or value is invalid (one-line message)."""
+
+
+class SimConfig(BaseModel):
+    """Simulation clock and world constants."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    physics_dt_ns: int = Field(2_000_000, gt=0, description="physics step [ns] (default 500 Hz)")
+    control_period_ns: int = Field(20_000_000, gt=0, description="flight-software control period [ns] (default 50 Hz)")
+    t_max_ns: int = Field(240 * NS_PER_S, gt=0, description="time limit of a run [ns]")
+    gravity_mps2: float = Field(1.62, gt=0, description="surface gravity [m/s^2]")
+
+
+class InitialState(BaseModel):
+    """Lander state at hand-over, in the landing frame L (x east, y north, z up)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    r_BL_L_m: tuple[float, float, float] = Field(
+        (-120.0, 80.0, 500.0), description="body position relative to the target [m]"
+    )
+    v_BL_L_mps: tuple[float, float, float] = Field((6.0, -4.0, -15.0), description="body velocity [m/s]")
+    euler_LB_deg: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="attitude as extrinsic x-y-z (roll, pitch, yaw) angles, body to L [deg]"
+    )
+    omega_B_radps: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="body rate in B [rad/s]")
+
+    def q_LB(self) -> np.ndarray:
+        """Initial attitude quaternion, scalar-first (4,)."""
+        from scipy.spatial.transform import Rotation
+
+        return Rotation.from_euler("xyz", self.euler_LB_deg, degrees=True).as_quat(scalar_first=True)
+
+
+class Scenario(BaseModel):
+    """A complete landing scenario. ``run(scenario) -> result`` is a pure function of it."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field("default", description="free-form scenario name")
+    seed: int = Field(1, ge=0, description="master seed; every random stream is spawned from it")
+    sim: SimConfig = SimConfig()
+    terrain: TerrainConfig = TerrainConfig()
+    sun: SunConfig = SunConfig()
+    lander: LanderConfig = LanderConfig()
+    initial: InitialState = InitialState()
+    sensors: SensorsConfig = SensorsConfig()
+    camera: CameraConfig = CameraConfig()
+
+    @model_validator(mode="after")
+    def _rates_divide(self) -> "Scenario":
+        dt = self.sim.physics_dt_ns
+        for name, period in self.periods_ns().items():
+            if period % dt:
+                lo = max(dt, period // dt * dt)
+                raise ValueError(
+                    f"{name} = {period} is not a whole multiple of sim.physics_dt_ns = {dt}; "
+                    f"allowed: multiples of {dt}, e.g. {lo} or {lo + dt}"
+                )
+        return self
+
+    def periods_ns(self) -> dict[str, int]:
+        """Every periodic component's period, by field path [ns]."""
+        return {
+            "sim.control_period_ns": self.sim.control_period_ns,
+            "sensors.imu.period_ns": self.sensors.imu.period_ns,
+            "sensors.altimeter.period_ns": self.sensors.altimeter.period_ns,
+            "sensors.star_tracker.period_ns": self.sensors.star_tracker.period_ns,
+            "camera.period_ns": self.camera.period_ns,
+        }
+
+    def terrain_seed(self) -> int:
+        """The terrain's seed: its own when set, else derived from the master seed."""
+        return self.terrain.seed if self.terrain.seed is not None else self.seed
+
+
+# --------------------------------------------------------------------------- errors
+def _fmt_loc(loc: tuple[Any, ...]) -> str:
+    return ".".join(str(p) for p in loc) if loc else "<scenario>"
+
+
+def _allowed_keys(loc: tuple[Any, ...]) -> str:
+    """Field names allowed at the parent of ``loc`` (for unknown-key errors)."""
+    model: type[BaseModel] = Scenario
+    for part in loc[:-1]:
+        field = model.model_fields.get(str(part))
+        ann = getattr(field, "annotation", None) if field else None
+        if not (isinstance(ann, type) and issubclass(ann, BaseModel)):
+            return ""
+        model = ann
+    return ", ".join(model.model_fields)
+
+
+def format_validation_error(err: ValidationError) -> str:
+    """Turn pydantic's multi-line report into one line: field, bad value, what is allowed."""
+    errors = err.errors(include_url=False)
+    first = errors[0]
+    loc = tuple(first.get("loc", ()))
+    msg = str(first.get("msg", "invalid"))
+    msg = msg.removeprefix("Value error, ")
+    if first.get("type") == "extra_forbidden":
+        allowed = _allowed_keys(loc)
+        line = f"unknown field '{_fmt_loc(loc)}'; allowed here: {allowed}" if allowed else f"unknown field '{_fmt_loc(loc)}'"
+    elif loc:
+        line = f"{_fmt_loc(loc)} = {first.get('input')!r}: {msg}"
+    else:
+        line = msg  # model-level validators already name their fields
+    if len(errors) > 1:
+        line += f" (and {len(errors) - 1} more error{'s' if len(errors) > 2 else ''})"
+    return line.replace("\n", " ")
+
+
+# --------------------------------------------------------------------------- loading
+def _parse_value(text: str) -> Any:
+    """Parse an override value as a TOML value; bare words fall back to strings."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def apply_override(data: dict[str, Any], assignment: str) -> None:
+    """Apply one ``a.b.c=value`` override to a nested dict in place.
+
+    Raises:
+        ScenarioError: Malformed assignment or a path through a non-table.
+    """
+    key, sep, value = assignment.partition("=")
+    key = key.strip()
+    if not sep or not key or any(not p for p in key.split(".")):
+        raise ScenarioError(
+            f"--set {assignment!r}: expected KEY=VALUE with a dotted key, e.g. --set seed=7 or --set sun.elevation_deg=20"
+        )
+    parts = key.split(".")
+    node = data
+    for i, part in enumerate(parts[:-1]):
+        child = node.setdefault(part, {})
+        if not isinstance(child, dict):
+            raise ScenarioError(
+                f"--set {assignment!r}: '{'.'.join(parts[: i + 1])}' is a value, not a table; it has no field '{parts[i + 1]}'"
+            )
+        node = child
+    node[parts[-1]] = _parse_value(value.strip())
+
+
+def _read_toml(path: Path) -> dict[str, Any]:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ScenarioError(f"scenario file {str(path)!r} does not exist; give an existing .toml file or none for the default") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ScenarioError(f"scenario file {str(path)!r} cannot be read as UTF-8 text: {exc}") from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"scenario file {str(path)!r} is not valid TOML: {exc}") from None
+
+
+def default_scenario_text() -> str:
+    """Text of the bundled default scenario."""
+    return resources.files("bench.scenarios").joinpath(DEFAULT_SCENARIO).read_text(encoding="utf-8")
+
+
+def scenario_from_dict(data: dict[str, Any]) -> Scenario:
+    """Validate a plain dict into a Scenario, raising a one-line ScenarioError."""
+    try:
+        return Scenario.model_validate(data)
+    except ValidationError as err:
+        raise ScenarioError(format_validation_error(err)) from None
+
+
+def load_scenario(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Scenario:
+    """Load a scenario file (or the bundled default) and apply overrides.
+
+    Relative paths inside the file (``terrain.dem_path``) are resolved against
+    the file's folder, so a scenario can travel with its DEM.
+
+    Args:
+        path: TOML file, or None for the bundled default.
+        overrides: ``a.b=value`` assignments, applied in order.
+
+    Returns:
+        The validated scenario.
+
+    Raises:
+        ScenarioError: One line naming the field, the bad value and what is allowed.
+    """
+    if path is None:
+        data = tomllib.loads(default_scenario_text())
+        base = Path.cwd()
+    else:
+        path = Path(path)
+        data = _read_toml(path)
+        base = path.parent
+    for assignment in overrides:
+        apply_override(data, assignment)
+    dem = data.get("terrain", {}).get("dem_path") if isinstance(data.get("terrain"), dict) else None
+    if isinstance(dem, str) and dem and not Path(dem).is_absolute():
+        data["terrain"]["dem_path"] = str(base / dem)
+    return scenario_from_dict(data)
+
+
+# --------------------------------------------------------------------------- writing
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if math.isnan(v) or math.isinf(v):
+            return "nan" if math.isnan(v) else ("inf" if v > 0 else "-inf")
+        return repr(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def _toml_lines(table: dict[str, Any], prefix: str) -> list[str]:
+    lines = [f"{k} = {_toml_value(v)}" for k, v in table.items() if not isinstance(v, dict) and v is not None]
+    for k, v in table.items():
+        if isinstance(v, dict):
+            name = f"{prefix}.{k}" if prefix else k
+            lines += ["", f"[{name}]", *_toml_lines(v, name)]
+    return lines
+
+
+def scenario_to_toml(scenario: Scenario) -> str:
+    """Serialise the fully resolved scenario to TOML that loads back to an equal scenario.
+
+    ``None`` fields are omitted (TOML has no null); they load back as their default, None.
+    """
+    data = scenario.model_dump(mode="json")
+    return "\n".join(_toml_lines(data, "")).lstrip("\n") + "\n"

@@ -1,0 +1,84 @@
+"""Sensor and command messages: the interface of the flight software.
+
+Flight software (``gnc/`` and ``vision/``) sees the world only through these
+messages, as a flight computer sees it through its buses. The sensor models in
+``models/`` produce them; nothing in here refers to truth.
+
+Conventions:
+    * ``t_ns``: time of validity, integer nanoseconds since scenario start.
+    * Quaternions are scalar-first ``[w, x, y, z]`` (MuJoCo's convention).
+      ``q_LB`` rotates body-frame vectors into the landing frame L.
+    * L is the landing frame: origin at the landing target on the surface,
+      x east, y north, z up. B is the lander body frame (+z is the thrust axis).
+    * C is the camera frame in OpenCV's convention (x right, y down, z along
+      the boresight); pixel x is the column and y the row, integer values at
+      pixel centres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True, slots=True)
+class ImuMessage:
+    """Strapdown IMU sample.
+
+    Attributes:
+        t_ns: Time of validity [ns].
+        f_B: Specific force (non-gravitational acceleration) in B, (3,) [m/s^2].
+        omega_B: Angular rate of B relative to L, in B, (3,) [rad/s].
+    """
+
+    t_ns: int
+    f_B: np.ndarray
+    omega_B: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class AltimeterMessage:
+    """Laser altimeter sample.
+
+    Attributes:
+        t_ns: Time of validity [ns].
+        range_m: Slant range along the boresight [m]; NaN when invalid.
+        valid: False on a dropout or when the surface is beyond maximum range.
+        boresight_B: Unit boresight direction in B, (3,) (a calibration constant).
+    """
+
+    t_ns: int
+    range_m: float
+    valid: bool
+    boresight_B: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class AttitudeMessage:
+    """Star-tracker attitude sample.
+
+    Attributes:
+        t_ns: Time of validity [ns].
+        q_LB: Measured attitude quaternion, (4,) scalar-first.
+    """
+
+    t_ns: int
+    q_LB: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class ImageMessage:
+    """Camera frame with its calibration.
+
+    Attributes:
+        t_ns: Time of exposure [ns].
+        image: Grayscale frame, (H, W) uint8.
+        K: Pinhole intrinsics, (3, 3) [px].
+        R_BC: Camera-to-body rotation (mounting calibration), (3, 3).
+    """
+
+    t_ns: int
+    image: np.ndarray
+    K: np.ndarray
+    R_BC: np.ndarray

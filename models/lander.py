@@ -1,0 +1,169 @@
+"""Lander configuration and its MJCF description.
+
+The lander is a 6-DOF rigid body (MuJoCo free joint) with:
+
+* a main body (dry mass, box inertia) whose +z axis is the thrust axis;
+* a propellant tank, a massless-geometry child body welded at the main
+  body's centre of mass, whose mass and inertia the engine model lowers as
+  propellant flows (a sphere of uniformly distributed propellant);
+* four legs (capsules) ending in spherical footpads that contact the terrain;
+* sites for the engine (thrust along body +z), the RCS (torques about the
+  body axes), the IMU, the laser altimeter and the nadir camera.
+
+Frames: B is the body frame (origin at the centre of the main box, +z up
+when upright, +x forward). The nadir camera looks along body -z and its
+image x axis is body +x (see :mod:`models.camera`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+# Geometry groups: mj_ray against terrain alone needs the lander in another group.
+TERRAIN_GEOM_GROUP = 0
+LANDER_GEOM_GROUP = 1
+
+FOOTPAD_NAMES = ("foot_fl", "foot_fr", "foot_rl", "foot_rr")
+
+
+class EngineConfig(BaseModel):
+    """Throttleable main engine, thrust along body +z."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    thrust_max_N: float = Field(7500.0, gt=0, description="maximum thrust [N]")
+    thrust_min_N: float = Field(1500.0, ge=0, description="minimum thrust when lit [N] (deep-throttle limit)")
+    isp_s: float = Field(310.0, gt=0, description="specific impulse [s]")
+    thrust_error_frac: float = Field(
+        0.0, gt=-0.5, lt=0.5, description="fractional thrust error (delivered = commanded * (1 + e)) [-]"
+    )
+
+    @model_validator(mode="after")
+    def _min_below_max(self) -> "EngineConfig":
+        if self.thrust_min_N >= self.thrust_max_N:
+            raise ValueError(
+                f"engine.thrust_min_N = {self.thrust_min_N} must be below engine.thrust_max_N = "
+                f"{self.thrust_max_N}; allowed: 0 <= thrust_min_N < thrust_max_N"
+            )
+        return self
+
+
+class LanderConfig(BaseModel):
+    """Mass properties, geometry and actuator limits of the lander."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    dry_mass_kg: float = Field(1500.0, gt=0, description="dry mass [kg]")
+    propellant_kg: float = Field(600.0, ge=0, description="initial propellant mass [kg]")
+    body_half_extents_m: tuple[float, float, float] = Field(
+        (1.0, 1.0, 0.75), description="half sizes of the main body box along body x, y, z [m]"
+    )
+    tank_radius_m: float = Field(0.6, gt=0, description="radius of the spherical propellant tank [m]")
+    leg_radius_m: float = Field(2.2, gt=0, description="horizontal distance of each footpad from the body axis [m]")
+    leg_drop_m: float = Field(1.9, gt=0, description="depth of the footpad centres below the body origin [m]")
+    footpad_radius_m: float = Field(0.2, gt=0, description="footpad sphere radius [m]")
+    friction: float = Field(0.8, gt=0, description="footpad-regolith Coulomb friction coefficient [-]")
+    rcs_torque_max_Nm: float = Field(200.0, gt=0, description="RCS torque saturation per body axis [N m]")
+    engine: EngineConfig = EngineConfig()
+
+    @property
+    def wet_mass_kg(self) -> float:
+        return self.dry_mass_kg + self.propellant_kg
+
+    @property
+    def footpad_clearance_m(self) -> float:
+        """Height of the body origin above flat ground when standing on it [m]."""
+        return self.leg_drop_m + self.footpad_radius_m
+
+    def body_inertia_kgm2(self) -> np.ndarray:
+        """Principal inertia of the dry main body, a solid box (3,) [kg m^2]."""
+        a, b, c = (2.0 * h for h in self.body_half_extents_m)
+        m = self.dry_mass_kg
+        return np.array([m * (b * b + c * c), m * (a * a + c * c), m * (a * a + b * b)]) / 12.0
+
+    def tank_inertia_kgm2(self, propellant_kg: float) -> np.ndarray:
+        """Principal inertia of a uniform propellant sphere (3,) [kg m^2]."""
+        return np.full(3, 0.4 * propellant_kg * self.tank_radius_m**2)
+
+
+# MuJoCo needs a strictly positive body mass for a body with an <inertial>; an
+# empty tank keeps this negligible remainder (1 g), far below any tolerance.
+TANK_MASS_FLOOR_KG = 1e-3
+
+
+def footpad_positions_B(cfg: LanderConfig) -> np.ndarray:
+    """Footpad centres in the body frame (4, 3) [m], order FOOTPAD_NAMES."""
+    r = cfg.leg_radius_m / np.sqrt(2.0)
+    z = -cfg.leg_drop_m
+    return np.array([[r, r, z], [r, -r, z], [-r, r, z], [-r, -r, z]])
+
+
+def lander_mjcf(cfg: LanderConfig, camera_fovy_deg: float) -> str:
+    """MJCF ``<body>`` element of the lander, to be placed in ``<worldbody>``.
+
+    Args:
+        cfg: Lander configuration.
+        camera_fovy_deg: Vertical field of view of the nadir camera [deg].
+
+    Returns:
+        MJCF text of the ``lander`` body with its free joint, geoms and sites.
+    """
+    hx, hy, hz = cfg.body_half_extents_m
+    inertia = cfg.body_inertia_kgm2()
+    tank_mass = max(cfg.propellant_kg, TANK_MASS_FLOOR_KG)
+    tank_inertia = cfg.tank_inertia_kgm2(tank_mass)
+    feet = footpad_positions_B(cfg)
+    leg_top_z = -0.6 * hz
+    g = LANDER_GEOM_GROUP
+    fric = f"{cfg.friction} 0.005 0.0001"
+    legs = []
+    for name, (x, y, z) in zip(FOOTPAD_NAMES, feet):
+        x0, y0 = np.sign(x) * hx * 0.9, np.sign(y) * hy * 0.9
+        legs.append(
+            f'<geom name="leg_{name[5:]}" type="capsule" size="0.06" fromto="{x0} {y0} {leg_top_z} {x} {y} {z}" '
+            f'group="{g}" contype="1" conaffinity="0" mass="0" rgba="0.7 0.7 0.7 1" friction="{fric}"/>'
+        )
+        legs.append(
+            f'<geom name="{name}" type="sphere" size="{cfg.footpad_radius_m}" pos="{x} {y} {z}" '
+            f'group="{g}" contype="1" conaffinity="0" mass="0" rgba="0.8 0.7 0.3 1" friction="{fric}"/>'
+        )
+    bottom = -hz - 0.02  # sensors sit just below the body so rays and the view clear it
+    return f"""
+    <body name="lander" pos="0 0 0">
+      <freejoint name="lander_free"/>
+      <inertial pos="0 0 0" mass="{cfg.dry_mass_kg}" diaginertia="{inertia[0]} {inertia[1]} {inertia[2]}"/>
+      <geom name="hull" type="box" size="{hx} {hy} {hz}" group="{g}" contype="1" conaffinity="0"
+            mass="0" rgba="0.85 0.75 0.3 1" friction="{fric}"/>
+      {''.join(legs)}
+      <site name="engine" pos="0 0 {-hz}" size="0.1"/>
+      <site name="rcs" pos="0 0 0" size="0.05"/>
+      <site name="imu" pos="0 0 0" size="0.05"/>
+      <site name="altimeter" pos="0.3 0 {bottom}" size="0.03"/>
+      <camera name="nadir" pos="0 0 {bottom}" xyaxes="1 0 0 0 1 0" fovy="{camera_fovy_deg}"/>
+      <body name="tank" pos="0 0 0">
+        <inertial pos="0 0 0" mass="{tank_mass}" diaginertia="{tank_inertia[0]} {tank_inertia[1]} {tank_inertia[2]}"/>
+      </body>
+    </body>"""
+
+
+def actuator_mjcf(cfg: LanderConfig) -> str:
+    """MJCF ``<actuator>`` children: engine thrust and three RCS torques.
+
+    The engine actuator's control is the delivered thrust [N]; throttle
+    limits, the on/off logic and thrust error are applied by
+    :class:`models.actuators.PropulsionModel` before it writes ``data.ctrl``.
+    """
+    tau = cfg.rcs_torque_max_Nm
+    return f"""
+    <motor name="engine" site="engine" gear="0 0 1 0 0 0" ctrllimited="true" ctrlrange="0 {cfg.engine.thrust_max_N * 1.5}"/>
+    <motor name="rcs_x" site="rcs" gear="0 0 0 1 0 0" ctrllimited="true" ctrlrange="{-tau} {tau}"/>
+    <motor name="rcs_y" site="rcs" gear="0 0 0 0 1 0" ctrllimited="true" ctrlrange="{-tau} {tau}"/>
+    <motor name="rcs_z" site="rcs" gear="0 0 0 0 0 1" ctrllimited="true" ctrlrange="{-tau} {tau}"/>"""
+
+
+def sensor_mjcf() -> str:
+    """MJCF ``<sensor>`` children: the truth IMU signals at the IMU site."""
+    return """
+    <accelerometer name="imu_acc" site="imu"/>
+    <gyro name="imu_gyro" site="imu"/>"""

@@ -1,0 +1,138 @@
+"""Sensor error models: IMU, laser altimeter and star tracker.
+
+Each model turns a truth signal (computed by :class:`models.world.World`)
+into the flight-software message of :mod:`gnc.messages`, with its own noise,
+on its own random stream, at its own rate. Truth never leaves through a
+message except as corrupted by these models.
+
+Ports:
+    ImuModel: in truth specific force f_B [m/s^2] and rate omega_B [rad/s];
+        out :class:`ImuMessage`; rate ``ImuConfig.period_ns``.
+    AltimeterModel: in truth slant range [m] (ray cast, NaN on no hit);
+        out :class:`AltimeterMessage`; rate ``AltimeterConfig.period_ns``.
+    StarTrackerModel: in truth q_LB; out :class:`AttitudeMessage`;
+        rate ``StarTrackerConfig.period_ns``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial.transform import Rotation
+
+from gnc.messages import AltimeterMessage, AttitudeMessage, ImuMessage
+
+NS_PER_S = 1_000_000_000
+
+# The altimeter boresight is body -z (nadir when upright).
+ALTIMETER_BORESIGHT_B = np.array([0.0, 0.0, -1.0])
+
+
+class ImuConfig(BaseModel):
+    """IMU error model: white noise, turn-on bias and bias random walk."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    period_ns: int = Field(10_000_000, gt=0, description="sample period [ns] (default 100 Hz)")
+    accel_noise_density: float = Field(
+        1e-3, ge=0, description="accelerometer white noise density [m/s^2/sqrt(Hz)]"
+    )
+    gyro_noise_density: float = Field(1e-5, ge=0, description="gyro white noise density [rad/s/sqrt(Hz)]")
+    accel_bias_sigma: float = Field(5e-3, ge=0, description="accelerometer turn-on bias, 1-sigma per axis [m/s^2]")
+    gyro_bias_sigma: float = Field(1e-5, ge=0, description="gyro turn-on bias, 1-sigma per axis [rad/s]")
+    accel_bias_walk: float = Field(1e-4, ge=0, description="accelerometer bias random walk [m/s^2/sqrt(s)]")
+    gyro_bias_walk: float = Field(1e-6, ge=0, description="gyro bias random walk [rad/s/sqrt(s)]")
+
+
+class AltimeterConfig(BaseModel):
+    """Laser altimeter error model."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    period_ns: int = Field(50_000_000, gt=0, description="sample period [ns] (default 20 Hz)")
+    max_range_m: float = Field(3000.0, gt=0, description="maximum range; beyond it the sample is invalid [m]")
+    noise_sigma_m: float = Field(0.05, ge=0, description="range noise floor, 1-sigma [m]")
+    noise_frac: float = Field(1e-3, ge=0, description="range noise proportional to range, 1-sigma [-]")
+    dropout_prob: float = Field(0.01, ge=0, le=1, description="probability that a sample is dropped [-]")
+
+
+class StarTrackerConfig(BaseModel):
+    """Star-tracker attitude error model."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    period_ns: int = Field(100_000_000, gt=0, description="sample period [ns] (default 10 Hz)")
+    noise_sigma_arcsec: float = Field(10.0, ge=0, description="attitude noise, 1-sigma per axis [arcsec]")
+
+
+class SensorsConfig(BaseModel):
+    """All non-imaging sensors."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    imu: ImuConfig = ImuConfig()
+    altimeter: AltimeterConfig = AltimeterConfig()
+    star_tracker: StarTrackerConfig = StarTrackerConfig()
+
+
+class ImuModel:
+    """IMU with white noise, turn-on bias and bias random walk (per axis)."""
+
+    def __init__(self, cfg: ImuConfig, rng: np.random.Generator):
+        self.cfg = cfg
+        self._rng = rng
+        dt = cfg.period_ns / NS_PER_S
+        # Discrete white-noise sigma from a density: sigma = density / sqrt(dt).
+        self._acc_sigma = cfg.accel_noise_density / math.sqrt(dt)
+        self._gyro_sigma = cfg.gyro_noise_density / math.sqrt(dt)
+        self._acc_walk = cfg.accel_bias_walk * math.sqrt(dt)
+        self._gyro_walk = cfg.gyro_bias_walk * math.sqrt(dt)
+        self.accel_bias = rng.normal(0.0, cfg.accel_bias_sigma, 3)  # [m/s^2] truth, for scoring only
+        self.gyro_bias = rng.normal(0.0, cfg.gyro_bias_sigma, 3)  # [rad/s]
+
+    def sample(self, t_ns: int, f_B_true: np.ndarray, omega_B_true: np.ndarray) -> ImuMessage:
+        """Corrupt one truth sample and advance the bias random walk."""
+        rng = self._rng
+        f_B = f_B_true + self.accel_bias + rng.normal(0.0, self._acc_sigma, 3)
+        omega_B = omega_B_true + self.gyro_bias + rng.normal(0.0, self._gyro_sigma, 3)
+        self.accel_bias = self.accel_bias + rng.normal(0.0, self._acc_walk, 3)
+        self.gyro_bias = self.gyro_bias + rng.normal(0.0, self._gyro_walk, 3)
+        return ImuMessage(t_ns=t_ns, f_B=f_B, omega_B=omega_B)
+
+
+class AltimeterModel:
+    """Laser range along the boresight with noise, maximum range and dropouts."""
+
+    def __init__(self, cfg: AltimeterConfig, rng: np.random.Generator):
+        self.cfg = cfg
+        self._rng = rng
+
+    def sample(self, t_ns: int, range_true_m: float) -> AltimeterMessage:
+        """Corrupt one truth range (NaN when the ray hit nothing)."""
+        cfg = self.cfg
+        # Draw both numbers every sample so the stream does not depend on the geometry.
+        dropped = self._rng.random() < cfg.dropout_prob
+        noise = self._rng.normal()
+        if dropped or not math.isfinite(range_true_m) or range_true_m > cfg.max_range_m:
+            return AltimeterMessage(t_ns=t_ns, range_m=math.nan, valid=False, boresight_B=ALTIMETER_BORESIGHT_B)
+        sigma = math.hypot(cfg.noise_sigma_m, cfg.noise_frac * range_true_m)
+        return AltimeterMessage(
+            t_ns=t_ns, range_m=range_true_m + sigma * noise, valid=True, boresight_B=ALTIMETER_BORESIGHT_B
+        )
+
+
+class StarTrackerModel:
+    """Attitude quaternion with a small random rotation error per sample."""
+
+    def __init__(self, cfg: StarTrackerConfig, rng: np.random.Generator):
+        self.cfg = cfg
+        self._rng = rng
+        self._sigma_rad = math.radians(cfg.noise_sigma_arcsec / 3600.0)
+
+    def sample(self, t_ns: int, q_LB_true: np.ndarray) -> AttitudeMessage:
+        """Corrupt one truth attitude: q_meas = q_true (x) dq(noise), body-frame error."""
+        error = Rotation.from_rotvec(self._rng.normal(0.0, self._sigma_rad, 3))
+        q = (Rotation.from_quat(q_LB_true, scalar_first=True) * error).as_quat(canonical=True, scalar_first=True)
+        return AttitudeMessage(t_ns=t_ns, q_LB=q)

@@ -1,0 +1,379 @@
+"""The truth world: a MuJoCo lander over a lunar heightfield, with a camera.
+
+Ports:
+    Input: thrust [N] and body torque (3,) [N m] held over ``step`` calls.
+    Output (truth, for ``bench/`` only): :class:`TruthState`, the truth
+        signals the sensor models corrupt (specific force, angular rate,
+        altimeter range), camera images and depth, camera pose, contacts.
+    Rate: physics at ``physics_dt_ns``; rendering on request.
+
+The landing frame L is MuJoCo's world frame: origin at the landing target on
+the surface (the terrain is shifted so its height there is 0), x east,
+y north, z up. Gravity is ``-gravity_mps2 * z``.
+
+Never silent: after every physics chunk, MuJoCo's warning counters for bad
+qacc/qpos/qvel are checked and :class:`PhysicsDivergedError` is raised
+(MuJoCo would otherwise reset the state and carry on).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from models.gl import ensure_gl_backend
+
+ensure_gl_backend()
+import mujoco  # noqa: E402  (the GL backend must be chosen first)
+
+from models.actuators import PropulsionModel, PropulsionOutput  # noqa: E402
+from models.camera import R_MJCAM_C, CameraConfig, intrinsics  # noqa: E402
+from models.lander import (  # noqa: E402
+    FOOTPAD_NAMES,
+    TANK_MASS_FLOOR_KG,
+    TERRAIN_GEOM_GROUP,
+    LanderConfig,
+    actuator_mjcf,
+    lander_mjcf,
+    sensor_mjcf,
+)
+from models.terrain import Terrain  # noqa: E402
+
+NS_PER_S = 1_000_000_000
+logger = logging.getLogger(__name__)
+# MuJoCo's default warning handler appends to MUJOCO_LOG.TXT in the working
+# directory; route its warnings to logging instead. Divergence is still caught
+# through the warning counters below.
+mujoco.set_mju_user_warning(lambda msg: logger.warning("MuJoCo: %s", msg))
+
+# Thickness of the heightfield's solid base below its lowest point [m].
+HFIELD_BASE_M = 5.0
+# Light: MuJoCo clamps lit colour at 1, so the sun's diffuse intensity is set
+# to map flat ground at the sun's elevation to this fraction of the albedo.
+FLAT_GROUND_EXPOSURE = 0.9
+AMBIENT_LIGHT = 0.04  # earthshine/scatter floor, keeps shadows from going fully black
+MAX_SUN_DIFFUSE = 4.0
+
+_DIVERGENCE_WARNINGS = (
+    (mujoco.mjtWarning.mjWARN_BADQACC, "bad qacc (NaN/Inf acceleration)"),
+    (mujoco.mjtWarning.mjWARN_BADQPOS, "bad qpos (NaN/Inf or huge position)"),
+    (mujoco.mjtWarning.mjWARN_BADQVEL, "bad qvel (NaN/Inf or huge velocity)"),
+)
+
+
+class PhysicsDivergedError(RuntimeError):
+    """The physics state became invalid; the run must not continue."""
+
+
+class SunConfig(BaseModel):
+    """Direction of the sun and shadow rendering."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    elevation_deg: float = Field(30.0, gt=0.0, le=90.0, description="sun elevation above the horizon [deg]")
+    azimuth_deg: float = Field(
+        120.0, ge=0.0, lt=360.0, description="sun azimuth, from north (+y) clockwise toward east (+x) [deg]"
+    )
+    shadows: bool = Field(False, description="render cast shadows (costly on a CPU renderer; see README)")
+
+    def direction_L(self) -> np.ndarray:
+        """Unit vector from the surface toward the sun, in L (3,)."""
+        el, az = math.radians(self.elevation_deg), math.radians(self.azimuth_deg)
+        return np.array([math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)])
+
+
+@dataclass(frozen=True)
+class TruthState:
+    """Truth state of the lander (for ``bench/`` scoring only).
+
+    Attributes:
+        t_ns: Simulation time [ns].
+        r_BL_L: Body origin relative to the landing target, in L (3,) [m].
+        v_BL_L: Body origin velocity in L (3,) [m/s].
+        q_LB: Attitude, scalar-first (4,), body to L.
+        omega_B: Angular rate of B in B (3,) [rad/s].
+        mass_kg: Total mass [kg].
+        propellant_kg: Propellant left [kg].
+    """
+
+    t_ns: int
+    r_BL_L: np.ndarray
+    v_BL_L: np.ndarray
+    q_LB: np.ndarray
+    omega_B: np.ndarray
+    mass_kg: float
+    propellant_kg: float
+
+
+def world_mjcf(terrain: Terrain, lander: LanderConfig, camera: CameraConfig, sun: SunConfig,
+               physics_dt_s: float, gravity_mps2: float) -> str:
+    """Assemble the MJCF of the whole world (heights and texture are written later)."""
+    n_rows, n_cols = terrain.height_m.shape
+    tex_rows, tex_cols = terrain.albedo.shape
+    half = terrain.size_m / 2.0
+    z_range = max(float(np.ptp(terrain.height_m)), 1e-3)
+    sun_dir = sun.direction_L()
+    diffuse = min(FLAT_GROUND_EXPOSURE / sun_dir[2], MAX_SUN_DIFFUSE)
+    shadow = "true" if sun.shadows else "false"
+    offw = max(camera.width_px, 64)
+    offh = max(camera.height_px, 64)
+    return f"""
+<mujoco model="landbench">
+  <option timestep="{physics_dt_s}" gravity="0 0 {-gravity_mps2}" integrator="implicitfast"/>
+  <visual>
+    <global offwidth="{offw}" offheight="{offh}"/>
+    <headlight active="0" ambient="0 0 0" diffuse="0 0 0" specular="0 0 0"/>
+    <quality shadowsize="2048"/>
+  </visual>
+  <asset>
+    <hfield name="terrain" nrow="{n_rows}" ncol="{n_cols}" size="{half} {half} {z_range} {HFIELD_BASE_M}"/>
+    <texture name="albedo" type="2d" builtin="flat" width="{tex_cols}" height="{tex_rows}" rgb1="0.5 0.5 0.5"/>
+    <material name="regolith" texture="albedo" specular="0" shininess="0" reflectance="0" rgba="1 1 1 1"/>
+  </asset>
+  <worldbody>
+    <light name="sun" directional="true" castshadow="{shadow}" pos="0 0 1000"
+           dir="{-sun_dir[0]} {-sun_dir[1]} {-sun_dir[2]}"
+           diffuse="{diffuse} {diffuse} {diffuse}" ambient="{AMBIENT_LIGHT} {AMBIENT_LIGHT} {AMBIENT_LIGHT}"
+           specular="0 0 0"/>
+    <geom name="terrain" type="hfield" hfield="terrain" material="regolith" group="{TERRAIN_GEOM_GROUP}"
+          pos="0 0 {float(terrain.height_m.min())}" contype="0" conaffinity="1" friction="{lander.friction} 0.005 0.0001"/>
+    {lander_mjcf(lander, camera.fovy_deg)}
+  </worldbody>
+  <actuator>{actuator_mjcf(lander)}
+  </actuator>
+  <sensor>{sensor_mjcf()}
+  </sensor>
+</mujoco>"""
+
+
+class World:
+    """MuJoCo truth world with propulsion, truth signals and rendering.
+
+    Args:
+        terrain: The terrain (geometry grid and albedo texture).
+        lander: Lander configuration.
+        camera: Camera configuration (size, FOV; used for rendering).
+        sun: Sun direction and shadows.
+        physics_dt_ns: Physics step [ns].
+        gravity_mps2: Surface gravity magnitude [m/s^2].
+    """
+
+    def __init__(self, terrain: Terrain, lander: LanderConfig, camera: CameraConfig, sun: SunConfig,
+                 physics_dt_ns: int, gravity_mps2: float = 1.62):
+        self.terrain = terrain
+        self.lander_cfg = lander
+        self.camera_cfg = camera
+        self.physics_dt_ns = int(physics_dt_ns)
+        self.dt_s = self.physics_dt_ns / NS_PER_S
+        self.gravity_mps2 = gravity_mps2
+        self.model = mujoco.MjModel.from_xml_string(
+            world_mjcf(terrain, lander, camera, sun, self.dt_s, gravity_mps2)
+        )
+        self._write_terrain(terrain)
+        self.data = mujoco.MjData(self.model)
+        m = self.model
+        self._body_lander = m.body("lander").id
+        self._body_tank = m.body("tank").id
+        self._cam = m.camera("nadir").id
+        self._site_alt = m.site("altimeter").id
+        self._geom_terrain = m.geom("terrain").id
+        self._foot_geoms = np.array([m.geom(n).id for n in FOOTPAD_NAMES])
+        self._lander_geoms = np.flatnonzero(m.geom_bodyid == self._body_lander)
+        self._act_engine = m.actuator("engine").id
+        self._act_rcs = np.array([m.actuator(n).id for n in ("rcs_x", "rcs_y", "rcs_z")])
+        self._sens_acc = slice(m.sensor_adr[m.sensor("imu_acc").id], m.sensor_adr[m.sensor("imu_acc").id] + 3)
+        self._sens_gyro = slice(m.sensor_adr[m.sensor("imu_gyro").id], m.sensor_adr[m.sensor("imu_gyro").id] + 3)
+        self._ray_groups = np.zeros(mujoco.mjNGROUP, np.uint8)
+        self._ray_groups[TERRAIN_GEOM_GROUP] = 1
+        self._ray_geomid = np.zeros(1, np.int32)
+        self.propulsion = PropulsionModel(lander)
+        self.K = intrinsics(camera)
+        self._renderer: mujoco.Renderer | None = None
+        self._depth_renderer: mujoco.Renderer | None = None
+        self._step_count = 0
+        self._set_clip_planes()
+        mujoco.mj_forward(self.model, self.data)
+
+    # ----------------------------------------------------------------- build
+    def _write_terrain(self, terrain: Terrain) -> None:
+        """Write heights (normalised to [0, 1] of the hfield's z range) and the texture."""
+        h = terrain.height_m.astype(np.float64)
+        z_range = float(self.model.hfield_size[0, 2])
+        self.model.hfield_data[:] = ((h - h.min()) / z_range).ravel()
+        tex = self.model.tex_data
+        nch = int(self.model.tex_nchannel[0])
+        # MuJoCo maps texture row 0 to the north (+y) edge; Terrain rows run south to north.
+        albedo = np.ascontiguousarray(terrain.albedo[::-1])
+        tex[:] = np.repeat(albedo[..., None], nch, axis=2).ravel()
+
+    def _set_clip_planes(self) -> None:
+        """Near/far planes in metres (MuJoCo stores them relative to the model extent)."""
+        extent = float(self.model.stat.extent)
+        self.model.vis.map.znear = self.camera_cfg.near_m / extent
+        self.model.vis.map.zfar = 4.0 * self.terrain.size_m / extent
+
+    # ----------------------------------------------------------------- state
+    @property
+    def t_ns(self) -> int:
+        return self._step_count * self.physics_dt_ns
+
+    def reset(self, r_BL_L: np.ndarray, v_BL_L: np.ndarray, q_LB: np.ndarray, omega_B: np.ndarray) -> None:
+        """Place the lander (body origin) and zero time.
+
+        Args:
+            r_BL_L: Position in L (3,) [m].
+            v_BL_L: Velocity in L (3,) [m/s].
+            q_LB: Attitude, scalar-first (4,).
+            omega_B: Body rate in B (3,) [rad/s].
+        """
+        mujoco.mj_resetData(self.model, self.data)
+        self.propulsion = PropulsionModel(self.lander_cfg)
+        self._set_propellant(self.propulsion.propellant_kg)
+        q = np.asarray(q_LB, float)
+        self.data.qpos[0:3] = r_BL_L
+        self.data.qpos[3:7] = q / np.linalg.norm(q)
+        self.data.qvel[0:3] = v_BL_L
+        self.data.qvel[3:6] = omega_B
+        self._step_count = 0
+        mujoco.mj_forward(self.model, self.data)
+
+    def _set_propellant(self, propellant_kg: float) -> None:
+        mass = max(propellant_kg, TANK_MASS_FLOOR_KG)
+        self.model.body_mass[self._body_tank] = mass
+        self.model.body_inertia[self._body_tank] = self.lander_cfg.tank_inertia_kgm2(mass)
+
+    def truth(self) -> TruthState:
+        """Current truth state (copies)."""
+        d = self.data
+        prop = self.propulsion.propellant_kg
+        return TruthState(
+            t_ns=self.t_ns,
+            r_BL_L=d.qpos[0:3].copy(),
+            v_BL_L=d.qvel[0:3].copy(),
+            q_LB=d.qpos[3:7].copy(),
+            omega_B=d.qvel[3:6].copy(),
+            mass_kg=self.lander_cfg.dry_mass_kg + prop,
+            propellant_kg=prop,
+        )
+
+    # ----------------------------------------------------------------- step
+    def step(self, n_steps: int, thrust_cmd_N: float = 0.0, torque_cmd_B_Nm: np.ndarray | None = None) -> PropulsionOutput:
+        """Advance ``n_steps`` physics steps with the commands held.
+
+        Raises:
+            PhysicsDivergedError: MuJoCo flagged a bad qacc, qpos or qvel.
+        """
+        torque = np.zeros(3) if torque_cmd_B_Nm is None else torque_cmd_B_Nm
+        out = self.propulsion.apply(thrust_cmd_N, torque, n_steps, self.dt_s)
+        self.data.ctrl[self._act_rcs] = out.torque_B_Nm
+        self.data.ctrl[self._act_engine] = out.thrust_N
+        if out.burn_steps > 0:
+            self._advance(out.burn_steps)
+        if out.burn_steps < n_steps:
+            self.data.ctrl[self._act_engine] = 0.0
+            self._advance(n_steps - out.burn_steps)
+        self._set_propellant(self.propulsion.propellant_kg)
+        return out
+
+    def _advance(self, n: int) -> None:
+        before = [int(self.data.warning[w].number) for w, _ in _DIVERGENCE_WARNINGS]
+        mujoco.mj_step(self.model, self.data, nstep=n)
+        self._step_count += n
+        for (w, what), b in zip(_DIVERGENCE_WARNINGS, before):
+            if int(self.data.warning[w].number) > b:
+                raise PhysicsDivergedError(
+                    f"physics diverged at t = {self.t_ns / NS_PER_S:.3f} s: MuJoCo reported {what}. "
+                    f"The physics step (sim.physics_dt_ns = {self.physics_dt_ns}) is probably too large "
+                    "for the contact and actuator dynamics; reduce it."
+                )
+
+    # ----------------------------------------------------------------- truth signals
+    def specific_force_B(self) -> np.ndarray:
+        """Truth specific force at the IMU, in B (3,) [m/s^2] (MuJoCo accelerometer)."""
+        return self.data.sensordata[self._sens_acc].copy()
+
+    def angular_rate_B(self) -> np.ndarray:
+        """Truth angular rate at the IMU, in B (3,) [rad/s]."""
+        return self.data.sensordata[self._sens_gyro].copy()
+
+    def altimeter_ray(self) -> tuple[np.ndarray, np.ndarray]:
+        """Altimeter origin and unit direction in L, ((3,), (3,))."""
+        xmat = self.data.site_xmat[self._site_alt].reshape(3, 3)
+        return self.data.site_xpos[self._site_alt].copy(), -xmat[:, 2].copy()
+
+    def altimeter_range_truth(self) -> float:
+        """Slant range from the altimeter along its boresight to the terrain [m]; NaN if none."""
+        origin, direction = self.altimeter_ray()
+        dist = mujoco.mj_ray(self.model, self.data, origin, direction, self._ray_groups, 1, -1, self._ray_geomid)
+        return float(dist) if dist >= 0 else math.nan
+
+    def footpad_contacts(self) -> np.ndarray:
+        """Which footpads touch the terrain, (4,) bool, order FOOTPAD_NAMES."""
+        touching = np.zeros(len(self._foot_geoms), bool)
+        con = self.data.contact
+        for i in range(self.data.ncon):
+            g1, g2 = con.geom1[i], con.geom2[i]
+            other = g2 if g1 == self._geom_terrain else (g1 if g2 == self._geom_terrain else -1)
+            touching |= self._foot_geoms == other
+        return touching
+
+    def lander_terrain_contacts(self) -> int:
+        """Number of contacts between any lander geom and the terrain."""
+        con = self.data.contact
+        n = 0
+        for i in range(self.data.ncon):
+            if self._geom_terrain in (con.geom1[i], con.geom2[i]):
+                n += 1
+        return n
+
+    # ----------------------------------------------------------------- camera
+    @property
+    def camera_position_B(self) -> np.ndarray:
+        """Camera centre in the body frame (3,) [m] (mounting calibration)."""
+        return self.model.cam_pos[self._cam].copy()
+
+    def camera_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """Truth camera pose: R_LC (3, 3) (OpenCV camera frame to L) and r_CL_L (3,) [m]."""
+        R_L_mj = self.data.cam_xmat[self._cam].reshape(3, 3)
+        return R_L_mj @ R_MJCAM_C, self.data.cam_xpos[self._cam].copy()
+
+    def _get_renderer(self, depth: bool) -> "mujoco.Renderer":
+        cfg = self.camera_cfg
+        if depth:
+            if self._depth_renderer is None:
+                self._depth_renderer = mujoco.Renderer(self.model, cfg.height_px, cfg.width_px)
+                self._depth_renderer.enable_depth_rendering()
+            return self._depth_renderer
+        if self._renderer is None:
+            self._renderer = mujoco.Renderer(self.model, cfg.height_px, cfg.width_px)
+        return self._renderer
+
+    def render_signal(self) -> np.ndarray:
+        """Noise-free grayscale camera image, (H, W) uint8 [DN]."""
+        r = self._get_renderer(depth=False)
+        r.update_scene(self.data, camera=self._cam)
+        # The scene is gray (white sun, gray albedo), so one channel carries it all.
+        return r.render()[:, :, 1]
+
+    def render_depth(self) -> np.ndarray:
+        """Z-depth along the boresight, (H, W) float32 [m]."""
+        r = self._get_renderer(depth=True)
+        r.update_scene(self.data, camera=self._cam)
+        return r.render().astype(np.float32, copy=False)
+
+    def close(self) -> None:
+        """Free the GL contexts (also done by garbage collection)."""
+        for r in (self._renderer, self._depth_renderer):
+            if r is not None:
+                r.close()
+        self._renderer = self._depth_renderer = None
+
+    def __enter__(self) -> "World":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

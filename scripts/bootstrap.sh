@@ -1,0 +1,77 @@
+#!/usr/bin/env bash
+# Bootstrap landbench on a fresh Debian/Ubuntu machine:
+#   1. system packages: a Python >= 3.11 with venv, and Mesa's headless OpenGL
+#      (EGL + OSMesa software rendering), installed through apt when missing;
+#   2. .venv with landbench installed (editable) and its test extras.
+# Idempotent: re-running does nothing when everything is in place.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+GL_PKGS=(libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6)
+VENV=.venv
+STAMP=$VENV/.landbench-installed
+
+have_pkg() { dpkg-query -W -f='${Status}' "$1" 2>/dev/null | grep -q "install ok installed"; }
+
+apt_install() {
+  # Install Debian packages, as root or through passwordless sudo; otherwise say exactly what to run.
+  local pkgs=("$@")
+  local cmd=(apt-get install -y --no-install-recommends "${pkgs[@]}")
+  if [ "$(id -u)" -eq 0 ]; then
+    DEBIAN_FRONTEND=noninteractive apt-get update -qq && DEBIAN_FRONTEND=noninteractive "${cmd[@]}" -qq
+  elif command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then
+    sudo DEBIAN_FRONTEND=noninteractive apt-get update -qq && sudo DEBIAN_FRONTEND=noninteractive "${cmd[@]}" -qq
+  else
+    echo "landbench: missing system packages: ${pkgs[*]}" >&2
+    echo "landbench: not root and no passwordless sudo, so they cannot be installed automatically. Run:" >&2
+    echo "    sudo apt-get install -y ${pkgs[*]}" >&2
+    echo "then run make again." >&2
+    exit 1
+  fi
+}
+
+# --- Python >= 3.11 with venv ------------------------------------------------
+find_python() {
+  for c in "${PYTHON:-}" python3 python3.13 python3.12 python3.11; do
+    [ -n "$c" ] && command -v "$c" >/dev/null 2>&1 || continue
+    if "$c" -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else 1)' 2>/dev/null; then
+      echo "$c"; return 0
+    fi
+  done
+  return 1
+}
+PY=$(find_python || true)
+if [ -z "$PY" ]; then
+  if command -v dpkg-query >/dev/null 2>&1; then
+    apt_install python3.11 python3.11-venv
+    PY=$(find_python)
+  else
+    echo "landbench: needs Python >= 3.11 (set PYTHON=/path/to/python3.11)" >&2; exit 1
+  fi
+fi
+if [ ! -x "$VENV/bin/python" ] && ! "$PY" -c 'import ensurepip, venv' >/dev/null 2>&1; then
+  ver=$("$PY" -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[1]}")')
+  apt_install "python${ver}-venv"
+fi
+
+# --- Mesa headless OpenGL ------------------------------------------------------
+if command -v dpkg-query >/dev/null 2>&1; then
+  missing=()
+  for p in "${GL_PKGS[@]}"; do have_pkg "$p" || missing+=("$p"); done
+  if [ ${#missing[@]} -gt 0 ]; then
+    echo "landbench: installing Mesa headless OpenGL: ${missing[*]}"
+    apt_install "${missing[@]}"
+  fi
+else
+  echo "landbench: not a Debian/Ubuntu system; make sure Mesa EGL or OSMesa is installed." >&2
+fi
+
+# --- virtual environment ---------------------------------------------------------
+if [ ! -x "$VENV/bin/python" ]; then
+  "$PY" -m venv "$VENV"
+fi
+if [ ! -f "$STAMP" ] || [ pyproject.toml -nt "$STAMP" ]; then
+  "$VENV/bin/python" -m pip install -q --upgrade pip
+  "$VENV/bin/python" -m pip install -q -e '.[dev]'
+  touch "$STAMP"
+fi

@@ -1,0 +1,29 @@
+"""Shared fixtures: small, fast worlds built from independent, known terrains."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.terrain import Terrain
+
+# Small terrains keep the suite fast; the physics and optics do not depend on size.
+SMALL_SET = ["terrain.texture_px=1024", "terrain.geometry_px=65", "terrain.size_m=512.0"]
+
+
+def make_terrain(height_m: np.ndarray, size_m: float, texture_px: int = 512, seed: int = 0) -> Terrain:
+    """A Terrain from an explicit height grid (rows south to north) and a random-texture albedo."""
+    rng = np.random.default_rng(seed)
+    albedo = rng.integers(40, 220, (texture_px, texture_px), dtype=np.uint8)
+    return Terrain(
+        height_m=np.asarray(height_m, np.float32),
+        size_m=float(size_m),
+        albedo=albedo,
+        craters=np.zeros((0, 3)),
+        boulders=np.zeros((0, 3)),
+    )
+
+
+@pytest.fixture
+def flat_terrain() -> Terrain:
+    return make_terrain(np.zeros((33, 33)), 256.0)

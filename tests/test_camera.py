@@ -1,0 +1,89 @@
+"""Camera geometry and detector noise against independent computations."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from bench.scenario import load_scenario
+from bench.world_builder import build_terrain, build_world
+from models.camera import CameraConfig, apply_detector_noise, intrinsics
+from tests.conftest import SMALL_SET
+
+
+def test_intrinsics_from_fov_and_resolution():
+    cfg = CameraConfig(width_px=320, height_px=240, fovy_deg=50.0)
+    K = intrinsics(cfg)
+    # A ray at the top edge of the vertical FOV lands half a pixel outside the first row centre.
+    top_ray = np.array([0.0, -math.tan(math.radians(25.0)), 1.0])
+    uv = K @ top_ray
+    assert abs(uv[1] / uv[2] - (-0.5)) < 1e-9
+    assert K[0, 0] == K[1, 1] and K[0, 2] == 159.5 and K[1, 2] == 119.5
+
+
+@pytest.fixture(scope="module")
+def posed_world():
+    scenario = load_scenario(None, SMALL_SET + ["camera.width_px=160", "camera.height_px=120", "camera.fovy_deg=45"])
+    terrain = build_terrain(scenario)
+    world = build_world(scenario, terrain)
+    q = Rotation.from_euler("xyz", [6.0, -4.0, 25.0], degrees=True).as_quat(scalar_first=True)
+    world.reset(np.array([7.0, -4.0, 90.0]), np.zeros(3), q, np.zeros(3))
+    yield world, terrain
+    world.close()
+
+
+def test_terrain_point_projects_through_K_to_where_depth_puts_it(posed_world):
+    world, terrain = posed_world
+    K, (R_LC, r_CL_L) = world.K, world.camera_pose()
+    depth = world.render_depth().astype(np.float64)
+    H, W = depth.shape
+    # Back-project every pixel through the rendered depth into L.
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    rays_C = np.linalg.solve(K, np.stack([u.ravel(), v.ravel(), np.ones(u.size)]))
+    pts_L = (R_LC @ (rays_C * depth.ravel())).T + r_CL_L
+    n = terrain.height_m.shape[0]
+    spacing = terrain.spacing_m
+    checked = 0
+    for row in range(0, n, 2):
+        for col in range(0, n, 2):
+            p_L = np.array([-terrain.size_m / 2 + col * spacing, -terrain.size_m / 2 + row * spacing, terrain.height_m[row, col]])
+            p_C = R_LC.T @ (p_L - r_CL_L)
+            uv = (K @ p_C)[:2] / p_C[2]
+            if not (5 <= uv[0] <= W - 6 and 5 <= uv[1] <= H - 6):
+                continue
+            dist = np.linalg.norm(pts_L - p_L, axis=1)
+            k = int(np.argmin(dist))
+            found = np.array([k % W, k // W], float)
+            assert np.linalg.norm(found - uv) <= 1.0, (row, col, uv, found)
+            # The depth image is metric z-depth: the nearest back-projected point is within a pixel footprint.
+            assert dist[k] < 1.5 * p_C[2] / K[0, 0] + 0.05
+            assert abs(depth[int(round(uv[1])), int(round(uv[0]))] - p_C[2]) < 0.02 * p_C[2]
+            checked += 1
+    assert checked >= 4, "too few terrain vertices in view to test"
+
+
+def test_detector_noise_statistics():
+    cfg = CameraConfig(read_noise_dn=2.0, gain_e_per_dn=10.0)
+    signal = np.full((300, 300), 100, np.uint8)
+    img = apply_detector_noise(signal, cfg, np.random.default_rng(0)).astype(float)
+    # Variance in DN^2 = shot (S / g) + read^2 + quantisation (1/12).
+    expected_var = 100 / 10.0 + 2.0**2 + 1 / 12
+    assert abs(img.mean() - 100) < 0.1
+    assert abs(img.var() - expected_var) / expected_var < 0.05
+    quiet = CameraConfig(read_noise_dn=0.0, shot_noise=False)
+    assert np.array_equal(apply_detector_noise(signal, quiet, np.random.default_rng(0)), signal)
+    a = apply_detector_noise(signal, cfg, np.random.default_rng(5))
+    b = apply_detector_noise(signal, cfg, np.random.default_rng(5))
+    assert np.array_equal(a, b)
+
+
+def test_rendered_frame_has_texture_and_is_deterministic(posed_world):
+    world, _ = posed_world
+    a = world.render_signal()
+    b = world.render_signal()
+    assert a.dtype == np.uint8 and a.shape == (120, 160)
+    assert np.array_equal(a, b)
+    assert 30 < a.mean() < 220 and a.std() > 5

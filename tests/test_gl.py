@@ -1,0 +1,65 @@
+"""GL backend selection happens before mujoco is imported and fails with one clear error."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from models import gl
+
+
+def _probe(env_update: dict[str, str | None]) -> subprocess.CompletedProcess:
+    env = dict(os.environ)
+    for k, v in env_update.items():
+        if v is None:
+            env.pop(k, None)
+        else:
+            env[k] = v
+    code = "from models.gl import ensure_gl_backend; b = ensure_gl_backend(); import os; print(b, os.environ['MUJOCO_GL'])"
+    return subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+
+
+def test_user_choice_is_respected():
+    res = _probe({"MUJOCO_GL": "osmesa"})
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.split() == ["osmesa", "osmesa"]
+
+
+def test_default_prefers_egl_when_it_works():
+    res = _probe({"MUJOCO_GL": None, "PYOPENGL_PLATFORM": None})
+    assert res.returncode == 0, res.stderr
+    expected = "egl" if gl._egl_works() else "osmesa"
+    assert res.stdout.split() == [expected, expected]
+
+
+def _isolated_env(monkeypatch):
+    # ensure_gl_backend writes os.environ; give it a throwaway copy.
+    env = dict(os.environ)
+    env.pop("MUJOCO_GL", None)
+    monkeypatch.setattr(os, "environ", env)
+    return env
+
+
+def test_no_backend_names_the_packages(monkeypatch):
+    _isolated_env(monkeypatch)
+    monkeypatch.setattr(gl, "_chosen", None)
+    monkeypatch.setattr(gl, "_egl_works", lambda: False)
+    monkeypatch.setattr(gl, "_osmesa_works", lambda: False)
+    with pytest.raises(gl.GLBackendError) as exc:
+        gl.ensure_gl_backend()
+    msg = str(exc.value)
+    assert "\n" not in msg
+    for pkg in ("libegl1", "libegl-mesa0", "libgl1-mesa-dri", "libosmesa6"):
+        assert pkg in msg
+
+
+def test_osmesa_fallback(monkeypatch):
+    env = _isolated_env(monkeypatch)
+    monkeypatch.setattr(gl, "_chosen", None)
+    monkeypatch.setattr(gl, "_egl_works", lambda: False)
+    monkeypatch.setattr(gl, "_osmesa_works", lambda: True)
+    assert gl.ensure_gl_backend() == "osmesa"
+    assert env["MUJOCO_GL"] == "osmesa" and env["PYOPENGL_PLATFORM"] == "osmesa"

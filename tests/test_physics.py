@@ -1,0 +1,114 @@
+"""Lander dynamics against closed-form physics."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from models.actuators import G0_MPS2
+from models.camera import CameraConfig
+from models.lander import LanderConfig
+from models.world import PhysicsDivergedError, SunConfig, World
+
+G_MOON = 1.62
+DT_NS = 1_000_000
+LEVEL = np.array([1.0, 0.0, 0.0, 0.0])
+
+
+def _world(terrain, lander: LanderConfig | None = None, dt_ns: int = DT_NS) -> World:
+    return World(terrain, lander or LanderConfig(), CameraConfig(width_px=64, height_px=64), SunConfig(), dt_ns, G_MOON)
+
+
+def test_free_fall_impact_speed_matches_sqrt_2gh(flat_terrain):
+    drop_m = 100.0
+    world = _world(flat_terrain)
+    clearance = world.lander_cfg.footpad_clearance_m  # body origin height when the pads touch flat ground
+    world.reset(np.array([0.0, 0.0, clearance + drop_m]), np.zeros(3), LEVEL, np.zeros(3))
+    # Coarse steps while high up, single steps near the ground; the speed is read in the
+    # last step before any contact force acts.
+    while world.truth().r_BL_L[2] - clearance > 1.0:
+        world.step(50)
+    v_before = world.truth().v_BL_L.copy()
+    while not world.footpad_contacts().any():
+        v_before = world.truth().v_BL_L.copy()
+        world.step(1)
+    expected = math.sqrt(2.0 * G_MOON * drop_m)
+    assert abs(-v_before[2] - expected) / expected < 0.02, (v_before, expected)
+    assert np.allclose(v_before[:2], 0.0, atol=1e-9)
+    # Time of flight agrees too (t = sqrt(2h/g)).
+    assert abs(world.t_ns / 1e9 - math.sqrt(2 * drop_m / G_MOON)) < 0.02 * math.sqrt(2 * drop_m / G_MOON)
+    # After a rigid-leg rebound it comes to rest standing on the ground (no divergence, no sinking).
+    world.step(8000)
+    assert abs(world.truth().r_BL_L[2] - clearance) < 0.05
+    assert world.footpad_contacts().all()
+
+
+def test_propellant_flow_matches_thrust_over_isp_g0(flat_terrain):
+    cfg = LanderConfig()
+    world = _world(flat_terrain, cfg)
+    world.reset(np.array([0.0, 0.0, 200.0]), np.zeros(3), LEVEL, np.zeros(3))
+    thrust, seconds = 5000.0, 10.0
+    steps = int(seconds * 1e9 / DT_NS)
+    world.step(steps, thrust, np.zeros(3))
+    used = cfg.propellant_kg - world.truth().propellant_kg
+    expected = thrust * seconds / (cfg.engine.isp_s * G0_MPS2)
+    assert abs(used - expected) / expected < 0.01, (used, expected)
+    # The simulated body really lost that mass (MuJoCo's own mass table).
+    assert abs(world.model.body_mass.sum() - (cfg.wet_mass_kg - used)) < 1e-6
+
+
+def test_thrust_is_applied_along_body_z_with_mass_from_mujoco(flat_terrain):
+    world = _world(flat_terrain)
+    world.reset(np.array([0.0, 0.0, 300.0]), np.zeros(3), LEVEL, np.zeros(3))
+    thrust = 6000.0
+    world.step(1, thrust, np.zeros(3))
+    world.step(1, thrust, np.zeros(3))  # sensors reflect the applied thrust from the second step
+    m = world.model.body_mass.sum()
+    f = world.specific_force_B()
+    assert np.allclose(f, [0.0, 0.0, thrust / m], rtol=1e-3, atol=1e-6), (f, thrust / m)
+
+
+def test_throttle_limits_and_engine_cut(flat_terrain):
+    cfg = LanderConfig()
+    world = _world(flat_terrain, cfg)
+    p = world.propulsion
+    assert p.clamp_thrust(0.0) == 0.0
+    assert p.clamp_thrust(-5.0) == 0.0
+    assert p.clamp_thrust(1.0) == cfg.engine.thrust_min_N
+    assert p.clamp_thrust(1e9) == cfg.engine.thrust_max_N
+    assert p.clamp_thrust(float("nan")) == 0.0
+    assert np.allclose(p.clamp_torque(np.array([1e6, -1e6, 3.0])), [cfg.rcs_torque_max_Nm, -cfg.rcs_torque_max_Nm, 3.0])
+    p.cut()
+    assert p.clamp_thrust(5000.0) == 0.0
+
+
+def test_fuel_runs_out_inside_a_hold_interval(flat_terrain):
+    cfg = LanderConfig(propellant_kg=1.0)
+    world = _world(flat_terrain, cfg)
+    world.reset(np.array([0.0, 0.0, 300.0]), np.zeros(3), LEVEL, np.zeros(3))
+    thrust = cfg.engine.thrust_max_N
+    burn_s = 1.0 / (thrust / (cfg.engine.isp_s * G0_MPS2))
+    out = world.step(int(2 * burn_s * 1e9 / DT_NS), thrust)
+    assert out.exhausted and world.truth().propellant_kg == 0.0
+    assert abs(out.burn_steps * DT_NS / 1e9 - burn_s) <= DT_NS / 1e9
+    assert world.data.ctrl[world.model.actuator("engine").id] == 0.0
+
+
+def test_rcs_torque_spins_up_at_torque_over_inertia(flat_terrain):
+    cfg = LanderConfig()
+    world = _world(flat_terrain, cfg)
+    world.reset(np.array([0.0, 0.0, 300.0]), np.zeros(3), LEVEL, np.zeros(3))
+    tau = np.array([0.0, 0.0, 100.0])
+    world.step(1000, 0.0, tau)  # 1 s
+    izz = cfg.body_inertia_kgm2()[2] + cfg.tank_inertia_kgm2(cfg.propellant_kg)[2]
+    assert abs(world.truth().omega_B[2] - 100.0 / izz) / (100.0 / izz) < 1e-3
+
+
+def test_divergence_is_never_silent(flat_terrain):
+    world = _world(flat_terrain)
+    world.reset(np.array([0.0, 0.0, 50.0]), np.zeros(3), LEVEL, np.zeros(3))
+    world.data.qvel[0] = 1e12  # beyond MuJoCo's mjMAXVAL: it would reset the state and carry on
+    with pytest.raises(PhysicsDivergedError, match="physics_dt_ns"):
+        world.step(5)

@@ -1,0 +1,116 @@
+"""Scenario loading, overrides and one-line errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bench.scenario import Scenario, ScenarioError, load_scenario, scenario_to_toml
+from bench.scenario import tomllib  # the same parser users' files go through
+
+
+def test_default_loads_and_round_trips_through_toml(tmp_path):
+    sc = load_scenario()
+    assert sc.seed == 1 and sc.name == "default"
+    text = scenario_to_toml(sc)
+    f = tmp_path / "resolved.toml"
+    f.write_text(text)
+    assert load_scenario(f) == sc
+
+
+def test_overrides_set_nested_fields_and_seed():
+    sc = load_scenario(None, ["seed=7", "sun.elevation_deg=12.5", "camera.width_px=320", "sun.shadows=true",
+                              "initial.r_BL_L_m=[1.0, 2.0, 300.0]", "name=trial"])
+    assert sc.seed == 7 and sc.sun.elevation_deg == 12.5 and sc.camera.width_px == 320 and sc.sun.shadows
+    assert sc.initial.r_BL_L_m == (1.0, 2.0, 300.0) and sc.name == "trial"
+
+
+def test_terrain_seed_follows_master_seed_unless_set():
+    assert load_scenario(None, ["seed=9"]).terrain_seed() == 9
+    assert load_scenario(None, ["seed=9", "terrain.seed=4"]).terrain_seed() == 4
+
+
+def _err(overrides=(), path=None) -> str:
+    with pytest.raises(ScenarioError) as exc:
+        load_scenario(path, list(overrides))
+    msg = str(exc.value)
+    assert "\n" not in msg, "errors must be one line"
+    return msg
+
+
+def test_unknown_key_names_the_field_and_what_is_allowed():
+    msg = _err(["lander.dry_mas_kg=100"])
+    assert "lander.dry_mas_kg" in msg and "dry_mass_kg" in msg
+
+
+def test_wrong_type_names_field_value_and_expectation():
+    msg = _err(["camera.width_px=wide"])
+    assert "camera.width_px" in msg and "'wide'" in msg and "integer" in msg
+
+
+def test_negative_mass_is_rejected():
+    msg = _err(["lander.dry_mass_kg=-5"])
+    assert "lander.dry_mass_kg" in msg and "-5" in msg and "greater than 0" in msg
+
+
+def test_rates_must_divide_the_physics_step():
+    msg = _err(["sensors.imu.period_ns=3000000"])  # 3 ms against a 2 ms physics step
+    assert "sensors.imu.period_ns = 3000000" in msg and "sim.physics_dt_ns = 2000000" in msg
+    assert "2000000" in msg and "4000000" in msg
+    msg = _err(["camera.period_ns=33333333"])
+    assert "camera.period_ns" in msg
+
+
+def test_engine_min_above_max_is_rejected():
+    msg = _err(["lander.engine.thrust_min_N=9000"])
+    assert "thrust_min_N" in msg and "thrust_max_N" in msg
+
+
+def test_malformed_override_and_path_through_value():
+    assert "KEY=VALUE" in _err(["seed"])
+    assert "'seed' is a value" in _err(["seed.x=1"])
+
+
+def test_missing_and_corrupt_scenario_files(tmp_path):
+    assert "does not exist" in _err(path=tmp_path / "nope.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("seed = = 3\n")
+    assert "not valid TOML" in _err(path=bad)
+    binary = tmp_path / "bin.toml"
+    binary.write_bytes(b"\xff\xfe\x00garbage")
+    assert "UTF-8" in _err(path=binary)
+
+
+def test_missing_and_corrupt_dem(tmp_path):
+    msg = _err(["terrain.kind=\"dem\"", f"terrain.dem_path=\"{tmp_path / 'missing.npy'}\"", "terrain.dem_spacing_m=2.0"])
+    assert "dem_path" in msg and "missing.npy" in msg
+    corrupt = tmp_path / "corrupt.npy"
+    corrupt.write_bytes(b"not a numpy file at all")
+    msg = _err(["terrain.kind=\"dem\"", f"terrain.dem_path=\"{corrupt}\"", "terrain.dem_spacing_m=2.0"])
+    assert "dem_path" in msg and "corrupt.npy" in msg
+
+
+def test_dem_path_is_relative_to_the_scenario_file(tmp_path):
+    dem = np.random.default_rng(0).normal(0, 2, (64, 64)).astype(np.float32)
+    np.save(tmp_path / "site.npy", dem)
+    f = tmp_path / "s.toml"
+    f.write_text('[terrain]\nkind = "dem"\ndem_path = "site.npy"\ndem_spacing_m = 4.0\n')
+    sc = load_scenario(f)
+    assert sc.terrain.dem_path == tmp_path / "site.npy"
+
+
+def test_every_field_declares_a_unit_or_description():
+    # Units live in field names (_m, _ns, ...) or descriptions; a bare, undocumented field is a defect.
+    def walk(model, prefix=""):
+        for name, field in model.model_fields.items():
+            ann = field.annotation
+            if isinstance(ann, type) and issubclass(ann, Scenario.__mro__[1]):  # nested BaseModel
+                yield from walk(ann, f"{prefix}{name}.")
+            else:
+                yield f"{prefix}{name}", field
+    undocumented = [n for n, f in walk(Scenario) if not f.description]
+    assert not undocumented, undocumented
+
+
+def test_toml_parser_is_stdlib():
+    assert tomllib.__name__ == "tomllib"

@@ -37,16 +37,19 @@ How it is built:
        detail (fBm, craters, boulders) only below the DEM's resolution.
     2. Geometry = tent-weighted area average of the fine DEM at the vertices.
     3. Texture = albedo (low-contrast fBm, bright halos of fresh craters) x
-       shading of the *high-pass residual* (fine DEM minus the bilinear
-       interpolation of the geometry grid), optionally with cast shadows. The
+       shading of the *high-pass residual* (fine DEM minus its smooth Gaussian
+       low-pass at the geometry scale), with cast shadows by default. The
        renderer shades the coarse geometry itself; baking only the residual
-       avoids shading the coarse relief twice.
+       avoids shading the coarse relief twice. DN = texture_mean_dn *
+       (albedo / albedo_mean) * relative shading, so flat lit ground of mean
+       albedo maps to texture_mean_dn.
 """
 
 from __future__ import annotations
 
 import math
 import pathlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -73,7 +76,7 @@ BOULDER_SIGMA_RATIO = 0.25
 BOULDER_SUPPORT_SIGMA = 3.0
 # Stamping: craters whose window half-width is at most this many texels are
 # stamped together in vectorised batches; larger ones one by one on a slice.
-STAMP_BATCH_MAX_HALF_PX = 12
+STAMP_BATCH_MAX_HALF_PX = 24
 STAMP_BATCH_ELEMENTS = 4_000_000  # texels per vectorised batch (bounds memory)
 # User DEM: synthetic detail is added only below the DEM's own resolution.
 DEM_DETAIL_MAX_WAVELENGTH_PX = 2.0  # fBm modes longer than this many DEM spacings are left to the DEM
@@ -86,6 +89,7 @@ SHADOW_FLAT_EPS_M = 1e-4  # height margin before a texel counts as cast-shadowed
 # Residual = fine DEM minus its Gaussian low-pass with this sigma [geometry spacings]; the
 # tent average + linear interpolation of the geometry passes about the same band.
 RESIDUAL_LOWPASS_SIGMA_SPACINGS = 0.5
+KEYS_CUBIC_A = -0.5  # cubic-convolution parameter that makes the interpolant exact for quadratics
 LOWPASS_WORK_SIGMA_PX = 4.0  # the low-pass is run on a grid decimated until sigma is about this [px]
 UINT8_MAX = 255
 
@@ -109,7 +113,9 @@ class TerrainConfig(BaseModel):
         description="side of the square terrain [m] (procedural; for a DEM the side is dem_spacing_m * (n - 1))",
     )
     geometry_px: int = Field(129, ge=17, le=4097, description="heightfield vertices per side (odd)")
-    texture_px: int = Field(4096, ge=64, le=16384, description="albedo texture texels per side (>= geometry_px)")
+    texture_px: int = Field(
+        4096, ge=64, le=8192, description="albedo texture texels per side (>= geometry_px; memory ~ 35 B/texel)"
+    )
 
     crater_density_per_km2: float = Field(
         2.0e4, ge=0.0, le=1.0e7,
@@ -202,7 +208,12 @@ class TerrainConfig(BaseModel):
                 f"kind='dem' requires dem_path and dem_spacing_m (got dem_path={self.dem_path}, "
                 f"dem_spacing_m={self.dem_spacing_m})"
             )
-        load_dem(self.dem_path, self.dem_spacing_m, self.dem_z_scale_m)  # fail now, not mid-run
+        dem = load_dem(self.dem_path, self.dem_spacing_m, self.dem_z_scale_m)  # fail now, not mid-run
+        half_m = self.dem_spacing_m * (min(dem.shape) - 1) / 2
+        if self.target_clear_radius_m >= half_m:
+            raise ValueError(
+                f"target_clear_radius_m={self.target_clear_radius_m} must be < half the DEM tile side, {half_m} m"
+            )
         return self
 
 
@@ -441,7 +452,7 @@ def _stamp_radial(
     y_m: np.ndarray,
     radius_m: np.ndarray,
     amplitude: np.ndarray,
-    profile_rho2,
+    profile_rho2: Callable[[np.ndarray], np.ndarray],
     support_r: float,
 ) -> None:
     """Add ``amplitude_k * profile((r_k / radius_k)^2)`` of every feature k to a texel grid, in place.
@@ -515,26 +526,21 @@ def _tent_matrix(src_x: np.ndarray, dst_x: np.ndarray, half_width: float) -> sci
                                    shape=(dst_x.size, src_x.size))
 
 
-def _interp_matrix(src_x: np.ndarray, dst_x: np.ndarray, cubic: bool) -> scipy.sparse.csr_matrix:
-    """(len(dst), len(src)) interpolation operator on a uniform source grid, edge-clamped.
+def _interp_matrix(src_x: np.ndarray, dst_x: np.ndarray) -> scipy.sparse.csr_matrix:
+    """(len(dst), len(src)) Keys cubic-convolution interpolation on a uniform source grid, edge-clamped.
 
-    Linear, or Keys cubic convolution (a = -0.5, C1, exact for quadratics).
+    Keys with a = -0.5 is C1 and exact for quadratics (smooth bowls stay smooth).
     """
     n = src_x.size
     u = np.clip((dst_x - src_x[0]) / (src_x[1] - src_x[0]), 0.0, n - 1)
     base = np.minimum(np.floor(u).astype(np.intp), n - 2)
-    t = u - base
-    if cubic:
-        cols = base[:, None] + np.arange(-1, 3)[None, :]
-        s = np.abs(t[:, None] - np.arange(-1, 3)[None, :])
-        a = -0.5
-        w = np.where(s <= 1, (a + 2) * s**3 - (a + 3) * s**2 + 1, a * s**3 - 5 * a * s**2 + 8 * a * s - 4 * a)
-        w = np.where(s < 2, w, 0.0)
-    else:
-        cols = base[:, None] + np.arange(2)[None, :]
-        w = np.column_stack([1.0 - t, t])
-    cols = np.clip(cols, 0, n - 1)  # clamped duplicates are summed by the COO -> CSR conversion
-    rows = np.repeat(np.arange(dst_x.size), cols.shape[1])
+    taps = np.arange(-1, 3)
+    s = np.abs((u - base)[:, None] - taps[None, :])
+    a = KEYS_CUBIC_A
+    w = np.where(s <= 1, (a + 2) * s**3 - (a + 3) * s**2 + 1, a * s**3 - 5 * a * s**2 + 8 * a * s - 4 * a)
+    w = np.where(s < 2, w, 0.0)
+    cols = np.clip(base[:, None] + taps[None, :], 0, n - 1)  # clamped duplicates are summed by COO -> CSR
+    rows = np.repeat(np.arange(dst_x.size), taps.size)
     return scipy.sparse.csr_matrix((w.ravel().astype(np.float32), (rows, cols.ravel())), shape=(dst_x.size, n))
 
 
@@ -544,21 +550,26 @@ def _separable(op: scipy.sparse.csr_matrix, grid: np.ndarray) -> np.ndarray:
 
 
 def _gaussian_lowpass(field: np.ndarray, sigma_px: float) -> np.ndarray:
-    """Gaussian low-pass of a square grid, run on a decimated copy for speed.
+    """Gaussian low-pass of a square cell-centred grid, run on a decimated copy for speed.
+
+    Area-average decimation, Gaussian blur, then Keys cubic upsampling (exact
+    for quadratics, so smooth crater bowls leave no periodic ripple).
 
     Args:
         field: (m, m) float32 grid.
         sigma_px: Gaussian sigma [texels of ``field``].
 
     Returns:
-        (m, m) float32 low-pass, same cell-centred alignment (cv2's resize
-        maps pixel centres to pixel centres for any ratio).
+        (m, m) float32 low-pass, same cell-centred alignment.
     """
     m = field.shape[0]
     work = max(8, min(m, int(round(m * LOWPASS_WORK_SIGMA_PX / sigma_px))))
-    small = cv2.resize(field, (work, work), interpolation=cv2.INTER_AREA)
+    small = cv2.resize(field, (work, work), interpolation=cv2.INTER_AREA)  # cell centres stay aligned
     small = cv2.GaussianBlur(small, (0, 0), sigma_px * work / m, borderType=cv2.BORDER_REFLECT)
-    return cv2.resize(small, (m, m), interpolation=cv2.INTER_CUBIC)
+    if work == m:
+        return small
+    up = _interp_matrix(_texel_centres_m(1.0, work), _texel_centres_m(1.0, m))
+    return _separable(up, small)
 
 
 def _texel_centres_m(size_m: float, m: int) -> np.ndarray:
@@ -763,7 +774,7 @@ def generate_terrain(
         texels = _texel_centres_m(size_m, m)
         dem_x = _vertices_m(size_m, side)
         if texel_m < cfg.dem_spacing_m:
-            fine = _separable(_interp_matrix(dem_x, texels, cubic=True), dem)
+            fine = _separable(_interp_matrix(dem_x, texels), dem)
         else:
             fine = _separable(_tent_matrix(dem_x, texels, texel_m), dem)
         fine += fbm_surface(m, texel_m, cfg.roughness_rms_m, cfg.roughness_hurst, rng_rough,
@@ -830,5 +841,5 @@ def generate_terrain(
     dn *= np.float32(cfg.texture_mean_dn)
     np.clip(dn, 0.0, UINT8_MAX, out=dn)
     texture = np.rint(dn, out=dn).astype(np.uint8)
-    return Terrain(height_m=height.astype(np.float32), size_m=float(size_m), albedo=texture,
+    return Terrain(height_m=height.astype(np.float32, copy=False), size_m=float(size_m), albedo=texture,
                    craters=craters.astype(np.float64), boulders=boulders.astype(np.float64))

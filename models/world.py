@@ -241,6 +241,18 @@ class World:
         self._step_count = 0
         mujoco.mj_forward(self.model, self.data)
 
+    def set_pose(self, r_BL_L: np.ndarray, q_LB: np.ndarray) -> None:
+        """Place the lander kinematically (at rest), keeping time and propellant.
+
+        For rendering fixed viewpoints and replaying trajectories; physics
+        state other than the pose is zeroed.
+        """
+        q = np.asarray(q_LB, float)
+        self.data.qpos[0:3] = r_BL_L
+        self.data.qpos[3:7] = q / np.linalg.norm(q)
+        self.data.qvel[:] = 0.0
+        mujoco.mj_forward(self.model, self.data)
+
     def _set_propellant(self, propellant_kg: float) -> None:
         mass = max(propellant_kg, TANK_MASS_FLOOR_KG)
         self.model.body_mass[self._body_tank] = mass

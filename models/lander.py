@@ -23,6 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 # Geometry groups: mj_ray against terrain alone needs the lander in another group.
 TERRAIN_GEOM_GROUP = 0
 LANDER_GEOM_GROUP = 1
+PATCH_GEOM_GROUP = 2  # the visual landing-site texture patch (coplanar with the terrain)
 
 FOOTPAD_NAMES = ("foot_fl", "foot_fr", "foot_rl", "foot_rr")
 

@@ -81,6 +81,10 @@ STAMP_BATCH_ELEMENTS = 4_000_000  # texels per vectorised batch (bounds memory)
 # User DEM: synthetic detail is added only below the DEM's own resolution.
 DEM_DETAIL_MAX_WAVELENGTH_PX = 2.0  # fBm modes longer than this many DEM spacings are left to the DEM
 DEM_UNRESOLVED_CRATER_PX = 4.0  # synthetic craters only up to this many DEM spacings across
+# Landing-site patch: its baked detail holds wavelengths below this many coarse
+# texels, and fades out over this fraction of the patch half-width at its edge.
+PATCH_DETAIL_MAX_WAVELENGTH_TEXELS = 2.0
+PATCH_FEATHER_FRAC = 0.15
 # Texture photometry.
 SHADOW_FLOOR = 0.15  # brightness of shadowed texels relative to flat lit ground (scattered light)
 SHADE_MAX = 2.0  # cap on relative brightness of steep sun-facing texels
@@ -149,6 +153,17 @@ class TerrainConfig(BaseModel):
         15.0, ge=0.0, description="no crater rim or boulder within this radius of the origin [m]"
     )
 
+    patch_size_m: float = Field(
+        128.0, ge=0.0,
+        description="side of the high-resolution texture patch around the landing target [m]; 0 = none. "
+        "Snapped to whole geometry cells. It keeps sub-texel detail in view down to the vision cut-off",
+    )
+    patch_texture_px: int = Field(2048, ge=64, le=8192, description="patch texture texels per side")
+    patch_roughness_rms_m: float = Field(
+        0.02, ge=0.0, le=1.0,
+        description="RMS height of the sub-texel roughness band (wavelengths below two coarse texels) whose "
+        "shading is baked into the patch texture [m]",
+    )
     albedo_mean: float = Field(
         0.12, gt=0.0, le=1.0, description="physical albedo that maps to texture_mean_dn on flat lit ground [-]"
     )
@@ -219,6 +234,31 @@ class TerrainConfig(BaseModel):
 
 # -------------------------------------------------------------------- terrain
 @dataclass(frozen=True, eq=False)
+class TerrainPatch:
+    """High-resolution texture patch centred on the landing target.
+
+    Its geometry is the 2x refinement of the coarse grid sampled on the coarse
+    triangulated surface (same diagonal), so it is coplanar with it: the
+    renderer draws it a hair above the terrain and it changes nothing but the
+    texture resolution near the target.
+
+    Attributes:
+        height_m: (k, k) float32 vertex heights [m], south-up, spanning
+            [-size/2, size/2] in x and y.
+        size_m: Side of the patch [m].
+        albedo: (p, p) uint8 texture, south-up.
+    """
+
+    height_m: np.ndarray
+    size_m: float
+    albedo: np.ndarray
+
+    def __post_init__(self) -> None:
+        for arr in (self.height_m, self.albedo):
+            arr.setflags(write=False)
+
+
+@dataclass(frozen=True, eq=False)
 class Terrain:
     """A terrain tile: coarse geometry, fine albedo texture, feature catalogs.
 
@@ -239,6 +279,7 @@ class Terrain:
     albedo: np.ndarray
     craters: np.ndarray
     boulders: np.ndarray
+    patch: "TerrainPatch | None" = None
 
     def __post_init__(self) -> None:
         h = self.height_m
@@ -285,6 +326,34 @@ class Terrain:
         south = (1.0 - fu) * h[i0, j0] + fu * h[i0, j0 + 1]
         north = (1.0 - fu) * h[i0 + 1, j0] + fu * h[i0 + 1, j0 + 1]
         return (1.0 - fv) * south + fv * north
+
+    def surface_height(self, x_m: np.ndarray | float, y_m: np.ndarray | float) -> np.ndarray:
+        """Height of the triangulated surface that MuJoCo collides with and renders.
+
+        MuJoCo splits each heightfield cell into two triangles along the
+        diagonal from its south-west to its north-east vertex; this is that
+        piecewise-planar surface (``height_at`` is the bilinear one).
+
+        Args:
+            x_m: East coordinates in L [m], any shape.
+            y_m: North coordinates in L [m], broadcastable with ``x_m``.
+
+        Returns:
+            Heights [m], float64, of the broadcast shape (clamped at the edges).
+        """
+        x, y = np.broadcast_arrays(np.asarray(x_m, dtype=np.float64), np.asarray(y_m, dtype=np.float64))
+        n = self.height_m.shape[0]
+        centre = (n - 1) / 2
+        u = np.clip(x / self.spacing_m + centre, 0.0, n - 1)
+        v = np.clip(y / self.spacing_m + centre, 0.0, n - 1)
+        j0 = np.minimum(np.floor(u).astype(np.intp), n - 2)
+        i0 = np.minimum(np.floor(v).astype(np.intp), n - 2)
+        fu, fv = u - j0, v - i0
+        h = self.height_m.astype(np.float64)
+        z00, z10, z01, z11 = h[i0, j0], h[i0, j0 + 1], h[i0 + 1, j0], h[i0 + 1, j0 + 1]
+        lower = z00 + fu * (z10 - z00) + fv * (z11 - z10)  # triangle (SW, SE, NE): fu >= fv
+        upper = z00 + fv * (z01 - z00) + fu * (z11 - z01)  # triangle (SW, NE, NW): fu < fv
+        return np.where(fu >= fv, lower, upper)
 
     def hillshade(self, sun_elevation_deg: float, sun_azimuth_deg: float) -> np.ndarray:
         """Lambertian shading of the geometry grid, for plots.
@@ -754,7 +823,7 @@ def generate_terrain(
         raise ValueError(f"sun_elevation_deg={sun_elevation_deg} must be in (0, 90] [deg]")
     if not math.isfinite(sun_azimuth_deg):
         raise ValueError(f"sun_azimuth_deg={sun_azimuth_deg} must be finite [deg]")
-    rng_craters, rng_rough, rng_boulders, rng_albedo = rng.spawn(4)
+    rng_craters, rng_rough, rng_boulders, rng_albedo, rng_patch = rng.spawn(5)
     sun = _sun_vector(sun_elevation_deg, sun_azimuth_deg)
     m = cfg.texture_px
 
@@ -841,5 +910,52 @@ def generate_terrain(
     dn *= np.float32(cfg.texture_mean_dn)
     np.clip(dn, 0.0, UINT8_MAX, out=dn)
     texture = np.rint(dn, out=dn).astype(np.uint8)
-    return Terrain(height_m=height.astype(np.float32, copy=False), size_m=float(size_m), albedo=texture,
-                   craters=craters.astype(np.float64), boulders=boulders.astype(np.float64))
+    terrain = Terrain(height_m=height.astype(np.float32, copy=False), size_m=float(size_m), albedo=texture,
+                      craters=craters.astype(np.float64), boulders=boulders.astype(np.float64))
+    if cfg.patch_size_m <= 0:
+        return terrain
+    patch = _make_patch(terrain, cfg, sun, rng_patch)
+    return Terrain(height_m=terrain.height_m, size_m=terrain.size_m, albedo=terrain.albedo,
+                   craters=terrain.craters, boulders=terrain.boulders, patch=patch)
+
+
+def _make_patch(terrain: Terrain, cfg: TerrainConfig, sun: tuple[float, float, float],
+                rng: np.random.Generator) -> TerrainPatch | None:
+    """Landing-site patch: the coarse texture resampled finer, times baked sub-texel shading.
+
+    The detail is fBm roughness with wavelengths below two coarse texels
+    (what the coarse texture cannot carry), shaded under the sun, and
+    feathered to nothing at the patch edge so the seam does not show.
+    """
+    spacing = terrain.spacing_m
+    n = terrain.height_m.shape[0]
+    half_cells = min(max(1, int(round(cfg.patch_size_m / 2 / spacing))), (n - 1) // 2 - 1)
+    if half_cells < 1:
+        return None
+    half_m = half_cells * spacing
+    verts = np.linspace(-half_m, half_m, 4 * half_cells + 1)
+    X, Y = np.meshgrid(verts, verts)
+    heights = terrain.surface_height(X, Y).astype(np.float32)
+
+    p = cfg.patch_texture_px
+    patch_texel_m = 2 * half_m / p
+    coarse_texel_m = terrain.size_m / terrain.albedo.shape[0]
+    centres = _texel_centres_m(2 * half_m, p)
+    # Coarse-texture coordinates (texel index, centre convention) of the patch texel centres.
+    idx = ((centres + terrain.size_m / 2) / coarse_texel_m - 0.5).astype(np.float32)
+    map_x, map_y = np.meshgrid(idx, idx)
+    base = cv2.remap(terrain.albedo.astype(np.float32), map_x, map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+
+    detail = fbm_surface(p, patch_texel_m, 1.0, cfg.roughness_hurst, rng,
+                         max_wavelength_m=PATCH_DETAIL_MAX_WAVELENGTH_TEXELS * coarse_texel_m)
+    # The RMS applies to the detail band itself (what the coarse texture lacks).
+    detail *= np.float32(cfg.patch_roughness_rms_m / max(float(detail.std()), 1e-12))
+    shade = _relative_shading(detail, patch_texel_m, sun, cfg.photometric_function)
+    np.minimum(shade, SHADE_MAX, out=shade)
+    # Feather: full detail inside, fading to none over the outer band (smoothstep).
+    dist_to_edge = half_m - np.maximum(np.abs(centres)[:, None], np.abs(centres)[None, :])
+    t = np.clip(dist_to_edge / (PATCH_FEATHER_FRAC * half_m), 0.0, 1.0)
+    weight = (t * t * (3.0 - 2.0 * t)).astype(np.float32)
+    base *= 1.0 + weight * (shade - 1.0)
+    albedo = np.clip(np.rint(base), 0.0, UINT8_MAX).astype(np.uint8)
+    return TerrainPatch(height_m=heights, size_m=float(2 * half_m), albedo=albedo)

@@ -34,6 +34,7 @@ from models.actuators import PropulsionModel, PropulsionOutput  # noqa: E402
 from models.camera import R_MJCAM_C, CameraConfig, intrinsics  # noqa: E402
 from models.lander import (  # noqa: E402
     FOOTPAD_NAMES,
+    PATCH_GEOM_GROUP,
     TANK_MASS_FLOOR_KG,
     TERRAIN_GEOM_GROUP,
     LanderConfig,
@@ -52,6 +53,10 @@ mujoco.set_mju_user_warning(lambda msg: logger.warning("MuJoCo: %s", msg))
 
 # Thickness of the heightfield's solid base below its lowest point [m].
 HFIELD_BASE_M = 5.0
+# The landing-site texture patch is drawn this far above the coplanar terrain so
+# it wins the depth test; far below any physical or optical tolerance [m].
+PATCH_LIFT_M = 0.005
+PATCH_BASE_M = 0.01
 # Light: MuJoCo clamps lit colour at 1, so the sun's diffuse intensity is set
 # to map flat ground at the sun's elevation to this fraction of the albedo.
 FLAT_GROUND_EXPOSURE = 0.9
@@ -119,6 +124,22 @@ def world_mjcf(terrain: Terrain, lander: LanderConfig, camera: CameraConfig, sun
     sun_dir = sun.direction_L()
     diffuse = min(FLAT_GROUND_EXPOSURE / sun_dir[2], MAX_SUN_DIFFUSE)
     shadow = "true" if sun.shadows else "false"
+    patch_assets = patch_geom = ""
+    if terrain.patch is not None:
+        pt = terrain.patch
+        p_half = pt.size_m / 2.0
+        p_range = max(float(np.ptp(pt.height_m)), 1e-3)
+        p_rows, p_cols = pt.albedo.shape
+        patch_assets = f"""
+    <hfield name="patch" nrow="{pt.height_m.shape[0]}" ncol="{pt.height_m.shape[1]}" size="{p_half} {p_half} {p_range} {PATCH_BASE_M}"/>
+    <texture name="patch_albedo" type="2d" builtin="flat" width="{p_cols}" height="{p_rows}" rgb1="0.5 0.5 0.5"/>
+    <material name="patch_regolith" texture="patch_albedo" specular="0" shininess="0" reflectance="0" rgba="1 1 1 1"/>"""
+        # Visual only (no contacts): coplanar with the terrain, lifted a hair to win the depth test,
+        # and listed first so it is drawn first: the terrain's fragments under it then fail the
+        # early depth test instead of being shaded and overdrawn (halves the fill cost there).
+        patch_geom = f"""
+    <geom name="terrain_patch" type="hfield" hfield="patch" material="patch_regolith" group="{PATCH_GEOM_GROUP}"
+          pos="0 0 {float(pt.height_m.min()) + PATCH_LIFT_M}" contype="0" conaffinity="0"/>"""
     offw = max(camera.width_px, 64)
     offh = max(camera.height_px, 64)
     return f"""
@@ -132,13 +153,14 @@ def world_mjcf(terrain: Terrain, lander: LanderConfig, camera: CameraConfig, sun
   <asset>
     <hfield name="terrain" nrow="{n_rows}" ncol="{n_cols}" size="{half} {half} {z_range} {HFIELD_BASE_M}"/>
     <texture name="albedo" type="2d" builtin="flat" width="{tex_cols}" height="{tex_rows}" rgb1="0.5 0.5 0.5"/>
-    <material name="regolith" texture="albedo" specular="0" shininess="0" reflectance="0" rgba="1 1 1 1"/>
+    <material name="regolith" texture="albedo" specular="0" shininess="0" reflectance="0" rgba="1 1 1 1"/>{patch_assets}
   </asset>
   <worldbody>
     <light name="sun" directional="true" castshadow="{shadow}" pos="0 0 1000"
            dir="{-sun_dir[0]} {-sun_dir[1]} {-sun_dir[2]}"
            diffuse="{diffuse} {diffuse} {diffuse}" ambient="{AMBIENT_LIGHT} {AMBIENT_LIGHT} {AMBIENT_LIGHT}"
            specular="0 0 0"/>
+{patch_geom}
     <geom name="terrain" type="hfield" hfield="terrain" material="regolith" group="{TERRAIN_GEOM_GROUP}"
           pos="0 0 {float(terrain.height_m.min())}" contype="0" conaffinity="1" friction="{lander.friction} 0.005 0.0001"/>
     {lander_mjcf(lander, camera.fovy_deg)}
@@ -189,6 +211,7 @@ class World:
         self._sens_gyro = slice(m.sensor_adr[m.sensor("imu_gyro").id], m.sensor_adr[m.sensor("imu_gyro").id] + 3)
         self._ray_groups = np.zeros(mujoco.mjNGROUP, np.uint8)
         self._ray_groups[TERRAIN_GEOM_GROUP] = 1
+        self._ray_groups[PATCH_GEOM_GROUP] = 1  # the altimeter sees the surface that is drawn
         self._ray_geomid = np.zeros(1, np.int32)
         self.propulsion = PropulsionModel(lander)
         self.K = intrinsics(camera)
@@ -200,15 +223,27 @@ class World:
 
     # ----------------------------------------------------------------- build
     def _write_terrain(self, terrain: Terrain) -> None:
-        """Write heights (normalised to [0, 1] of the hfield's z range) and the texture."""
-        h = terrain.height_m.astype(np.float64)
-        z_range = float(self.model.hfield_size[0, 2])
-        self.model.hfield_data[:] = ((h - h.min()) / z_range).ravel()
-        tex = self.model.tex_data
-        nch = int(self.model.tex_nchannel[0])
-        # MuJoCo maps texture row 0 to the north (+y) edge; Terrain rows run south to north.
-        albedo = np.ascontiguousarray(terrain.albedo[::-1])
-        tex[:] = np.repeat(albedo[..., None], nch, axis=2).ravel()
+        """Write heights (normalised to [0, 1] of each hfield's z range) and the textures."""
+        self._write_hfield("terrain", terrain.height_m)
+        self._write_texture("albedo", terrain.albedo)
+        if terrain.patch is not None:
+            self._write_hfield("patch", terrain.patch.height_m)
+            self._write_texture("patch_albedo", terrain.patch.albedo)
+
+    def _write_hfield(self, name: str, height_m: np.ndarray) -> None:
+        m = self.model
+        hid = m.hfield(name).id
+        h = height_m.astype(np.float64)
+        adr, count = m.hfield_adr[hid], m.hfield_nrow[hid] * m.hfield_ncol[hid]
+        m.hfield_data[adr:adr + count] = ((h - h.min()) / m.hfield_size[hid, 2]).ravel()
+
+    def _write_texture(self, name: str, albedo: np.ndarray) -> None:
+        m = self.model
+        tid = m.texture(name).id
+        nch = int(m.tex_nchannel[tid])
+        # MuJoCo maps texture row 0 to the north (+y) edge; terrain rows run south to north.
+        rgb = np.repeat(np.ascontiguousarray(albedo[::-1])[..., None], nch, axis=2).ravel()
+        m.tex_data[m.tex_adr[tid]:m.tex_adr[tid] + rgb.size] = rgb
 
     def _set_clip_planes(self) -> None:
         """Near/far planes in metres (MuJoCo stores them relative to the model extent)."""
@@ -320,7 +355,22 @@ class World:
     def altimeter_range_truth(self) -> float:
         """Slant range from the altimeter along its boresight to the terrain [m]; NaN if none."""
         origin, direction = self.altimeter_ray()
-        dist = mujoco.mj_ray(self.model, self.data, origin, direction, self._ray_groups, 1, -1, self._ray_geomid)
+        return self.ray_cast(origin, direction)
+
+    def ray_cast(self, origin_L: np.ndarray, direction_L: np.ndarray, groups: tuple[int, ...] | None = None) -> float:
+        """Distance along a unit ray to the terrain surface [m]; NaN when it misses.
+
+        Args:
+            origin_L: Ray origin in L (3,) [m].
+            direction_L: Unit direction in L (3,).
+            groups: Geom groups to hit; default the terrain and its patch.
+        """
+        mask = self._ray_groups
+        if groups is not None:
+            mask = np.zeros(mujoco.mjNGROUP, np.uint8)
+            mask[list(groups)] = 1
+        dist = mujoco.mj_ray(self.model, self.data, np.asarray(origin_L, float), np.asarray(direction_L, float),
+                             mask, 1, -1, self._ray_geomid)
         return float(dist) if dist >= 0 else math.nan
 
     def footpad_contacts(self) -> np.ndarray:

@@ -1,0 +1,68 @@
+"""The terrain as MuJoCo sees it: triangulation and the landing-site patch."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bench.scenario import load_scenario
+from bench.world_builder import build_terrain, build_world
+from models.lander import PATCH_GEOM_GROUP, TERRAIN_GEOM_GROUP
+from models.world import PATCH_LIFT_M
+from tests.conftest import SMALL_SET
+
+DOWN = np.array([0.0, 0.0, -1.0])
+RAY_TOP_M = 500.0
+
+
+@pytest.fixture(scope="module")
+def world_and_terrain():
+    scenario = load_scenario(None, SMALL_SET + ["terrain.patch_size_m=96.0", "terrain.patch_texture_px=512"])
+    terrain = build_terrain(scenario)
+    world = build_world(scenario, terrain)
+    yield world, terrain
+    world.close()
+
+
+def _ray_heights(world, xy: np.ndarray, group: int) -> np.ndarray:
+    return np.array([RAY_TOP_M - world.ray_cast(np.array([x, y, RAY_TOP_M]), DOWN, (group,)) for x, y in xy])
+
+
+def test_surface_height_matches_mujoco_triangulation(world_and_terrain):
+    world, terrain = world_and_terrain
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-0.45 * terrain.size_m, 0.45 * terrain.size_m, (200, 2))
+    mj = _ray_heights(world, xy, TERRAIN_GEOM_GROUP)
+    ours = terrain.surface_height(xy[:, 0], xy[:, 1])
+    assert np.max(np.abs(mj - ours)) < 1e-3
+    # The other diagonal (or bilinear interpolation) would not match: the test can fail.
+    assert np.max(np.abs(mj - terrain.height_at(xy[:, 0], xy[:, 1]))) > 1e-2
+
+
+def test_patch_is_coplanar_with_the_terrain_and_just_above_it(world_and_terrain):
+    world, terrain = world_and_terrain
+    patch = terrain.patch
+    assert patch is not None and patch.size_m == pytest.approx(96.0, abs=terrain.spacing_m)
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(-0.49 * patch.size_m, 0.49 * patch.size_m, (300, 2))
+    ground = _ray_heights(world, xy, TERRAIN_GEOM_GROUP)
+    drawn = _ray_heights(world, xy, PATCH_GEOM_GROUP)
+    assert np.allclose(drawn - ground, PATCH_LIFT_M, atol=1e-3)
+    assert patch.albedo.shape == (512, 512) and patch.albedo.dtype == np.uint8
+
+
+def test_patch_texture_continues_the_coarse_texture(world_and_terrain):
+    # Averaged back to the coarse texel size, the patch reproduces the coarse texture
+    # (the detail it adds is zero-mean), so there is no seam or shift at its edge.
+    _, terrain = world_and_terrain
+    patch = terrain.patch
+    coarse_texel = terrain.size_m / terrain.albedo.shape[0]
+    k = int(round(patch.size_m / coarse_texel))
+    n0 = (terrain.albedo.shape[0] - k) // 2
+    coarse = terrain.albedo[n0:n0 + k, n0:n0 + k].astype(float)
+    import cv2
+
+    back = cv2.resize(patch.albedo.astype(np.float32), (k, k), interpolation=cv2.INTER_AREA)
+    corr = np.corrcoef(coarse.ravel(), back.ravel())[0, 1]
+    assert corr > 0.9, corr
+    assert abs(back.mean() - coarse.mean()) < 3.0

@@ -73,6 +73,35 @@ def cmd_perf(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_track_eval(args: argparse.Namespace) -> int:
+    from bench.track_eval import format_track_eval, run_track_eval
+
+    if args.frames < 3:
+        raise ValueError(f"--frames {args.frames}: need at least 3 frames")
+    if args.repeats < 1:
+        raise ValueError(f"--repeats {args.repeats}: must be >= 1")
+    scenario = load_scenario(args.scenario, args.overrides)
+    report = run_track_eval(scenario, args.size or [256, 512], args.frames, args.repeats)
+    print(json.dumps(report, indent=2) if args.json else format_track_eval(report))
+    return 0
+
+
+def cmd_vision_figures(args: argparse.Namespace) -> int:
+    from bench.descent import render_descent
+    from bench.vision_figures import write_vision_figures
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {args.out!r} is a file; give a folder")
+    scenario = load_scenario(args.scenario, args.overrides)
+    descent = render_descent(scenario, args.frames, with_depth=False)
+    # Three consecutive frames from the middle of the descent, as in the paper's Fig. 2.
+    k = min(max(0, args.start), args.frames - 3)
+    for p in write_vision_figures(list(descent.frames[k:]), out):
+        print(p)
+    return 0
+
+
 # --------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -98,6 +127,22 @@ def build_parser() -> argparse.ArgumentParser:
     _add_scenario_args(p)
     p.add_argument("--out", required=True, help="output PNG")
     p.set_defaults(func=cmd_world)
+
+    p = sub.add_parser("track-eval", help="score the vision tracker against truth and OpenCV on a rendered descent")
+    _add_scenario_args(p)
+    p.add_argument("--size", type=int, action="append", choices=(256, 512),
+                   help="image size [px] (repeatable; default both 256 and 512)")
+    p.add_argument("--frames", type=int, default=150, help="frames from the start altitude down to 30 m")
+    p.add_argument("--repeats", type=int, default=3, help="timed passes over the frames")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=cmd_track_eval)
+
+    p = sub.add_parser("vision-figures", help="write the paper's Figs. 3-8 for rendered frames")
+    _add_scenario_args(p)
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--frames", type=int, default=60, help="frames of the rendered descent")
+    p.add_argument("--start", type=int, default=20, help="first of the frames shown")
+    p.set_defaults(func=cmd_vision_figures)
 
     p = sub.add_parser("perf", help="benchmark rendering and physics speed")
     _add_scenario_args(p)

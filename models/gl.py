@@ -48,7 +48,6 @@ def _egl_works() -> bool:
         egl.eglGetProcAddress.restype = ctypes.c_void_p
         egl.eglGetProcAddress.argtypes = [ctypes.c_char_p]
         egl.eglInitialize.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p]
-        egl.eglTerminate.argtypes = [ctypes.c_void_p]
         query_ptr = egl.eglGetProcAddress(b"eglQueryDevicesEXT")
         display_ptr = egl.eglGetProcAddress(b"eglGetPlatformDisplayEXT")
     except (OSError, AttributeError):
@@ -65,8 +64,9 @@ def _egl_works() -> bool:
         return False
     for i in range(count.value):
         display = get_display(_EGL_PLATFORM_DEVICE_EXT, devices[i], None)
+        # Not terminated afterwards: EGL hands every caller the same display for a
+        # device, and terminating it would break MuJoCo's contexts in this process.
         if display and egl.eglInitialize(display, None, None):
-            egl.eglTerminate(display)
             return True
     return False
 

@@ -31,7 +31,9 @@ def test_user_choice_is_respected():
 def test_default_prefers_egl_when_it_works():
     res = _probe({"MUJOCO_GL": None, "PYOPENGL_PLATFORM": None})
     assert res.returncode == 0, res.stderr
-    expected = "egl" if gl._egl_works() else "osmesa"
+    probe = subprocess.run([sys.executable, "-c", "from models.gl import _egl_works; print(_egl_works())"],
+                           capture_output=True, text=True, timeout=60)
+    expected = "egl" if probe.stdout.strip() == "True" else "osmesa"
     assert res.stdout.split() == [expected, expected]
 
 
@@ -63,3 +65,24 @@ def test_osmesa_fallback(monkeypatch):
     monkeypatch.setattr(gl, "_osmesa_works", lambda: True)
     assert gl.ensure_gl_backend() == "osmesa"
     assert env["MUJOCO_GL"] == "osmesa" and env["PYOPENGL_PLATFORM"] == "osmesa"
+
+
+def test_probing_egl_does_not_break_rendering_in_the_same_process():
+    # EGL returns one shared display per device; a probe that terminated it would make
+    # every later MuJoCo context fail with EGL_NOT_INITIALIZED.
+    from tests.conftest import make_terrain
+    import numpy as np
+    from models.camera import CameraConfig
+    from models.lander import LanderConfig
+    from models.world import SunConfig, World
+
+    def render_once():
+        w = World(make_terrain(np.zeros((17, 17)), 64.0), LanderConfig(), CameraConfig(width_px=32, height_px=32),
+                  SunConfig(), 2_000_000)
+        img = w.render_signal()
+        w.close()
+        return img
+
+    render_once()
+    gl._egl_works()
+    assert render_once().shape == (32, 32)

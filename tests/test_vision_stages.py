@@ -1,0 +1,341 @@
+"""Unit tests of the vision stages against independent computations."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from vision import (
+    LAPLACIAN8_KERNEL,
+    bilinear_patches,
+    block_average,
+    detect_features,
+    detect_in_subimages,
+    eigen_threshold_test,
+    forward_backward,
+    gradients,
+    laplacian8,
+    lucas_kanade,
+    lucas_kanade_opencv,
+    match_templates,
+    min_eigenvalue,
+    p_lambda,
+    select_templates,
+    structure_tensor,
+    variance_map,
+)
+
+
+def smooth_periodic_texture(n: int, sigma: float, seed: int = 0) -> np.ndarray:
+    """Gaussian-filtered white noise made periodic (filtered in Fourier space),
+    scaled to mean 128 and standard deviation 40 DN; float64 (n, n)."""
+    rng = np.random.default_rng(seed)
+    f = np.fft.fftfreq(n)
+    gain = np.exp(-2 * np.pi**2 * sigma**2 * (f[:, None] ** 2 + f[None, :] ** 2))
+    img = np.real(np.fft.ifft2(np.fft.fft2(rng.random((n, n))) * gain))
+    return (img - img.mean()) / img.std() * 40.0 + 128.0
+
+
+def fourier_shift(img: np.ndarray, dx: float, dy: float) -> np.ndarray:
+    """Exact sub-pixel translation of a periodic band-limited image: content
+    at (x, y) moves to (x + dx, y + dy)."""
+    n_r, n_c = img.shape
+    ky = np.fft.fftfreq(n_r)[:, None]
+    kx = np.fft.fftfreq(n_c)[None, :]
+    return np.real(np.fft.ifft2(np.fft.fft2(img) * np.exp(-2j * np.pi * (kx * dx + ky * dy))))
+
+
+# ------------------------------------------------------------------ §2 stages
+@pytest.mark.parametrize("dtype", [np.uint8, np.float32])
+def test_block_average_matches_explicit_loop(dtype):
+    rng = np.random.default_rng(1)
+    img = rng.integers(0, 256, (23, 31)).astype(dtype)
+    sx, sy = 5, 3
+    out = block_average(img, sx, sy)
+    assert out.shape == (23 // sy, 31 // sx)
+    ref = np.zeros(out.shape)
+    for v in range(out.shape[0]):
+        for u in range(out.shape[1]):
+            acc = 0.0
+            for i in range(sx):
+                for j in range(sy):
+                    acc += float(img[sy * v + j, sx * u + i])  # E(Sx u + i, Sy v + j), eq. (2.1)
+            ref[v, u] = acc / (sx * sy)
+    np.testing.assert_allclose(out, ref, atol=1e-4)
+
+
+def test_block_average_rejects_bad_factors():
+    img = np.zeros((10, 10), np.uint8)
+    for bad in (0, -1, 2.5, 11):
+        with pytest.raises(ValueError, match="sx|sub-sampling"):
+            block_average(img, bad, 2)
+
+
+def test_laplacian8_interior_matches_neighbour_sum():
+    rng = np.random.default_rng(2)
+    img = rng.random((12, 15)).astype(np.float32) * 255
+    out = laplacian8(img)
+    p = img.astype(np.float64)
+    ref = -9 * p[1:-1, 1:-1]
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            ref = ref + p[1 + dr : p.shape[0] - 1 + dr, 1 + dc : p.shape[1] - 1 + dc]
+    np.testing.assert_allclose(out[1:-1, 1:-1], ref, atol=1e-3)
+    assert LAPLACIAN8_KERNEL.sum() == 0
+    assert np.all(laplacian8(np.full((6, 6), 77, np.uint8)) == 0)  # flat -> zero, borders too
+
+
+def test_variance_map_matches_numpy_var():
+    rng = np.random.default_rng(3)
+    img = (rng.standard_normal((17, 21)) * 30).astype(np.float32)
+    wx, wy = 4, 3
+    v = variance_map(img, wx, wy)
+    assert v.shape == (17 - wy + 1, 21 - wx + 1)
+    for r in range(v.shape[0]):
+        for c in range(v.shape[1]):
+            assert v[r, c] == pytest.approx(np.var(img[r : r + wy, c : c + wx].astype(np.float64)), rel=1e-6, abs=1e-6)
+    with pytest.raises(ValueError, match="wx"):
+        variance_map(img, 0, 2)
+    with pytest.raises(ValueError, match="fit"):
+        variance_map(img, 30, 2)
+
+
+def test_select_templates_rules():
+    var = np.zeros((40, 40))
+    # Peaks: (row, col) -> value. The two strongest are close together.
+    peaks = {(10, 10): 100.0, (11, 12): 90.0, (30, 30): 80.0, (1, 20): 500.0, (20, 25): 70.0}
+    for (r, c), val in peaks.items():
+        var[r, c] = val
+    s = 5
+    tl = select_templates(var, 3, s, s, (20, 20), (220, 220), border_px=10, min_separation_px=40.0)
+    got = [tuple(p) for p in tl.tolist()]
+    # (1, 20) is too near the top border; (11, 12) is too close to (10, 10).
+    assert got == [(50, 50), (150, 150), (125, 100)]
+    # Fixed number: asking for fewer gives the strongest valid ones.
+    assert select_templates(var, 1, s, s, (20, 20), (220, 220), 10, 40.0).tolist() == [[50, 50]]
+    # Occupied areas are avoided.
+    occ = np.array([[59.5, 59.5]])
+    tl2 = select_templates(var, 3, s, s, (20, 20), (220, 220), 10, 40.0, occupied_xy=occ)
+    assert [50, 50] not in tl2.tolist() and [55, 60] not in tl2.tolist()
+    # Featureless -> none.
+    assert select_templates(np.zeros((40, 40)), 5, s, s, (20, 20), (220, 220), 10, 40.0).shape == (0, 2)
+
+
+@pytest.mark.parametrize("shift", [(3, -2), (-7, 5), (0, 0)])
+@pytest.mark.parametrize("dtype", [np.uint8, np.float32])
+def test_match_templates_finds_integer_shift_exactly(shift, dtype):
+    tex = smooth_periodic_texture(128, 1.5, seed=4)
+    a = np.clip(tex, 0, 255).astype(dtype)
+    b = np.roll(a, (shift[1], shift[0]), axis=(0, 1))
+    tl = np.array([[30, 40], [70, 60], [50, 80]])
+    m = match_templates(a, b, tl, (20, 20), search_radius=8)
+    np.testing.assert_array_equal(m.shift, np.tile(shift, (3, 1)))
+    assert (m.rel_ssd < 1e-4).all()  # exact match up to float rounding of the SSD expansion
+    assert not m.at_edge.any()
+    # With a prediction the same shift is found with a small window.
+    m2 = match_templates(a, b, tl, (20, 20), search_radius=2, predicted_shift=np.tile(shift, (3, 1)))
+    np.testing.assert_array_equal(m2.shift, m.shift)
+
+
+def test_match_templates_flags_shift_beyond_window():
+    tex = np.clip(smooth_periodic_texture(128, 1.5, seed=5), 0, 255).astype(np.uint8)
+    b = np.roll(tex, 9, axis=1)
+    m = match_templates(tex, b, np.array([[50, 50]]), (20, 20), search_radius=4)
+    assert m.at_edge[0] and m.rel_ssd[0] > 0.05
+    with pytest.raises(ValueError, match="shape"):
+        match_templates(tex, tex[:-1], np.array([[50, 50]]), (20, 20), 4)
+    with pytest.raises(ValueError, match="inside"):
+        match_templates(tex, b, np.array([[120, 50]]), (20, 20), 4)
+
+
+# ------------------------------------------------------------------ §3 stages
+def test_gradients_and_structure_tensor_match_loops():
+    rng = np.random.default_rng(6)
+    img = rng.random((9, 11)) * 255
+    ix, iy = gradients(img)
+    for r in range(9):
+        for c in range(1, 10):
+            assert ix[r, c] == pytest.approx((img[r, c + 1] - img[r, c - 1]) / 2, abs=1e-3)  # eq. (3.1)
+    for r in range(1, 8):
+        for c in range(11):
+            assert iy[r, c] == pytest.approx((img[r + 1, c] - img[r - 1, c]) / 2, abs=1e-3)  # eq. (3.2)
+    w1 = 3
+    a, b, c = structure_tensor(ix, iy, w1)
+    for r in range(1, 8):
+        for col in range(1, 10):
+            px = ix[r - 1 : r + 2, col - 1 : col + 2].astype(np.float64)
+            py = iy[r - 1 : r + 2, col - 1 : col + 2].astype(np.float64)
+            assert a[r, col] == pytest.approx((px * px).sum(), rel=1e-5)
+            assert b[r, col] == pytest.approx((px * py).sum(), rel=1e-5, abs=1e-3)
+            assert c[r, col] == pytest.approx((py * py).sum(), rel=1e-5)
+    assert a[0].max() == 0 and a[:, -1].max() == 0
+    with pytest.raises(ValueError, match="odd"):
+        structure_tensor(ix, iy, 4)
+
+
+def test_sqrt_free_test_agrees_with_eigenvalues():
+    rng = np.random.default_rng(7)
+    n = 20000
+    m = rng.standard_normal((n, 2, 2)) * 30
+    g = m @ m.transpose(0, 2, 1)  # random symmetric positive semi-definite G
+    a, b, c = g[:, 0, 0], g[:, 0, 1], g[:, 1, 1]
+    eig_min = np.linalg.eigvalsh(g)[:, 0]
+    for lam in (0.0, 100.0, 1500.0, float(np.median(eig_min))):
+        expected = eig_min > lam
+        got = eigen_threshold_test(a, b, c, lam)
+        np.testing.assert_array_equal(got, expected)
+        # P(lambda) is the characteristic polynomial det(G - lambda I).
+        np.testing.assert_allclose(p_lambda(a, b, c, lam), np.linalg.det(g - lam * np.eye(2)), rtol=1e-6, atol=1e-3)
+    np.testing.assert_allclose(min_eigenvalue(a, b, c), eig_min, rtol=1e-9, atol=1e-6)
+    assert expected.any() and (~expected).any()  # the test can fail both ways
+
+
+def corner_image() -> tuple[np.ndarray, np.ndarray]:
+    """Bright squares on dark: their corners are the true feature points."""
+    img = np.full((64, 64), 40.0, np.float32)
+    img[10:25, 12:30] = 200.0
+    img[38:54, 36:50] = 200.0
+    corners = np.array(
+        [[12, 10], [29, 10], [12, 24], [29, 24], [36, 38], [49, 38], [36, 53], [49, 53]], dtype=np.float64
+    )
+    return img, corners
+
+
+def test_detect_features_exhaustive_finds_corners_with_nms():
+    img, corners = corner_image()
+    f = detect_features(img, window=3, lambda_t=1500.0, max_features=50, nms_radius=2)
+    assert len(f.xy) >= len(corners)
+    d = np.linalg.norm(f.xy[:, None, :] - corners[None, :, :], axis=2)
+    assert (d.min(axis=0) <= 1.5).all(), "every true corner has a detection next to it"
+    assert (d.min(axis=1) <= 2.5).all(), "no detection away from the corners (edges are rejected)"
+    pair = np.abs(f.xy[:, None, :] - f.xy[None, :, :]).max(axis=2) + np.eye(len(f.xy)) * 99
+    assert pair.min() > 2, "non-maximum suppression spreads points"
+    assert np.all(np.diff(f.score) <= 0)
+    # A flat image gives nothing.
+    assert len(detect_features(np.full((30, 30), 9, np.uint8), lambda_t=1.0).xy) == 0
+
+
+def test_detect_in_subimages_limits_and_regions():
+    img, corners = corner_image()
+    tl = np.array([[8, 6], [32, 34]])
+    f = detect_in_subimages(img, tl, (24, 22), lambda_t=1500.0, max_features=3, nms_radius=1)
+    assert np.bincount(f.region, minlength=2).tolist() == [3, 3]
+    for k in range(2):
+        xy = f.xy[f.region == k]
+        assert (xy >= tl[k]).all() and (xy < tl[k] + (24, 22)).all()
+    with pytest.raises(ValueError, match="margin"):
+        detect_in_subimages(img, np.array([[0, 0]]), (10, 10))
+
+
+def test_random_search_uses_only_the_given_generator():
+    img, corners = corner_image()
+    state = np.random.get_state()
+    f1 = detect_features(img, lambda_t=1500.0, max_features=6, nms_radius=2, strategy="random", rng=np.random.default_rng(3))
+    f2 = detect_features(img, lambda_t=1500.0, max_features=6, nms_radius=2, strategy="random", rng=np.random.default_rng(3))
+    assert np.random.get_state()[1].tolist() == state[1].tolist()
+    np.testing.assert_array_equal(f1.xy, f2.xy)
+    assert len(f1.xy) == 6
+    # Every accepted pixel passes the eq. (3.4) test ...
+    ix, iy = gradients(img)
+    a, b, c = structure_tensor(ix, iy, 3)
+    r, col = f1.xy[:, 1].astype(int), f1.xy[:, 0].astype(int)
+    assert eigen_threshold_test(a[r, col], b[r, col], c[r, col], 1500.0).all()
+    # ... and accepted points are not adjacent.
+    pair = np.abs(f1.xy[:, None, :] - f1.xy[None, :, :]).max(axis=2) + np.eye(6) * 99
+    assert pair.min() > 2
+    with pytest.raises(ValueError, match="Generator"):
+        detect_features(img, strategy="random", rng=None)
+    with pytest.raises(ValueError, match="strategy"):
+        detect_features(img, strategy="greedy")
+
+
+# ------------------------------------------------------------------ §4 stages
+def test_bilinear_patches_match_scipy():
+    rng = np.random.default_rng(8)
+    img = (rng.random((40, 50)) * 255).astype(np.float32)
+    xy = rng.uniform(6, 33, (7, 2))
+    patches, inside = bilinear_patches(img, xy, 3)
+    assert inside.all()
+    off = np.arange(-3, 4)
+    for p in range(7):
+        rr = xy[p, 1] + off[:, None] + 0 * off[None, :]
+        cc = xy[p, 0] + off[None, :] + 0 * off[:, None]
+        ref = ndimage.map_coordinates(img.astype(np.float64), [rr, cc], order=1)
+        np.testing.assert_allclose(patches[p], ref, atol=1e-3)
+    _, inside = bilinear_patches(img, np.array([[2.0, 20.0], [20.0, 36.5]]), 3)
+    assert not inside.any()
+
+
+@pytest.mark.parametrize("shift", [(0.37, -0.61), (0.5, 0.5), (-0.23, 0.11)])
+def test_lucas_kanade_recovers_subpixel_shift(shift):
+    tex = smooth_periodic_texture(128, 2.0, seed=9)
+    a = tex.astype(np.float32)
+    b = fourier_shift(tex, *shift).astype(np.float32)
+    rng = np.random.default_rng(10)
+    xy = rng.integers(20, 108, (60, 2)).astype(np.float64)
+    res = lucas_kanade(a, b, xy, init_xy=xy + np.round(shift), window=15, eps=1e-3)
+    assert res.status.all()
+    err = np.linalg.norm(res.xy - xy - shift, axis=1)
+    assert np.median(err) < 0.02
+    assert err.max() < 0.06
+    assert np.abs((res.xy - xy).mean(axis=0) - shift).max() < 0.02
+
+
+def test_lucas_kanade_needs_the_seed_for_large_motion():
+    tex = smooth_periodic_texture(128, 1.5, seed=11)
+    a = tex.astype(np.float32)
+    shift = (9.3, -6.6)
+    b = fourier_shift(tex, *shift).astype(np.float32)
+    xy = np.array([[50.0, 50.0], [70.0, 64.0], [60.0, 40.0]])
+    seeded = lucas_kanade(a, b, xy, init_xy=xy + np.round(shift), window=9)
+    assert seeded.status.all()
+    np.testing.assert_allclose(seeded.xy - xy, np.tile(shift, (3, 1)), atol=0.1)
+    unseeded = lucas_kanade(a, b, xy, window=9)
+    assert (np.linalg.norm(unseeded.xy - xy - shift, axis=1) > 1.0).any()
+
+
+def test_numpy_lk_equals_opencv_lk_on_same_inputs():
+    tex = smooth_periodic_texture(128, 2.0, seed=12)
+    a = np.clip(np.rint(tex), 0, 255).astype(np.uint8)
+    b = np.clip(np.rint(fourier_shift(tex, 2.3, -1.4)), 0, 255).astype(np.uint8)
+    rng = np.random.default_rng(13)
+    xy = rng.uniform(20, 108, (80, 2))
+    init = xy + (2.0, -1.0)
+    ours = lucas_kanade(a, b, xy, init, window=9, eps=1e-3)
+    cv = lucas_kanade_opencv(a, b, xy, init, window=9, eps=1e-3)
+    ok = ours.status & cv.status
+    assert ok.mean() > 0.95
+    d = np.linalg.norm(ours.xy[ok] - cv.xy[ok], axis=1)
+    assert np.median(d) < 0.01 and d.max() < 0.05
+
+
+def test_forward_backward_rejects_inconsistent_points():
+    tex = smooth_periodic_texture(128, 1.5, seed=14)
+    a = np.clip(tex, 0, 255).astype(np.uint8)
+    b = np.roll(a, (1, 2), axis=(0, 1))
+    # Replace one region of frame k+1 with unrelated texture.
+    b[60:100, 60:100] = np.clip(smooth_periodic_texture(40, 1.5, seed=15), 0, 255).astype(np.uint8)
+    xy = np.array([[30.0, 30.0], [40.0, 90.0], [80.0, 80.0], [75.0, 85.0]])
+    init = xy + (2, 1)
+    for backend in ("numpy", "opencv"):
+        fb = forward_backward(a, b, xy, init, None, 0.5, backend=backend)
+        assert fb.ok[:2].all(), backend
+        np.testing.assert_allclose(fb.xy[:2] - xy[:2], [[2, 1], [2, 1]], atol=0.05)
+        assert not fb.ok[2:].any(), backend
+    with pytest.raises(ValueError, match="backend"):
+        forward_backward(a, b, xy, init, None, 0.5, backend="gpu")
+
+
+def test_lk_rejects_bad_arguments():
+    a = np.zeros((20, 20), np.float32)
+    with pytest.raises(ValueError, match="window"):
+        lucas_kanade(a, a, np.zeros((1, 2)), window=4)
+    with pytest.raises(ValueError, match=r"\(N, 2\)"):
+        lucas_kanade(a, a, np.zeros((3,)))
+    with pytest.raises(ValueError, match="finite"):
+        lucas_kanade(a, a, np.array([[np.nan, 1.0]]))
+    with pytest.raises(ValueError, match="shape"):
+        lucas_kanade(a, a[:10], np.zeros((1, 2)))
+    # A flat window is an aperture problem: status False, no crash.
+    assert not lucas_kanade(a, a, np.array([[10.0, 10.0]])).status[0]

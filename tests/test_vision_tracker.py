@@ -1,0 +1,260 @@
+"""Tests of vision.Tracker: contract, robustness and tracking on known motion."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+import vision
+from vision import Tracker, TrackerConfig, Tracks
+
+VISION_DIR = Path(vision.__file__).parent
+
+
+def texture(n: int = 400, seed: int = 0) -> np.ndarray:
+    """Multi-scale random texture, float32 (n, n) in 0..255 [DN]."""
+    rng = np.random.default_rng(seed)
+    img = np.zeros((n, n), np.float32)
+    for scale in (2, 4, 8, 16):
+        grid = rng.standard_normal((n // scale + 2, n // scale + 2)).astype(np.float32)
+        img += cv2.resize(grid, (n + 2 * scale, n + 2 * scale), interpolation=cv2.INTER_CUBIC)[
+            scale : scale + n, scale : scale + n
+        ] * np.float32(scale**0.5)
+    img = cv2.GaussianBlur(img, (0, 0), 1.0)
+    return np.clip(128 + 40 * (img - img.mean()) / img.std(), 0, 255).astype(np.float32)
+
+
+def translated_frames(n_frames: int, step_xy: tuple[float, float], size: int = 160, seed: int = 0) -> list[np.ndarray]:
+    """Crops of a large texture moving by ``step_xy`` px per frame (sub-pixel
+    steps through bilinear warps of the big texture)."""
+    big = texture(size + 2 * int(abs(step_xy[0]) * n_frames + abs(step_xy[1]) * n_frames) + 40, seed)
+    frames = []
+    c0 = big.shape[0] / 2 - size / 2
+    for k in range(n_frames):
+        # Content moves by +step per frame: the crop window moves by -step.
+        m = np.array([[1.0, 0.0, -(c0 - k * step_xy[0])], [0.0, 1.0, -(c0 - k * step_xy[1])]])
+        frames.append(np.rint(cv2.warpAffine(big, m, (size, size), flags=cv2.INTER_LINEAR)).astype(np.uint8))
+    return frames
+
+
+# ------------------------------------------------------------------ contract
+def test_tracks_contract_ids_prev_xy_and_age():
+    frames = translated_frames(5, (2.0, 1.0))
+    tr = Tracker()
+    out0 = tr.step(frames[0])
+    assert len(out0) > 20
+    assert out0.ids.dtype == np.int64 and out0.xy.dtype == np.float64 and out0.age.dtype == np.int64
+    assert out0.xy.shape == (len(out0), 2) and out0.prev_xy.shape == (len(out0), 2)
+    assert np.isnan(out0.prev_xy).all() and (out0.age == 0).all()
+    assert len(np.unique(out0.ids)) == len(out0)
+    prev = out0
+    for img in frames[1:]:
+        out = tr.step(img)
+        _, ia, ib = np.intersect1d(prev.ids, out.ids, return_indices=True)
+        assert len(ia) > 0.8 * len(prev)
+        np.testing.assert_array_equal(out.prev_xy[ib], prev.xy[ia])
+        np.testing.assert_array_equal(out.age[ib], prev.age[ia] + 1)
+        born = ~np.isin(out.ids, prev.ids)
+        assert np.isnan(out.prev_xy[born]).all() and (out.age[born] == 0).all()
+        assert not np.isnan(out.prev_xy[~born]).any()
+        prev = out
+
+
+def test_tracks_follow_known_translation():
+    step = (2.4, -1.3)
+    frames = translated_frames(8, step)
+    tr = Tracker()
+    prev = tr.step(frames[0])
+    errors = []
+    for img in frames[1:]:
+        out = tr.step(img)
+        old = ~np.isnan(out.prev_xy[:, 0])
+        errors.append(np.linalg.norm(out.xy[old] - out.prev_xy[old] - step, axis=1))
+        prev = out
+    err = np.concatenate(errors)
+    assert err.size > 200
+    assert np.median(err) < 0.05 and (err < 0.5).all()
+    assert len(prev) > 30
+
+
+def test_large_motion_converges_through_block_matching():
+    step = (9.6, 7.3)  # beyond a 9 px LK window: only the block-matching seed helps
+    frames = translated_frames(5, step, size=200)
+    tr = Tracker()
+    tr.step(frames[0])
+    out = None
+    for img in frames[1:]:
+        out = tr.step(img)
+        old = ~np.isnan(out.prev_xy[:, 0])
+        assert old.sum() > 10
+        err = np.linalg.norm(out.xy[old] - out.prev_xy[old] - step, axis=1)
+        assert np.median(err) < 0.1 and (err < 1.0).all()
+
+
+def test_reset_restarts_ids_and_is_deterministic():
+    frames = translated_frames(4, (1.5, 0.5))
+    tr = Tracker()
+    first = [tr.step(f) for f in frames]
+    tr.reset()
+    second = [tr.step(f) for f in frames]
+    for a, b in zip(first, second):
+        np.testing.assert_array_equal(a.ids, b.ids)
+        np.testing.assert_array_equal(a.xy, b.xy)
+    assert second[0].ids.min() == 0
+
+
+def test_float32_input_equals_uint8_input():
+    frames = translated_frames(4, (1.5, 0.5))
+    a = Tracker()
+    b = Tracker()
+    c = Tracker(TrackerConfig(float_full_scale=1.0))
+    for f in frames:
+        ta, tb, tc = a.step(f), b.step(f.astype(np.float32)), c.step(f.astype(np.float32) / 255)
+        np.testing.assert_array_equal(ta.ids, tb.ids)
+        np.testing.assert_allclose(ta.xy, tb.xy)
+        np.testing.assert_allclose(ta.xy, tc.xy)
+
+
+def test_numpy_backend_matches_opencv_backend():
+    frames = translated_frames(5, (2.2, -0.7))
+    a = Tracker(TrackerConfig(lk_backend="opencv"))
+    b = Tracker(TrackerConfig(lk_backend="numpy"))
+    for f in frames:
+        ta, tb = a.step(f), b.step(f)
+    _, ia, ib = np.intersect1d(ta.ids, tb.ids, return_indices=True)
+    assert len(ia) > 0.8 * max(len(ta), len(tb))
+    d = np.linalg.norm(ta.xy[ia] - tb.xy[ib], axis=1)
+    assert np.median(d) < 0.02 and d.max() < 0.1
+
+
+def test_random_search_strategy_runs_with_its_own_generator():
+    frames = translated_frames(3, (1.0, 1.0))
+    state = np.random.get_state()
+    cfg = TrackerConfig(fp_search="random")
+    runs = []
+    for _ in range(2):
+        tr = Tracker(cfg, rng=np.random.default_rng(5))
+        runs.append([tr.step(f) for f in frames])
+    assert np.random.get_state()[1].tolist() == state[1].tolist()
+    np.testing.assert_array_equal(runs[0][-1].xy, runs[1][-1].xy)
+    assert len(runs[0][-1]) > 20
+    tr = Tracker(cfg, rng=np.random.default_rng(1))
+    assert len(tr.step(frames[0])) > 20
+    with pytest.raises(ValueError, match="Generator"):
+        Tracker(cfg, rng=np.random.RandomState(0))
+    with pytest.raises(ValueError, match="needs rng"):
+        Tracker(cfg)
+
+
+def test_redetection_replaces_lost_tracks():
+    frames = translated_frames(3, (1.0, 0.0))
+    tr = Tracker()
+    t0 = tr.step(frames[0])
+    tr.step(frames[1])
+    # A completely new scene: every template and track is lost and replaced.
+    other = translated_frames(1, (0.0, 0.0), seed=7)[0]
+    t2 = tr.step(other)
+    assert len(t2) > 20
+    assert not np.isin(t2.ids, t0.ids).any()
+    assert np.isnan(t2.prev_xy).all()
+
+
+def test_templates_are_spread_and_inside():
+    frames = translated_frames(2, (1.0, 0.0), size=256)
+    cfg = TrackerConfig()
+    tr = Tracker(cfg)
+    tr.step(frames[0])
+    tl = tr.templates
+    assert 1 <= len(tl) <= cfg.n_templates
+    assert (tl >= cfg.border_px).all() and (tl + cfg.template_size <= 256 - cfg.border_px).all()
+    c = tl + 0.5 * (cfg.template_size - 1)
+    d = np.linalg.norm(c[:, None] - c[None, :], axis=2) + np.eye(len(c)) * 1e9
+    assert d.min() >= cfg.template_separation_frac * 256
+    # Every track lies in its sub-image.
+    out = tr.step(frames[1])
+    owner = tr.templates[tr.track_templates]
+    rel = out.xy - owner
+    slack = 0.25 * cfg.template_size
+    assert ((rel >= -slack) & (rel <= cfg.template_size - 1 + slack)).all()
+
+
+# ---------------------------------------------------------------- robustness
+@pytest.mark.parametrize(
+    ("bad", "pattern"),
+    [
+        (np.zeros((32, 32, 3), np.uint8), "2-D"),
+        (np.zeros(32, np.uint8), "2-D"),
+        (np.zeros((32, 32), np.float64), "dtype"),
+        (np.zeros((32, 32), np.int16), "dtype"),
+        (np.zeros((0, 32), np.uint8), "non-empty"),
+        (np.full((32, 32), np.nan, np.float32), "NaN"),
+        (np.pad(np.full((31, 32), 5, np.float32), ((0, 1), (0, 0)), constant_values=np.inf), "NaN or infinite"),
+        ([[1, 2], [3, 4]], "numpy.ndarray"),
+    ],
+)
+def test_bad_images_raise_clear_value_errors(bad, pattern):
+    with pytest.raises(ValueError, match=pattern) as exc:
+        Tracker().step(bad)
+    assert "image" in str(exc.value)
+
+
+def test_shape_change_without_reset_raises():
+    tr = Tracker()
+    tr.step(np.zeros((64, 64), np.uint8))
+    with pytest.raises(ValueError, match="reset"):
+        tr.step(np.zeros((64, 80), np.uint8))
+    tr.reset()
+    tr.step(np.zeros((64, 80), np.uint8))
+
+
+@pytest.mark.parametrize(
+    "image",
+    [
+        np.zeros((128, 128), np.uint8),
+        np.full((128, 128), 200, np.uint8),
+        np.tile(np.linspace(0, 255, 128, dtype=np.float32), (128, 1)),  # smooth ramp: no corners
+        np.zeros((8, 8), np.uint8),  # too small for any template
+        np.zeros((1, 1), np.float32),
+    ],
+)
+def test_featureless_images_give_zero_tracks(image):
+    tr = Tracker()
+    for _ in range(3):
+        out = tr.step(image)
+        assert isinstance(out, Tracks) and len(out) == 0
+        assert out.xy.shape == (0, 2)
+
+
+def test_config_validation():
+    with pytest.raises(ValidationError, match="multiple"):
+        TrackerConfig(template_size=22)
+    with pytest.raises(ValidationError, match="odd"):
+        TrackerConfig(lk_window=8)
+    with pytest.raises(ValidationError):
+        TrackerConfig(unknown_field=1)
+    with pytest.raises(ValidationError):
+        TrackerConfig(n_templates=0)
+    with pytest.raises(ValueError, match="TrackerConfig"):
+        Tracker({"n_templates": 3})
+    for name, field in TrackerConfig.model_fields.items():
+        assert field.description and "[" in field.description, f"{name} lacks a description with units"
+
+
+# --------------------------------------------------------------- flight rule
+def test_vision_never_imports_simulator_or_bench():
+    for path in VISION_DIR.glob("*.py"):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                names = [node.module or ""]
+            for n in names:
+                root = n.split(".")[0]
+                assert root not in {"mujoco", "bench", "models"}, f"{path.name} imports {n}"

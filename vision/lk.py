@@ -1,0 +1,339 @@
+"""Lucas-Kanade / Tomasi-Kanade point tracking (paper §4).
+
+:func:`lucas_kanade` is the reference implementation of eqs. (4.1)-(4.7):
+for each point the gradient matrix ``G`` of eq. (4.5) is built from the
+central-difference gradients (eqs. 3.1-3.2) of frame k around the point, and
+the displacement is refined iteratively, ``d <- d + G^-1 e`` (eqs. 4.6-4.7),
+with ``e = -sum [Ix It, Iy It]`` and ``It = J(x + d) - I(x)``, until the update
+is smaller than ``eps``. Sampling at sub-pixel positions is exact bilinear
+interpolation, vectorised over all points (all samples of one window share the
+same fractional offset, so four shifted integer patches suffice).
+
+:func:`lucas_kanade_opencv` runs the same single-level iteration through
+``cv2.calcOpticalFlowPyrLK(maxLevel=0, OPTFLOW_USE_INITIAL_FLOW)``; it differs
+only in OpenCV's Scharr derivative and 14-bit fixed-point interpolation, and
+the tests check that both agree on the same inputs.
+
+:func:`forward_backward` tracks points forward and back again and rejects the
+ones that do not return to where they started.
+
+Rate: once per frame for all live tracks.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+
+Backend = Literal["numpy", "opencv"]
+BACKENDS = ("numpy", "opencv")
+
+DEFAULT_WINDOW = 9
+"""Default LK window side [px]."""
+DEFAULT_MAX_ITER = 20
+"""Default cap on LK iterations."""
+DEFAULT_EPS = 0.01
+"""Default convergence threshold on the update |delta d| [px]."""
+DEFAULT_MIN_EIG = 1e-2
+"""Default lower bound on the smallest eigenvalue of G per window pixel
+[DN^2/px^2 per px]: below it the window is too flat to track (aperture)."""
+OPENCV_MIN_EIG_SCALE = 1.0 / (255.0 * 255.0)
+"""OpenCV normalises its minimum-eigenvalue test by the 8-bit range squared."""
+
+
+@dataclass(frozen=True, slots=True)
+class LKResult:
+    """Outcome of a Lucas-Kanade solve for P points.
+
+    Attributes:
+        xy: Tracked positions in the new frame, (P, 2) float64 [px].
+        status: True where the solve is valid (inside the image, G well
+            conditioned), (P,) bool.
+        iterations: Iterations used per point, (P,) int64 (-1 if unknown).
+    """
+
+    xy: np.ndarray
+    status: np.ndarray
+    iterations: np.ndarray
+
+
+def _check_points(xy: object, name: str) -> np.ndarray:
+    arr = np.asarray(xy, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise ValueError(f"{name} must have shape (N, 2) [px], got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{name} must be finite [px]; got NaN or inf")
+    return arr
+
+
+def bilinear_patches(image: np.ndarray, xy: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sample square windows centred at sub-pixel points by bilinear interpolation.
+
+    Args:
+        image: (H, W) uint8 or float32 [DN].
+        xy: Window centres (x, y), (P, 2) float [px].
+        half: Half-width r; windows are (2r + 1) x (2r + 1) samples at integer
+            offsets from the centre.
+
+    Returns:
+        (patches, inside): patches (P, 2r + 1, 2r + 1) float32 [DN]; inside
+        (P,) bool, False where the window plus its interpolation neighbours
+        leaves the image (those patches hold clamped, meaningless values).
+    """
+    height, width = image.shape
+    n = 2 * half + 1
+    flat = np.ascontiguousarray(image).ravel()
+    base = np.floor(xy).astype(np.int64)
+    frac = (xy - base).astype(np.float32)
+    x0 = base[:, 0] - half
+    y0 = base[:, 1] - half
+    inside = (x0 >= 0) & (y0 >= 0) & (x0 + n < width) & (y0 + n < height)
+    x0 = np.clip(x0, 0, width - n - 1)
+    y0 = np.clip(y0, 0, height - n - 1)
+    offs = (np.arange(n + 1)[:, None] * width + np.arange(n + 1)[None, :]).ravel()
+    block = flat[(y0 * width + x0)[:, None] + offs[None, :]].reshape(-1, n + 1, n + 1).astype(np.float32)
+    fx = frac[:, 0, None, None]
+    fy = frac[:, 1, None, None]
+    top = block[:, :-1, :-1] + fx * (block[:, :-1, 1:] - block[:, :-1, :-1])
+    bottom = block[:, 1:, :-1] + fx * (block[:, 1:, 1:] - block[:, 1:, :-1])
+    return top + fy * (bottom - top), inside
+
+
+def lucas_kanade(
+    prev_image: np.ndarray,
+    image: np.ndarray,
+    xy: np.ndarray,
+    init_xy: np.ndarray | None = None,
+    window: int = DEFAULT_WINDOW,
+    max_iter: int = DEFAULT_MAX_ITER,
+    eps: float = DEFAULT_EPS,
+    min_eig: float = DEFAULT_MIN_EIG,
+) -> LKResult:
+    """Iterative Lucas-Kanade solve of ``G d = e``, eqs. (4.5)-(4.7).
+
+    Inputs: two frames and points of frame k. Output: the points' sub-pixel
+    positions in frame k+1. Rate: per frame, vectorised over points.
+
+    Args:
+        prev_image: Frame k (I), (H, W) uint8 or float32 [DN].
+        image: Frame k+1 (J), same shape [DN].
+        xy: Points in frame k, (P, 2) [px].
+        init_xy: Initial guess of the points in frame k+1 (e.g. from block
+            matching), (P, 2) [px]; None means ``xy``. The solve converges
+            when the guess is within about half the window of the truth.
+        window: Odd window side [px].
+        max_iter: Iteration cap, >= 1.
+        eps: Stop when the update is below this [px].
+        min_eig: Smallest eigenvalue of G / window^2 needed [DN^2/px^2].
+
+    Returns:
+        :class:`LKResult`.
+
+    Raises:
+        ValueError: On mismatched frames or invalid parameters.
+    """
+    if prev_image.shape != image.shape:
+        raise ValueError(f"prev_image and image must share a shape, got {prev_image.shape} and {image.shape}")
+    if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 3 or window % 2 == 0:
+        raise ValueError(f"window must be an odd integer >= 3 [px], got {window!r}")
+    if max_iter < 1:
+        raise ValueError(f"max_iter must be >= 1, got {max_iter!r}")
+    xy = _check_points(xy, "xy")
+    guess = xy.copy() if init_xy is None else _check_points(init_xy, "init_xy")
+    if guess.shape != xy.shape:
+        raise ValueError(f"init_xy must match xy's shape {xy.shape}, got {guess.shape}")
+    half = window // 2
+    n_pts = xy.shape[0]
+    # Template window with a one-pixel ring for the central differences.
+    ring, inside = bilinear_patches(prev_image, xy, half + 1)
+    tpl = ring[:, 1:-1, 1:-1]
+    ix = 0.5 * (ring[:, 1:-1, 2:] - ring[:, 1:-1, :-2])  # eq. (3.1)
+    iy = 0.5 * (ring[:, 2:, 1:-1] - ring[:, :-2, 1:-1])  # eq. (3.2)
+    a = np.einsum("pij,pij->p", ix, ix, dtype=np.float64)  # eq. (4.5), G
+    b = np.einsum("pij,pij->p", ix, iy, dtype=np.float64)
+    c = np.einsum("pij,pij->p", iy, iy, dtype=np.float64)
+    det = a * c - b * b
+    lam_min = 0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b)
+    status = inside & (lam_min / float(window * window) >= min_eig) & (det > 0)
+    safe_det = np.where(status, det, 1.0)
+    pos = guess.copy()
+    iterations = np.zeros(n_pts, np.int64)
+    active = status.copy()
+    for _ in range(max_iter):
+        if not active.any():
+            break
+        idx = np.nonzero(active)[0]
+        warped, ok = bilinear_patches(image, pos[idx], half)
+        it = warped - tpl[idx]  # temporal difference I_t
+        e0 = -np.einsum("pij,pij->p", ix[idx], it, dtype=np.float64)  # eq. (4.5), e
+        e1 = -np.einsum("pij,pij->p", iy[idx], it, dtype=np.float64)
+        # d = G^-1 e, eq. (4.7), with the 2 x 2 inverse written out.
+        dx = (c[idx] * e0 - b[idx] * e1) / safe_det[idx]
+        dy = (a[idx] * e1 - b[idx] * e0) / safe_det[idx]
+        pos[idx, 0] += np.where(ok, dx, 0.0)
+        pos[idx, 1] += np.where(ok, dy, 0.0)
+        iterations[idx] += 1
+        status[idx] &= ok
+        active[idx] = ok & (dx * dx + dy * dy >= eps * eps)
+    height, width = image.shape
+    on_image = (pos[:, 0] >= half) & (pos[:, 1] >= half) & (pos[:, 0] <= width - 1 - half) & (pos[:, 1] <= height - 1 - half)
+    return LKResult(xy=pos, status=status & on_image, iterations=iterations)
+
+
+def _as_uint8(image: np.ndarray) -> np.ndarray:
+    if image.dtype == np.uint8:
+        return image
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+def lucas_kanade_opencv(
+    prev_image: np.ndarray,
+    image: np.ndarray,
+    xy: np.ndarray,
+    init_xy: np.ndarray | None = None,
+    window: int = DEFAULT_WINDOW,
+    max_iter: int = DEFAULT_MAX_ITER,
+    eps: float = DEFAULT_EPS,
+    min_eig: float = DEFAULT_MIN_EIG,
+) -> LKResult:
+    """Single-level LK through OpenCV, same contract as :func:`lucas_kanade`.
+
+    ``cv2.calcOpticalFlowPyrLK(maxLevel=0, flags=OPTFLOW_USE_INITIAL_FLOW)``:
+    the same iteration as eqs. (4.5)-(4.7) (no pyramid: the initial guess from
+    block matching replaces it), with Scharr derivatives and fixed-point
+    bilinear weights. Frames are converted to uint8 (rounded) when float32,
+    since OpenCV's LK accepts only 8-bit images.
+
+    Returns:
+        :class:`LKResult` (``iterations`` are -1: OpenCV does not report them).
+    """
+    xy = _check_points(xy, "xy")
+    guess = xy if init_xy is None else _check_points(init_xy, "init_xy")
+    n_pts = xy.shape[0]
+    if n_pts == 0:
+        return LKResult(np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0, np.int64))
+    nxt, st, _ = cv2.calcOpticalFlowPyrLK(
+        _as_uint8(prev_image),
+        _as_uint8(image),
+        xy.astype(np.float32).reshape(-1, 1, 2),
+        guess.astype(np.float32).reshape(-1, 1, 2),
+        winSize=(window, window),
+        maxLevel=0,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, int(max_iter), float(eps)),
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        minEigThreshold=float(min_eig) * OPENCV_MIN_EIG_SCALE,
+    )
+    pos = nxt.reshape(-1, 2).astype(np.float64)
+    half = window // 2
+    height, width = image.shape
+    on_image = (pos[:, 0] >= half) & (pos[:, 1] >= half) & (pos[:, 0] <= width - 1 - half) & (pos[:, 1] <= height - 1 - half)
+    return LKResult(xy=pos, status=st.reshape(-1).astype(bool) & on_image, iterations=np.full(n_pts, -1, np.int64))
+
+
+def forward_backward_opencv_fast(
+    prev_image: np.ndarray,
+    image: np.ndarray,
+    xy: np.ndarray,
+    init_xy: np.ndarray,
+    back_offset: np.ndarray,
+    window: int,
+    max_iter: int,
+    eps: float,
+    min_eig: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Lean forward-backward OpenCV LK for callers that validated everything
+    already (the tracker's hot path; :func:`forward_backward` is the checked
+    version).
+
+    Args:
+        prev_image, image: uint8 frames k and k+1.
+        xy: Points in frame k, (P, 2) [px].
+        init_xy: Forward initial guesses in frame k+1, (P, 2) [px].
+        back_offset: The backward solve starts at forward result + this, (P, 2) [px].
+        window, max_iter, eps, min_eig: As in :func:`lucas_kanade`.
+
+    Returns:
+        (xy_k1 (P, 2) float64 [px], fb_error (P,) float64 [px], inf where a
+        solve failed).
+    """
+    kw = dict(
+        winSize=(window, window),
+        maxLevel=0,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, int(max_iter), float(eps)),
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        minEigThreshold=float(min_eig) * OPENCV_MIN_EIG_SCALE,
+    )
+    p0 = xy.astype(np.float32).reshape(-1, 1, 2)
+    fwd, st1, _ = cv2.calcOpticalFlowPyrLK(prev_image, image, p0, init_xy.astype(np.float32).reshape(-1, 1, 2), **kw)
+    bwd_init = fwd + back_offset.astype(np.float32).reshape(-1, 1, 2)
+    bwd, st2, _ = cv2.calcOpticalFlowPyrLK(image, prev_image, fwd, bwd_init, **kw)
+    err = np.sqrt(((bwd - p0) ** 2).sum(axis=2, dtype=np.float64)).ravel()
+    err[(st1.ravel() == 0) | (st2.ravel() == 0)] = np.inf
+    return fwd.reshape(-1, 2).astype(np.float64), err
+
+
+@dataclass(frozen=True, slots=True)
+class FBResult:
+    """Outcome of :func:`forward_backward`.
+
+    Attributes:
+        xy: Forward-tracked positions in frame k+1, (P, 2) float64 [px].
+        ok: Both solves valid and the round trip closes within the limit, (P,) bool.
+        fb_error: Distance between the start point and the back-tracked point,
+            (P,) float64 [px] (inf where a solve failed).
+    """
+
+    xy: np.ndarray
+    ok: np.ndarray
+    fb_error: np.ndarray
+
+
+def forward_backward(
+    prev_image: np.ndarray,
+    image: np.ndarray,
+    xy: np.ndarray,
+    init_xy: np.ndarray,
+    back_init_xy: np.ndarray,
+    fb_max_px: float,
+    backend: Backend = "numpy",
+    window: int = DEFAULT_WINDOW,
+    max_iter: int = DEFAULT_MAX_ITER,
+    eps: float = DEFAULT_EPS,
+    min_eig: float = DEFAULT_MIN_EIG,
+) -> FBResult:
+    """Forward-backward consistency check (Kalal et al.) around LK.
+
+    Track ``xy`` from frame k into k+1 starting at ``init_xy``, then track the
+    result back into frame k starting at ``back_init_xy`` (seed it
+    independently of the forward result, e.g. result - block-matching shift),
+    and accept a point when it returns within ``fb_max_px`` of where it began.
+
+    Args:
+        prev_image, image: Frames k and k+1, (H, W) [DN].
+        xy: Points in frame k, (P, 2) [px].
+        init_xy: Forward initial guesses in frame k+1, (P, 2) [px].
+        back_init_xy: Backward initial guesses in frame k, (P, 2) [px]; None
+            re-uses the forward seed's displacement.
+        fb_max_px: Largest accepted round-trip error [px].
+        backend: ``"numpy"`` (:func:`lucas_kanade`) or ``"opencv"``
+            (:func:`lucas_kanade_opencv`).
+        window, max_iter, eps, min_eig: As in :func:`lucas_kanade`.
+
+    Returns:
+        :class:`FBResult`.
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    solve = lucas_kanade if backend == "numpy" else lucas_kanade_opencv
+    kw = dict(window=window, max_iter=max_iter, eps=eps, min_eig=min_eig)
+    fwd = solve(prev_image, image, xy, init_xy, **kw)
+    if back_init_xy is None:
+        back_init_xy = fwd.xy - (np.asarray(init_xy) - xy)
+    bwd = solve(image, prev_image, fwd.xy, back_init_xy, **kw)
+    err = np.linalg.norm(bwd.xy - xy, axis=1) if xy.shape[0] else np.zeros(0)
+    valid = fwd.status & bwd.status
+    err = np.where(valid, err, np.inf)
+    return FBResult(xy=fwd.xy, ok=valid & (err <= fb_max_px), fb_error=err)

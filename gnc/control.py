@@ -1,0 +1,368 @@
+"""Descent control: commanded acceleration to engine thrust and RCS torques.
+
+Ports (:class:`Controller`):
+    Inputs: :class:`gnc.navstate.NavState` (``r_BL_L[2]``, ``q_LB``,
+        ``omega_B``, ``mass_kg``), :class:`gnc.guidance.GuidanceCommand`
+        (``a_cmd_L``, the desired total acceleration in L) and, optionally, a
+        :class:`ContactMessage` (footpad contacts).
+    Output: :class:`ActuatorCommand`: thrust [N], body torque (3,) [N m],
+        engine on/off, and (telemetry) the commanded attitude.
+    Rate: the control rate (default 50 Hz), right after guidance. The output
+        is held (zero-order) by the propulsion model until the next period.
+
+Stages:
+    1. Thrust vector (:func:`thrust_vector_command`): the specific force
+       ``f = a_cmd_L - g_L`` is tilt-limited (the vertical part is kept, the
+       horizontal part cut to ``tan(tilt_max(h)) f_z``; the limit tightens
+       linearly from ``tilt.tilt_max_high_deg`` above ``tilt.taper_altitude_m``
+       to ``tilt.tilt_max_touchdown_deg`` at zero height). The thrust is
+       ``m |f|`` clamped to ``[thrust_min_N, thrust_max_N]`` (a lit
+       deep-throttle engine cannot go lower; it is never shut down in flight).
+       If ``f_z <= 0`` (guidance wants to fall faster than gravity) the thrust
+       axis goes vertical at minimum thrust.
+    2. Attitude command (:func:`attitude_command_LB`): body +z along the thrust
+       direction, body +x's horizontal projection held at ``yaw_hold_deg``.
+    3. Attitude control (:func:`attitude_torque_B`): quaternion PD with gains
+       scaled by the current inertia (dry body + propellant sphere), natural
+       frequency ``attitude_bandwidth_radps`` and damping
+       ``attitude_damping_ratio``, written as a cascade whose rate reference is
+       limited to ``slew_rate_max_degps`` so large errors are slewed at a
+       bounded rate instead of overshooting against the RCS saturation; plus
+       gyroscopic compensation. The torque vector is scaled down (direction
+       kept) to ``rcs_torque_max_Nm`` per axis.
+    4. Touchdown: once ``legs_for_engine_cut`` footpads report contact the
+       engine is cut and the RCS idled, latched until :meth:`Controller.reset`.
+
+Safety: the output never violates the actuator limits and is always finite.
+A non-finite or invalid input makes the controller hold its last good thrust
+and attitude command (the minimum thrust and an upright attitude before any);
+a non-finite attitude or rate gives zero torque.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial.transform import Rotation
+
+from gnc.guidance import LUNAR_GRAVITY_MPS2, GuidanceCommand, GuidanceLimits, TiltLimitConfig, validated_config
+from gnc.navstate import NavState
+
+N_LEGS = 4
+# Propellant modelled as a uniform sphere: I = SPHERE_INERTIA_FACTOR * m * r^2.
+SPHERE_INERTIA_FACTOR = 0.4
+# Specific force (vertical) at or below this is "no upward thrust wanted" [m/s^2].
+_F_Z_MIN_MPS2 = 1e-6
+_EZ = np.array([0.0, 0.0, 1.0])
+_Q_IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
+
+
+@dataclass(frozen=True, slots=True)
+class ContactMessage:
+    """Footpad contact flags.
+
+    Attributes:
+        t_ns: Time of validity [ns].
+        legs: Contact per footpad, (4,) bool, order fl, fr, rl, rr.
+    """
+
+    t_ns: int
+    legs: np.ndarray
+
+    def __post_init__(self) -> None:
+        legs = np.asarray(self.legs)
+        if legs.shape != (N_LEGS,):
+            raise ValueError(f"ContactMessage.legs has shape {legs.shape}; allowed: ({N_LEGS},) booleans")
+
+
+@dataclass(frozen=True, slots=True)
+class ActuatorCommand:
+    """Controller output, held over one control period.
+
+    Attributes:
+        thrust_N: Engine thrust command [N]: in ``[thrust_min_N,
+            thrust_max_N]`` when ``engine_on``, else 0.
+        torque_B_Nm: RCS torque command in B, (3,) [N m], each axis within
+            ``+-rcs_torque_max_Nm``.
+        engine_on: False once the engine is cut (touchdown).
+        t_ns: Time of validity [ns].
+        q_LB_cmd: Commanded attitude (telemetry), (4,) scalar-first.
+    """
+
+    thrust_N: float
+    torque_B_Nm: np.ndarray
+    engine_on: bool
+    t_ns: int = 0
+    q_LB_cmd: np.ndarray = field(default_factory=lambda: _Q_IDENTITY.copy())
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleParams:
+    """The flight software's knowledge of the vehicle (defaults: the default lander).
+
+    Attributes:
+        thrust_min_N: Minimum thrust of the lit engine [N].
+        thrust_max_N: Maximum thrust [N].
+        rcs_torque_max_Nm: RCS torque saturation per body axis [N m].
+        dry_mass_kg: Dry mass [kg]; propellant = nav mass - dry mass.
+        dry_inertia_B_kgm2: Principal inertia of the dry vehicle, (3,) [kg m^2].
+        tank_radius_m: Radius of the spherical propellant tank at the centre of mass [m].
+    """
+
+    thrust_min_N: float = 1500.0
+    thrust_max_N: float = 7500.0
+    rcs_torque_max_Nm: float = 200.0
+    dry_mass_kg: float = 1500.0
+    dry_inertia_B_kgm2: tuple[float, float, float] = (781.25, 781.25, 1000.0)
+    tank_radius_m: float = 0.6
+
+    def __post_init__(self) -> None:
+        positive = {
+            "thrust_max_N": self.thrust_max_N,
+            "rcs_torque_max_Nm": self.rcs_torque_max_Nm,
+            "dry_mass_kg": self.dry_mass_kg,
+            "tank_radius_m": self.tank_radius_m,
+        }
+        for name, value in positive.items():
+            if not (np.isfinite(value) and value > 0.0):
+                raise ValueError(f"vehicle.{name} = {value!r}; allowed: a finite value > 0")
+        if not (np.isfinite(self.thrust_min_N) and 0.0 <= self.thrust_min_N < self.thrust_max_N):
+            raise ValueError(
+                f"vehicle.thrust_min_N = {self.thrust_min_N!r}; allowed: 0 <= thrust_min_N < thrust_max_N = {self.thrust_max_N}"
+            )
+        inertia = np.asarray(self.dry_inertia_B_kgm2, float)
+        if inertia.shape != (3,) or not np.all(np.isfinite(inertia)) or np.any(inertia <= 0.0):
+            raise ValueError(f"vehicle.dry_inertia_B_kgm2 = {self.dry_inertia_B_kgm2!r}; allowed: three finite values > 0")
+
+    def inertia_B_kgm2(self, mass_kg: float) -> np.ndarray:
+        """Principal inertia at a total mass (dry + propellant sphere), (3,) [kg m^2]."""
+        propellant = max(float(mass_kg) - self.dry_mass_kg, 0.0)
+        return np.asarray(self.dry_inertia_B_kgm2, float) + SPHERE_INERTIA_FACTOR * propellant * self.tank_radius_m**2
+
+
+class ControlConfig(BaseModel):
+    """Controller tuning."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    tilt: TiltLimitConfig = TiltLimitConfig()
+    yaw_hold_deg: float = Field(
+        0.0, ge=-360.0, le=360.0,
+        description="heading of body +x's horizontal projection, from L +x (east) counter-clockwise about +z [deg]",
+    )
+    attitude_bandwidth_radps: float = Field(2.0, gt=0.0, le=20.0, description="attitude loop natural frequency [rad/s]")
+    attitude_damping_ratio: float = Field(0.9, gt=0.0, le=3.0, description="attitude loop damping ratio [-]")
+    slew_rate_max_degps: float = Field(15.0, gt=0.0, le=90.0, description="largest commanded slew rate [deg/s]")
+    gravity_mps2: float = Field(LUNAR_GRAVITY_MPS2, gt=0.0, description="surface gravity magnitude [m/s^2]")
+    legs_for_engine_cut: int = Field(1, ge=1, le=N_LEGS, description="footpads in contact that cut the engine [-]")
+
+    def g_L(self) -> np.ndarray:
+        """Gravity in L, (3,) [m/s^2]."""
+        return np.array([0.0, 0.0, -self.gravity_mps2])
+
+
+def guidance_limits(vehicle: VehicleParams, cfg: ControlConfig) -> GuidanceLimits:
+    """The limits guidance must plan within: the vehicle's thrust range and the controller's tilt schedule."""
+    return GuidanceLimits(thrust_min_N=vehicle.thrust_min_N, thrust_max_N=vehicle.thrust_max_N, tilt=cfg.tilt)
+
+
+# --------------------------------------------------------------------------- stages
+def thrust_vector_command(
+    a_cmd_L: np.ndarray,
+    g_L: np.ndarray,
+    mass_kg: float,
+    altitude_m: float,
+    vehicle: VehicleParams,
+    tilt: TiltLimitConfig,
+) -> tuple[float, np.ndarray]:
+    """Thrust magnitude and direction for a commanded total acceleration.
+
+    Args:
+        a_cmd_L: Commanded total acceleration, (3,) [m/s^2], finite.
+        g_L: Gravity, (3,) [m/s^2].
+        mass_kg: Vehicle mass [kg], > 0.
+        altitude_m: Height above the target, for the tilt limit [m].
+        vehicle: Thrust limits.
+        tilt: Tilt-limit schedule.
+
+    Returns:
+        ``(thrust_N, z_cmd_L)``: thrust in ``[thrust_min_N, thrust_max_N]``
+        [N] and the unit thrust direction in L, (3,), within the tilt limit.
+    """
+    f = np.asarray(a_cmd_L, float) - g_L
+    if not f[2] > _F_Z_MIN_MPS2:
+        return float(vehicle.thrust_min_N), _EZ.copy()
+    scale = float(np.max(np.abs(f)))  # work on f / scale: no overflow for absurd commands
+    u = f / scale
+    tan_max = np.tan(tilt.tilt_max_rad(altitude_m))
+    uh_norm = float(np.hypot(u[0], u[1]))
+    if uh_norm > tan_max * u[2]:
+        u[:2] *= tan_max * u[2] / uh_norm
+    u_norm = float(np.linalg.norm(u))
+    thrust = float(np.clip(mass_kg * scale * u_norm, vehicle.thrust_min_N, vehicle.thrust_max_N))
+    return thrust, u / u_norm
+
+
+def attitude_command_LB(z_cmd_L: np.ndarray, yaw_rad: float) -> np.ndarray:
+    """Attitude with body +z along a thrust direction and a held heading.
+
+    Body +x is chosen perpendicular to ``z_cmd_L`` with its horizontal
+    projection along ``[cos yaw, sin yaw, 0]`` (the yaw of a z-y-x Euler
+    sequence).
+
+    Args:
+        z_cmd_L: Unit thrust direction in L, (3,), with a positive up component.
+        yaw_rad: Heading [rad], from L +x counter-clockwise about +z.
+
+    Returns:
+        ``q_LB`` command, (4,) scalar-first.
+    """
+    z = np.asarray(z_cmd_L, float)
+    z = z / np.linalg.norm(z)
+    assert z[2] > 0.0, "thrust direction must point upward"
+    h = np.array([np.cos(yaw_rad), np.sin(yaw_rad), 0.0])
+    x = h - (h @ z) / z[2] * _EZ  # x . z = 0 and x's horizontal part is h
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return Rotation.from_matrix(np.column_stack([x, y, z])).as_quat(scalar_first=True)
+
+
+def attitude_torque_B(
+    q_LB: np.ndarray,
+    omega_B: np.ndarray,
+    q_LB_cmd: np.ndarray,
+    inertia_B_kgm2: np.ndarray,
+    cfg: ControlConfig,
+    torque_max_Nm: float,
+) -> np.ndarray:
+    """Quaternion PD attitude control with a slew-rate limit and RCS saturation.
+
+    With the error quaternion ``q_e = q_cmd^-1 q`` (shortest way round) and
+    ``e = 2 vec(q_e)`` (about the rotation vector for small errors), the law is
+    ``tau = I kd (sat(-kp/kd e) - omega) + omega x I omega`` with
+    ``kp = wn^2``, ``kd = 2 zeta wn`` and ``sat`` limiting the rate reference's
+    norm to the slew limit; unsaturated it is the PD ``-I wn^2 e - 2 zeta wn I omega``.
+
+    Args:
+        q_LB: Attitude, (4,) scalar-first.
+        omega_B: Body rate, (3,) [rad/s].
+        q_LB_cmd: Commanded attitude, (4,) scalar-first (zero commanded rate).
+        inertia_B_kgm2: Principal inertia, (3,) [kg m^2].
+        cfg: Gains and slew limit.
+        torque_max_Nm: Per-axis saturation [N m].
+
+    Returns:
+        Torque in B, (3,) [N m], each axis within ``+-torque_max_Nm``.
+    """
+    q_e = (Rotation.from_quat(q_LB_cmd, scalar_first=True).inv() * Rotation.from_quat(q_LB, scalar_first=True)).as_quat(
+        scalar_first=True
+    )
+    e = 2.0 * np.copysign(1.0, q_e[0]) * q_e[1:]
+    wn, zeta = cfg.attitude_bandwidth_radps, cfg.attitude_damping_ratio
+    omega_ref = -(wn / (2.0 * zeta)) * e
+    slew_max = np.deg2rad(cfg.slew_rate_max_degps)
+    ref_norm = float(np.linalg.norm(omega_ref))
+    if ref_norm > slew_max:
+        omega_ref *= slew_max / ref_norm
+    omega = np.asarray(omega_B, float)
+    inertia = np.asarray(inertia_B_kgm2, float)
+    tau = inertia * (2.0 * zeta * wn) * (omega_ref - omega) + np.cross(omega, inertia * omega)
+    peak = float(np.max(np.abs(tau)))
+    if peak > torque_max_Nm:
+        tau *= torque_max_Nm / peak
+    return np.clip(tau, -torque_max_Nm, torque_max_Nm)  # the scaling may round a hair above the limit
+
+
+# --------------------------------------------------------------------------- the controller
+class Controller:
+    """Thrust-vector and attitude controller with touchdown cut-off.
+
+    Ports:
+        Inputs: NavState, GuidanceCommand, optional ContactMessage.
+        Output: ActuatorCommand (thrust [N], torque_B (3,) [N m], engine_on).
+        Rate: control rate (default 50 Hz). Stateful: last good command,
+            engine-cut latch.
+    """
+
+    def __init__(self, cfg: ControlConfig | Mapping[str, Any] | None = None, vehicle: VehicleParams | None = None):
+        self.cfg: ControlConfig = validated_config(ControlConfig, cfg, "control")
+        if vehicle is None:
+            vehicle = VehicleParams()
+        if not isinstance(vehicle, VehicleParams):
+            raise ValueError(f"vehicle = {vehicle!r}; allowed: a VehicleParams")
+        self.vehicle = vehicle
+        self.g_L = self.cfg.g_L()
+        self.yaw_rad = float(np.deg2rad(self.cfg.yaw_hold_deg))
+        self.reset()
+
+    def reset(self) -> None:
+        """Clear the engine-cut latch and the held command (new descent)."""
+        self.engine_cut = False
+        self._thrust_hold_N = float(self.vehicle.thrust_min_N)
+        self._q_cmd_hold = attitude_command_LB(_EZ, self.yaw_rad)
+
+    def guidance_limits(self) -> GuidanceLimits:
+        """Limits for :func:`gnc.guidance.make_guidance` matching this controller."""
+        return guidance_limits(self.vehicle, self.cfg)
+
+    def update(self, nav: NavState, cmd: GuidanceCommand, contact: ContactMessage | None = None) -> ActuatorCommand:
+        """One control step.
+
+        Args:
+            nav: Navigation state.
+            cmd: Guidance command for this period.
+            contact: Latest footpad contacts, or None when not available.
+
+        Returns:
+            The actuator command, within every actuator limit.
+        """
+        t_ns = int(nav.t_ns)
+        if contact is not None and int(np.count_nonzero(np.asarray(contact.legs, bool))) >= self.cfg.legs_for_engine_cut:
+            self.engine_cut = True
+        if self.engine_cut:
+            return ActuatorCommand(0.0, np.zeros(3), False, t_ns, self._q_cmd_hold.copy())
+
+        mass = float(nav.mass_kg) if np.isfinite(nav.mass_kg) and nav.mass_kg > 0.0 else float("nan")
+        altitude = float(np.asarray(nav.r_BL_L, float)[2])
+        a_cmd = np.asarray(cmd.a_cmd_L, float)
+        if cmd.valid and np.all(np.isfinite(a_cmd)) and np.isfinite(mass) and np.isfinite(altitude):
+            self._thrust_hold_N, z_cmd_L = thrust_vector_command(
+                a_cmd, self.g_L, mass, altitude, self.vehicle, self.cfg.tilt
+            )
+            self._q_cmd_hold = attitude_command_LB(z_cmd_L, self.yaw_rad)
+
+        q = _unit_quaternion(nav.q_LB)
+        omega = np.asarray(nav.omega_B, float)
+        if q is not None and np.all(np.isfinite(omega)):
+            inertia = self.vehicle.inertia_B_kgm2(mass if np.isfinite(mass) else self.vehicle.dry_mass_kg)
+            torque = attitude_torque_B(q, omega, self._q_cmd_hold, inertia, self.cfg, self.vehicle.rcs_torque_max_Nm)
+        else:
+            torque = np.zeros(3)
+        if not np.all(np.isfinite(torque)):  # cannot happen with finite inputs; never emit NaN
+            torque = np.zeros(3)
+        torque = np.clip(torque, -self.vehicle.rcs_torque_max_Nm, self.vehicle.rcs_torque_max_Nm)
+        thrust = float(np.clip(self._thrust_hold_N, self.vehicle.thrust_min_N, self.vehicle.thrust_max_N))
+        return ActuatorCommand(thrust, torque, True, t_ns, self._q_cmd_hold.copy())
+
+
+def _unit_quaternion(q: np.ndarray) -> np.ndarray | None:
+    """The normalised quaternion, (4,), or None when it is non-finite, zero or not a 4-vector."""
+    q = np.asarray(q, float)
+    if q.shape != (4,) or not np.all(np.isfinite(q)):
+        return None
+    scale = float(np.max(np.abs(q)))
+    if scale == 0.0:
+        return None
+    q = q / scale
+    return q / np.linalg.norm(q)
+
+
+def make_controller(
+    cfg: ControlConfig | Mapping[str, Any] | None = None, vehicle: VehicleParams | None = None
+) -> Controller:
+    """Build the controller; a bad parameter raises ValueError naming the field, value and what is allowed."""
+    return Controller(cfg, vehicle)

@@ -1,0 +1,736 @@
+"""Powered-descent guidance: from the navigated state to a commanded acceleration.
+
+Ports (every law behind :class:`GuidanceLaw`):
+    Inputs: :class:`gnc.navstate.NavState` (``t_ns``, ``r_BL_L``, ``v_BL_L``,
+        ``mass_kg``) and a :class:`LandingTarget` (landing site in L).
+    Output: :class:`GuidanceCommand`: the commanded acceleration ``a_cmd_L``,
+        the phase name and the time to go.
+    Rate: the control rate (default 50 Hz), once per control period, before
+        :mod:`gnc.control`. A law is stateful (phase latch and planned gate
+        time); call :meth:`GuidanceLaw.reset` before a new descent.
+
+Acceleration convention: ``a_cmd_L`` (3,) [m/s^2] is the desired *total*
+acceleration of the vehicle in L, gravity included, i.e. the desired
+``d v_BL_L / dt``. The controller turns it into the thrust vector
+``F_L = m (a_cmd_L - g_L)``; ``a_cmd_L - g_L`` is the specific force (the
+non-gravitational acceleration) the engine must produce.
+
+Phases:
+    ``approach``: a polynomial law takes the vehicle from hand-over to the gate,
+        ``gate_altitude_m`` above the target, arriving with the gate velocity
+        (straight down at ``terminal_descent_rate_mps``). Two laws:
+
+        * ``apollo``: Apollo lunar-descent (E-guidance) quadratic-acceleration
+          polynomial (Klumpp 1974) that meets the gate position, velocity and
+          acceleration (zero total acceleration at the gate, i.e. hover-like
+          thrust, so the hand-off to the terminal phase is smooth)::
+
+              a = a_f - 6 (v_f + v) / t_go + 12 (r_f - r) / t_go^2
+
+        * ``zem_zev``: zero-effort-miss / zero-effort-velocity optimal feedback
+          (energy-optimal for the double integrator in uniform gravity, free
+          final acceleration; Ebrahimi et al. 2008, Guo et al. 2013)::
+
+              ZEM = r_f - (r + v t_go + g t_go^2 / 2),  ZEV = v_f - (v + g t_go)
+              a - g = 6 ZEM / t_go^2 - 2 ZEV / t_go
+
+    ``terminal``: constant-rate vertical descent at ``terminal_descent_rate_mps``
+        until touchdown (the controller cuts the engine on leg contact), while a
+        PD law nulls the horizontal velocity and holds over the target. If the
+        gate was missed by more than ``terminal_hold_radius_m`` the descent
+        rate blends to a hover (zero at twice that distance) while the vehicle
+        translates back over the target at up to ``terminal_speed_max_mps``.
+
+Time to go (both laws): a fixed final time, planned and re-planned only when
+needed. At the first call (and after a target change) the law scans candidate
+``t_go`` in ``[t_go_min_s, t_go_max_s]``; for each, the law's own polynomial
+trajectory to the gate is evaluated in closed form and checked against the
+limits *along the whole path*: thrust within ``[plan_thrust_min_frac *
+thrust_min_N, plan_thrust_max_frac * thrust_max_N]`` at the current mass, tilt
+within ``plan_tilt_frac`` times the altitude-dependent tilt limit at every
+point, and no dip of more than ``GATE_UNDERSHOOT_TOL_M`` below the gate
+before the gate. Among the feasible ones the least delta-v (``integral |a - g|
+dt``, a fuel proxy) is chosen; when none is feasible, the least tilt-violating
+path within the thrust and altitude limits (capping then enforces the tilt at
+the price of a small miss at the gate, which the terminal phase flies out),
+else the least violating one. Then ``t_go = t_final - t`` counts down. For
+both laws the remaining path from a point on the planned path is the rest of
+the same path, so a tracked plan stays valid; if disturbances make the
+remaining path violate the hard limits (margins dropped: a hysteresis), a new
+plan is searched at most once per ``REPLAN_MIN_INTERVAL_NS`` while more than
+``REPLAN_MIN_T_GO_S`` remain, and adopted if it violates less. The phase
+switches to terminal at ``t_go <= terminal_switch_t_go_s`` (the feedback gains
+grow as ``1/t_go^2``) or ``GATE_FLOOR_M`` below the gate altitude.
+
+ZEM/ZEV leaves the acceleration at the gate free, so it typically brakes hard
+into the gate and hands over a few metres above it, a little faster than the
+gate rate; Apollo targets zero total acceleration there and hands over
+smoothly. With the default tilt schedule, ZEM/ZEV has no feasible path for a
+few per cent of extreme hand-overs (moving away from the target at ~10 m/s
+while sinking at ~20 m/s) and flies the least-violating one.
+
+Limits: whatever the law asks, the output is capped to what the engine can
+deliver: the vertical specific force is kept within ``[thrust_min_N,
+thrust_max_N] / m`` (vertical first), then the horizontal part is cut to the
+tilt limit and to the thrust left over.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from gnc.navstate import NavState
+
+NS_PER_S = 1_000_000_000
+LUNAR_GRAVITY_MPS2 = 1.62
+
+PHASE_APPROACH = "approach"
+PHASE_TERMINAL = "terminal"
+Phase = Literal["approach", "terminal"]
+
+# Planning grid: candidate t_go spacing [s] and samples along each candidate path.
+T_GO_GRID_STEP_S = 0.5
+PLAN_SAMPLES = 41
+# Re-plan an infeasible remaining path only while at least this much time remains [s],
+# at most once per REPLAN_MIN_INTERVAL_NS, and only for a less violating path.
+REPLAN_MIN_T_GO_S = 8.0
+REPLAN_MIN_INTERVAL_NS = 1_000_000_000
+# A planned path may dip this far below the gate altitude before reaching the gate [m];
+# the terminal phase starts early if the vehicle sinks GATE_FLOOR_M below the gate.
+GATE_UNDERSHOOT_TOL_M = 1.0
+GATE_FLOOR_M = 2.0 * GATE_UNDERSHOOT_TOL_M
+# Apollo's targeted total acceleration at the gate (zero: hover-like hand-off) [m/s^2].
+APOLLO_GATE_ACCEL_L = np.zeros(3)
+# Denominators below this are treated as zero.
+_EPS = 1e-9
+
+
+# --------------------------------------------------------------------------- configuration
+def validated_config(model: type[BaseModel], cfg: BaseModel | Mapping[str, Any] | None, prefix: str) -> Any:
+    """Validate a config given as a model, a mapping or None (defaults).
+
+    Args:
+        model: The pydantic model class.
+        cfg: An instance of ``model``, a mapping of its fields, or None.
+        prefix: Name of the config in messages, e.g. ``"guidance"``.
+
+    Returns:
+        A validated ``model`` instance.
+
+    Raises:
+        ValueError: One line naming the field, the bad value and what is allowed.
+    """
+    if cfg is None:
+        return model()
+    if isinstance(cfg, model):
+        data: Any = cfg.model_dump()  # re-validate: model_construct or assignment may have bypassed checks
+    elif isinstance(cfg, Mapping):
+        data = dict(cfg)
+    else:
+        raise ValueError(f"{prefix} = {cfg!r}: expected a {model.__name__} or a mapping of its fields")
+    try:
+        return model.model_validate(data)
+    except ValidationError as err:
+        raise ValueError(_format_error(err, model, prefix)) from None
+
+
+def _format_error(err: ValidationError, model: type[BaseModel], prefix: str) -> str:
+    first = err.errors(include_url=False)[0]
+    loc = tuple(str(p) for p in first.get("loc", ()))
+    path = ".".join((prefix, *loc))
+    msg = str(first.get("msg", "invalid")).removeprefix("Value error, ")
+    if first.get("type") == "extra_forbidden":
+        sub: Any = model
+        for part in loc[:-1]:
+            ann = sub.model_fields[part].annotation if part in getattr(sub, "model_fields", {}) else None
+            sub = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
+            if sub is None:
+                break
+        allowed = ", ".join(sub.model_fields) if sub is not None else ""
+        return f"unknown field '{path}'; allowed: {allowed}"
+    if not loc:
+        return f"{prefix}: {msg}"
+    return f"{path} = {first.get('input')!r}: {msg}".replace("\n", " ")
+
+
+class TiltLimitConfig(BaseModel):
+    """Maximum tilt of the thrust axis from vertical, tightening near the ground.
+
+    The limit is ``tilt_max_touchdown_deg`` at zero altitude, grows linearly
+    with altitude and reaches ``tilt_max_high_deg`` at ``taper_altitude_m``;
+    above that it is constant. Altitude is the height above the landing-frame
+    origin (the target), ``r_BL_L[2]``. Shared by guidance (planning, capping)
+    and control (attitude command).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    tilt_max_high_deg: float = Field(30.0, gt=0.0, lt=80.0, description="tilt limit above taper_altitude_m [deg]")
+    tilt_max_touchdown_deg: float = Field(5.0, ge=0.0, lt=80.0, description="tilt limit at zero altitude [deg]")
+    taper_altitude_m: float = Field(100.0, gt=0.0, description="altitude where the limit reaches its high value [m]")
+
+    @model_validator(mode="after")
+    def _touchdown_below_high(self) -> "TiltLimitConfig":
+        if self.tilt_max_touchdown_deg > self.tilt_max_high_deg:
+            raise ValueError(
+                f"tilt_max_touchdown_deg = {self.tilt_max_touchdown_deg} exceeds tilt_max_high_deg = "
+                f"{self.tilt_max_high_deg}; allowed: tilt_max_touchdown_deg <= tilt_max_high_deg"
+            )
+        return self
+
+    def tilt_max_rad(self, altitude_m: float | np.ndarray) -> float | np.ndarray:
+        """Tilt limit at an altitude.
+
+        Args:
+            altitude_m: Height above the target, scalar or any shape [m].
+
+        Returns:
+            Limit of the same shape [rad].
+        """
+        frac = np.clip(np.asarray(altitude_m, float) / self.taper_altitude_m, 0.0, 1.0)
+        deg = self.tilt_max_touchdown_deg + (self.tilt_max_high_deg - self.tilt_max_touchdown_deg) * frac
+        out = np.deg2rad(deg)
+        return float(out) if out.ndim == 0 else out
+
+
+class GuidanceConfig(BaseModel):
+    """Guidance law selection and tuning."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    law: Literal["apollo", "zem_zev"] = Field("zem_zev", description="approach-phase guidance law")
+    gate_altitude_m: float = Field(30.0, gt=0.0, description="gate height above the target [m]")
+    terminal_descent_rate_mps: float = Field(
+        1.0, gt=0.0, le=5.0, description="gate and terminal-phase vertical descent speed [m/s]"
+    )
+    gravity_mps2: float = Field(LUNAR_GRAVITY_MPS2, gt=0.0, description="surface gravity magnitude [m/s^2]")
+    t_go_min_s: float = Field(5.0, gt=0.0, description="shortest approach time considered by the planner [s]")
+    t_go_max_s: float = Field(300.0, gt=0.0, description="longest approach time considered by the planner [s]")
+    terminal_switch_t_go_s: float = Field(
+        2.0, gt=0.0, description="switch to the terminal phase when the time to the gate falls to this [s]"
+    )
+    plan_thrust_max_frac: float = Field(
+        0.8, gt=0.0, le=1.0, description="fraction of the maximum thrust a planned path may use [-]"
+    )
+    plan_thrust_min_frac: float = Field(
+        1.1, ge=1.0, le=3.0, description="planned paths keep thrust above this multiple of the minimum [-]"
+    )
+    plan_tilt_frac: float = Field(0.9, gt=0.0, le=1.0, description="fraction of the tilt limit a planned path may use [-]")
+    terminal_position_bandwidth_radps: float = Field(
+        0.5, gt=0.0, le=5.0, description="terminal horizontal position-hold natural frequency [rad/s]"
+    )
+    terminal_damping_ratio: float = Field(1.0, gt=0.0, le=3.0, description="terminal horizontal damping ratio [-]")
+    terminal_speed_max_mps: float = Field(
+        2.0, gt=0.0, le=10.0, description="largest horizontal speed the terminal phase commands [m/s]"
+    )
+    terminal_hold_radius_m: float = Field(
+        3.0, gt=0.0, description="full-rate descent within this horizontal distance of the target; hover beyond twice it [m]"
+    )
+    terminal_rate_gain_per_s: float = Field(
+        1.0, gt=0.0, le=10.0, description="terminal vertical-rate loop gain [1/s]"
+    )
+
+    @model_validator(mode="after")
+    def _t_go_bounds(self) -> "GuidanceConfig":
+        if not self.terminal_switch_t_go_s < self.t_go_min_s < self.t_go_max_s:
+            raise ValueError(
+                f"terminal_switch_t_go_s = {self.terminal_switch_t_go_s}, t_go_min_s = {self.t_go_min_s}, "
+                f"t_go_max_s = {self.t_go_max_s}; allowed: terminal_switch_t_go_s < t_go_min_s < t_go_max_s"
+            )
+        return self
+
+    def g_L(self) -> np.ndarray:
+        """Gravity in L, (3,) [m/s^2]."""
+        return np.array([0.0, 0.0, -self.gravity_mps2])
+
+
+@dataclass(frozen=True, slots=True)
+class GuidanceLimits:
+    """What the vehicle can do, as guidance plans with it (defaults: the default lander).
+
+    Attributes:
+        thrust_min_N: Minimum thrust of the lit engine [N].
+        thrust_max_N: Maximum thrust [N].
+        tilt: Altitude-dependent tilt limit (the controller's, see
+            :func:`gnc.control.guidance_limits`).
+    """
+
+    thrust_min_N: float = 1500.0
+    thrust_max_N: float = 7500.0
+    tilt: TiltLimitConfig = field(default_factory=TiltLimitConfig)
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.thrust_max_N) and self.thrust_max_N > 0.0):
+            raise ValueError(f"limits.thrust_max_N = {self.thrust_max_N!r}; allowed: a finite value > 0")
+        if not (np.isfinite(self.thrust_min_N) and 0.0 <= self.thrust_min_N < self.thrust_max_N):
+            raise ValueError(
+                f"limits.thrust_min_N = {self.thrust_min_N!r}; allowed: 0 <= thrust_min_N < thrust_max_N = {self.thrust_max_N}"
+            )
+        if not isinstance(self.tilt, TiltLimitConfig):
+            raise ValueError(f"limits.tilt = {self.tilt!r}; allowed: a TiltLimitConfig")
+
+
+@dataclass(frozen=True, slots=True)
+class LandingTarget:
+    """The landing site.
+
+    Attributes:
+        r_L: Landing site on the surface, in L, (3,) [m]; the L origin by default.
+    """
+
+    r_L: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
+@dataclass(frozen=True, slots=True)
+class GuidanceCommand:
+    """Guidance output for one control period.
+
+    Attributes:
+        t_ns: Time of validity (the navigation state's) [ns].
+        a_cmd_L: Commanded total acceleration (gravity included), in L, (3,) [m/s^2].
+        phase: ``"approach"`` or ``"terminal"``.
+        t_go_s: Approach: time to the gate [s]. Terminal: height above the
+            target divided by the descent rate, an upper bound on the time to
+            touchdown [s].
+        saturated: True when the law's acceleration was cut to the thrust or tilt limits.
+        valid: False when the navigation state was not usable (non-finite
+            position, velocity or target, or a non-finite or non-positive
+            mass); ``a_cmd_L`` is then zero and the controller keeps its last
+            good command.
+    """
+
+    t_ns: int
+    a_cmd_L: np.ndarray
+    phase: str
+    t_go_s: float
+    saturated: bool = False
+    valid: bool = True
+
+
+# --------------------------------------------------------------------------- the law formulas
+def zem_zev_accel_L(
+    r_L: np.ndarray, v_L: np.ndarray, r_f_L: np.ndarray, v_f_L: np.ndarray, t_go_s: float | np.ndarray, g_L: np.ndarray
+) -> np.ndarray:
+    """ZEM/ZEV optimal feedback, as a total acceleration.
+
+    Args:
+        r_L: Position, (..., 3) [m].
+        v_L: Velocity, (..., 3) [m/s].
+        r_f_L: Target position, (3,) or (..., 3) [m].
+        v_f_L: Target velocity, (3,) or (..., 3) [m/s].
+        t_go_s: Time to go, scalar or (..., 1) [s], > 0.
+        g_L: Gravity, (3,) [m/s^2].
+
+    Returns:
+        Total acceleration ``6 ZEM/t^2 - 2 ZEV/t + g``, (..., 3) [m/s^2].
+    """
+    t = t_go_s
+    zem = r_f_L - (r_L + v_L * t + 0.5 * g_L * t * t)
+    zev = v_f_L - (v_L + g_L * t)
+    return 6.0 * zem / (t * t) - 2.0 * zev / t + g_L
+
+
+def apollo_accel_L(
+    r_L: np.ndarray,
+    v_L: np.ndarray,
+    r_f_L: np.ndarray,
+    v_f_L: np.ndarray,
+    a_f_L: np.ndarray,
+    t_go_s: float | np.ndarray,
+) -> np.ndarray:
+    """Apollo E-guidance (quadratic acceleration polynomial), as a total acceleration.
+
+    Args:
+        r_L: Position, (..., 3) [m].
+        v_L: Velocity, (..., 3) [m/s].
+        r_f_L: Target position, (3,) or (..., 3) [m].
+        v_f_L: Target velocity, (3,) or (..., 3) [m/s].
+        a_f_L: Target total acceleration, (3,) [m/s^2].
+        t_go_s: Time to go, scalar or (..., 1) [s], > 0.
+
+    Returns:
+        ``a_f - 6 (v_f + v)/t + 12 (r_f - r)/t^2``, (..., 3) [m/s^2].
+    """
+    t = t_go_s
+    return a_f_L - 6.0 * (v_f_L + v_L) / t + 12.0 * (r_f_L - r_L) / (t * t)
+
+
+def zem_zev_coeffs(
+    r_L: np.ndarray, v_L: np.ndarray, r_f_L: np.ndarray, v_f_L: np.ndarray, t_go_s: float | np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ZEM/ZEV open-loop path: total acceleration ``c0 + c1 s + c2 s^2`` (``c2 = 0``).
+
+    ``s`` is the time elapsed from now. Same shapes as :func:`zem_zev_accel_L`;
+    gravity cancels out of the total acceleration.
+
+    Returns:
+        ``(c0, c1, c2)``, each (..., 3) [m/s^2, m/s^3, m/s^4].
+    """
+    t = t_go_s
+    dr = r_f_L - r_L - v_L * t
+    dv = v_f_L - v_L
+    c0 = 6.0 * dr / (t * t) - 2.0 * dv / t
+    c1 = (6.0 * dv / t - 12.0 * dr / (t * t)) / t
+    return c0, c1, np.zeros_like(c0)
+
+
+def apollo_coeffs(
+    r_L: np.ndarray, v_L: np.ndarray, r_f_L: np.ndarray, v_f_L: np.ndarray, a_f_L: np.ndarray, t_go_s: float | np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The Apollo open-loop path: total acceleration ``c0 + c1 s + c2 s^2``.
+
+    Solves ``a(T) = a_f``, ``v(T) = v_f``, ``r(T) = r_f`` for the quadratic;
+    same shapes as :func:`apollo_accel_L`.
+
+    Returns:
+        ``(c0, c1, c2)``, each (..., 3) [m/s^2, m/s^3, m/s^4].
+    """
+    t = t_go_s
+    dr = r_f_L - r_L - v_L * t
+    dv = v_f_L - v_L
+    c0 = a_f_L + 12.0 * dr / (t * t) - 6.0 * dv / t
+    c2_t2 = 3.0 * c0 + 3.0 * a_f_L - 6.0 * dv / t  # c2 * t^2
+    c1 = (a_f_L - c0 - c2_t2) / t
+    return c0, c1, c2_t2 / (t * t)
+
+
+def cap_acceleration_L(
+    a_cmd_L: np.ndarray, g_L: np.ndarray, mass_kg: float, limits: GuidanceLimits, altitude_m: float
+) -> tuple[np.ndarray, bool]:
+    """Cut a commanded total acceleration to what thrust and tilt allow.
+
+    The vertical specific force is clamped to ``[thrust_min_N, thrust_max_N] /
+    m`` first; the horizontal part is then cut to ``tan(tilt_max) * f_z`` and to
+    the thrust left over (``sqrt(f_max^2 - f_z^2)``), keeping its direction.
+
+    Args:
+        a_cmd_L: Commanded total acceleration, (3,) [m/s^2].
+        g_L: Gravity, (3,) [m/s^2].
+        mass_kg: Vehicle mass [kg], > 0.
+        limits: Thrust and tilt limits.
+        altitude_m: Height above the target, for the tilt limit [m].
+
+    Returns:
+        ``(a_L, saturated)``: the capped total acceleration (3,) [m/s^2] and
+        whether anything was cut.
+    """
+    f = np.asarray(a_cmd_L, float) - g_L
+    f_max = limits.thrust_max_N / mass_kg
+    f_min = limits.thrust_min_N / mass_kg
+    fz = float(np.clip(f[2], f_min, f_max))
+    fh = f[:2].copy()
+    fh_norm = float(np.linalg.norm(fh))
+    fh_max = min(np.tan(limits.tilt.tilt_max_rad(altitude_m)) * fz, np.sqrt(max(f_max * f_max - fz * fz, 0.0)))
+    if fh_norm > fh_max:
+        fh *= fh_max / fh_norm
+    out = np.array([fh[0], fh[1], fz]) + g_L
+    saturated = bool(fz != f[2] or fh_norm > fh_max)
+    return out, saturated
+
+
+# --------------------------------------------------------------------------- the interface
+class GuidanceLaw(ABC):
+    """A guidance law: ``update(NavState, LandingTarget) -> GuidanceCommand``.
+
+    Ports:
+        Inputs: navigation state (position, velocity, mass, time) and the
+            landing target.
+        Output: :class:`GuidanceCommand` (total acceleration in L, phase, t_go).
+        Rate: control rate (default 50 Hz). Stateful: the phase latches from
+            approach to terminal, and the planned gate time persists.
+
+    Subclasses provide the approach-phase formula (:meth:`accel_L`) and its
+    open-loop polynomial (:meth:`coeffs`), which the planner evaluates.
+    """
+
+    name: ClassVar[str]
+
+    def __init__(self, cfg: GuidanceConfig, limits: GuidanceLimits):
+        self.cfg = cfg
+        self.limits = limits
+        self.g_L = cfg.g_L()
+        self.n_plans = 0  # plans adopted since construction (telemetry)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the phase and the plan (start of a new descent)."""
+        self.phase: str = PHASE_APPROACH
+        self.t_final_ns: int | None = None
+        self.plan_feasible = False
+        self._t_plan_ns = 0
+        self._target_L: np.ndarray | None = None
+
+    # -- the law
+    @abstractmethod
+    def accel_L(
+        self, r_L: np.ndarray, v_L: np.ndarray, r_f_L: np.ndarray, v_f_L: np.ndarray, t_go_s: float | np.ndarray
+    ) -> np.ndarray:
+        """Approach-phase total acceleration toward ``(r_f, v_f)`` in ``t_go``, (..., 3) [m/s^2]."""
+
+    @abstractmethod
+    def coeffs(
+        self, r_L: np.ndarray, v_L: np.ndarray, r_f_L: np.ndarray, v_f_L: np.ndarray, t_go_s: float | np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Open-loop path of the law: total acceleration ``c0 + c1 s + c2 s^2``, each (..., 3)."""
+
+    # -- geometry
+    def gate_L(self, target: LandingTarget) -> tuple[np.ndarray, np.ndarray]:
+        """Gate position and velocity for a target, each (3,) [m], [m/s]."""
+        r_f = np.asarray(target.r_L, float) + np.array([0.0, 0.0, self.cfg.gate_altitude_m])
+        v_f = np.array([0.0, 0.0, -self.cfg.terminal_descent_rate_mps])
+        return r_f, v_f
+
+    # -- planning
+    def path_violation(
+        self,
+        r_L: np.ndarray,
+        v_L: np.ndarray,
+        mass_kg: float,
+        r_f_L: np.ndarray,
+        v_f_L: np.ndarray,
+        t_go_s: np.ndarray,
+        with_margins: bool,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Check the law's paths to the gate for several candidate times to go.
+
+        Args:
+            r_L: Position, (3,) [m].
+            v_L: Velocity, (3,) [m/s].
+            mass_kg: Mass [kg].
+            r_f_L: Gate position, (3,) [m].
+            v_f_L: Gate velocity, (3,) [m/s].
+            t_go_s: Candidate times to go, (N,) [s].
+            with_margins: Apply the planning margins (``plan_*_frac``); False
+                checks the hard limits.
+
+        Returns:
+            ``(violation, delta_v)``: the worst normalised violation along each
+            path of the thrust, tilt and gate-altitude limits, (N, 3) [-]
+            (all <= 0: feasible), and each path's ``integral |a - g| dt``, (N,)
+            [m/s].
+        """
+        cfg, lim = self.cfg, self.limits
+        T = np.asarray(t_go_s, float)[:, None]  # (N, 1)
+        c0, c1, c2 = self.coeffs(r_L[None, :], v_L[None, :], r_f_L[None, :], v_f_L[None, :], T)  # (N, 3)
+        sigma = np.linspace(0.0, 1.0, PLAN_SAMPLES)
+        s = (T * sigma)[:, :, None]  # (N, M, 1)
+        a = c0[:, None, :] + c1[:, None, :] * s + c2[:, None, :] * s * s
+        z = (
+            r_L[2] + v_L[2] * s[..., 0] + c0[:, None, 2] * s[..., 0] ** 2 / 2.0
+            + c1[:, None, 2] * s[..., 0] ** 3 / 6.0 + c2[:, None, 2] * s[..., 0] ** 4 / 12.0
+        )  # (N, M)
+        f = a - self.g_L  # specific force along the path
+        f_norm = np.linalg.norm(f, axis=-1)
+        max_frac = cfg.plan_thrust_max_frac if with_margins else 1.0
+        min_frac = cfg.plan_thrust_min_frac if with_margins else 1.0
+        tilt_frac = cfg.plan_tilt_frac if with_margins else 1.0
+        f_max = max_frac * lim.thrust_max_N / mass_kg
+        f_min = min_frac * lim.thrust_min_N / mass_kg
+        target_z = r_f_L[2] - cfg.gate_altitude_m
+        tilt_lim = tilt_frac * np.asarray(lim.tilt.tilt_max_rad(z - target_z))
+        tilt = np.arctan2(np.linalg.norm(f[..., :2], axis=-1), f[..., 2])
+        viol = np.stack([
+            np.maximum(f_norm / f_max - 1.0, 1.0 - f_norm / max(f_min, _EPS)),
+            (tilt - tilt_lim) / np.maximum(tilt_lim, np.deg2rad(1.0)),
+            (r_f_L[2] - GATE_UNDERSHOOT_TOL_M - z) / GATE_UNDERSHOOT_TOL_M,
+        ], axis=-1).max(axis=1)
+        delta_v = np.trapezoid(f_norm, s[..., 0], axis=1)
+        return viol, delta_v
+
+    def plan_t_go(
+        self, r_L: np.ndarray, v_L: np.ndarray, mass_kg: float, r_f_L: np.ndarray, v_f_L: np.ndarray
+    ) -> tuple[float, float]:
+        """Choose the time to the gate (see the module docstring).
+
+        Args:
+            r_L: Position, (3,) [m].
+            v_L: Velocity, (3,) [m/s].
+            mass_kg: Mass [kg].
+            r_f_L: Gate position, (3,) [m].
+            v_f_L: Gate velocity, (3,) [m/s].
+
+        Returns:
+            ``(t_go_s, violation)``: the least-delta-v candidate that is
+            feasible with the planning margins (``violation <= 0``); when none
+            is, the least tilt-violating one among those within the thrust and
+            altitude limits (tilt is then enforced by capping, at the price of
+            a small miss at the gate), else the least violating one.
+        """
+        cfg = self.cfg
+        cand = np.arange(cfg.t_go_min_s, cfg.t_go_max_s + 0.5 * T_GO_GRID_STEP_S, T_GO_GRID_STEP_S)
+        viol3, delta_v = self.path_violation(r_L, v_L, mass_kg, r_f_L, v_f_L, cand, with_margins=True)
+        viol = viol3.max(axis=1)
+        ok = viol <= 0.0
+        if ok.any():
+            i = int(np.argmin(np.where(ok, delta_v, np.inf)))
+        elif (ok_thrust_alt := np.maximum(viol3[:, 0], viol3[:, 2]) <= 0.0).any():
+            i = int(np.argmin(np.where(ok_thrust_alt, viol3[:, 1], np.inf)))
+        else:
+            i = int(np.argmin(viol))
+        return float(cand[i]), float(viol[i])
+
+    # -- the step
+    def update(self, nav: NavState, target: LandingTarget) -> GuidanceCommand:
+        """One guidance step.
+
+        Args:
+            nav: Navigation state.
+            target: Landing target.
+
+        Returns:
+            The guidance command for this control period.
+        """
+        t_ns = int(nav.t_ns)
+        target_L = np.asarray(target.r_L, float)
+        r = np.asarray(nav.r_BL_L, float)
+        v = np.asarray(nav.v_BL_L, float)
+        m = float(nav.mass_kg)
+        usable = np.all(np.isfinite(r)) and np.all(np.isfinite(v)) and np.all(np.isfinite(target_L))
+        if not (usable and np.isfinite(m) and m > 0.0):  # attitude is not needed here
+            return GuidanceCommand(t_ns, np.zeros(3), self.phase, float("nan"), saturated=False, valid=False)
+        r_f, v_f = self.gate_L(target)
+        if self._target_L is None or not np.array_equal(self._target_L, target_L):
+            self._target_L = target_L.copy()
+            self.t_final_ns = None  # re-plan for the new target
+
+        if self.phase == PHASE_APPROACH:
+            if self.t_final_ns is None:
+                self._plan(t_ns, r, v, m, r_f, v_f)
+            t_go = (self.t_final_ns - t_ns) / NS_PER_S
+            if t_go <= self.cfg.terminal_switch_t_go_s or r[2] <= r_f[2] - GATE_FLOOR_M:
+                self.phase = PHASE_TERMINAL
+            else:
+                if t_go > REPLAN_MIN_T_GO_S and t_ns - self._t_plan_ns >= REPLAN_MIN_INTERVAL_NS:
+                    t_go = self._maybe_replan(t_ns, r, v, m, r_f, v_f, t_go)
+                a = self.accel_L(r, v, r_f, v_f, t_go)
+        if self.phase == PHASE_TERMINAL:
+            a = self.terminal_accel_L(r, v, target_L)
+            t_go = max(r[2] - target_L[2], 0.0) / self.cfg.terminal_descent_rate_mps
+        a_capped, saturated = cap_acceleration_L(a, self.g_L, m, self.limits, r[2] - target_L[2])
+        return GuidanceCommand(t_ns, a_capped, self.phase, float(t_go), saturated=saturated, valid=True)
+
+    def _plan(self, t_ns: int, r: np.ndarray, v: np.ndarray, m: float, r_f: np.ndarray, v_f: np.ndarray) -> None:
+        t_go, viol = self.plan_t_go(r, v, m, r_f, v_f)
+        self._adopt(t_ns, t_go, viol)
+
+    def _adopt(self, t_ns: int, t_go: float, viol: float) -> None:
+        self.t_final_ns = t_ns + int(round(t_go * NS_PER_S))
+        self._t_plan_ns = t_ns
+        self.plan_feasible = viol <= 0.0
+        self.n_plans += 1
+
+    def _maybe_replan(
+        self, t_ns: int, r: np.ndarray, v: np.ndarray, m: float, r_f: np.ndarray, v_f: np.ndarray, t_go: float
+    ) -> float:
+        """Re-plan when the remaining path breaks the hard limits and a better one exists; returns t_go [s]."""
+        hard, _ = self.path_violation(r, v, m, r_f, v_f, np.array([t_go]), with_margins=False)
+        if hard.max() <= 0.0:
+            return t_go
+        current, _ = self.path_violation(r, v, m, r_f, v_f, np.array([t_go]), with_margins=True)
+        t_new, viol_new = self.plan_t_go(r, v, m, r_f, v_f)
+        self._t_plan_ns = t_ns  # rate-limits the attempts, adopted or not
+        if viol_new < current.max():
+            self._adopt(t_ns, t_new, viol_new)
+            return t_new
+        return t_go
+
+    def terminal_accel_L(self, r_L: np.ndarray, v_L: np.ndarray, target_L: np.ndarray) -> np.ndarray:
+        """Terminal phase: constant-rate vertical descent, horizontal hold over the target.
+
+        Horizontal: a PD on the position error written as a cascade, the
+        velocity reference ``-(w / 2 zeta) e_h`` limited to
+        ``terminal_speed_max_mps`` and tracked with gain ``2 zeta w``
+        (unsaturated: ``-w^2 e_h - 2 zeta w v_h``). Vertical: the rate
+        reference is ``-terminal_descent_rate_mps`` within
+        ``terminal_hold_radius_m`` of the target, blending linearly to zero
+        (hover) at twice that distance, so a missed gate is flown out at the
+        gate altitude rather than into the ground; tracked with gain
+        ``terminal_rate_gain_per_s``.
+
+        Args:
+            r_L: Position, (3,) [m].
+            v_L: Velocity, (3,) [m/s].
+            target_L: Landing site, (3,) [m].
+
+        Returns:
+            Total acceleration, (3,) [m/s^2] (before capping).
+        """
+        cfg = self.cfg
+        w, zeta = cfg.terminal_position_bandwidth_radps, cfg.terminal_damping_ratio
+        e_h = r_L[:2] - target_L[:2]
+        v_ref_h = -(w / (2.0 * zeta)) * e_h
+        speed = float(np.linalg.norm(v_ref_h))
+        if speed > cfg.terminal_speed_max_mps:
+            v_ref_h *= cfg.terminal_speed_max_mps / speed
+        a_h = 2.0 * zeta * w * (v_ref_h - v_L[:2])
+        hold_r = cfg.terminal_hold_radius_m
+        descent_frac = float(np.clip((2.0 * hold_r - np.linalg.norm(e_h)) / hold_r, 0.0, 1.0))
+        a_z = cfg.terminal_rate_gain_per_s * (-descent_frac * cfg.terminal_descent_rate_mps - v_L[2])
+        return np.array([a_h[0], a_h[1], a_z])
+
+
+class ApolloGuidance(GuidanceLaw):
+    """Apollo E-guidance to the gate (zero total acceleration there), then terminal descent.
+
+    Ports: as :class:`GuidanceLaw` (inputs NavState + LandingTarget, output
+    GuidanceCommand, control rate).
+    """
+
+    name = "apollo"
+
+    def accel_L(self, r_L, v_L, r_f_L, v_f_L, t_go_s):  # noqa: D102 (documented on the base)
+        return apollo_accel_L(r_L, v_L, r_f_L, v_f_L, APOLLO_GATE_ACCEL_L, t_go_s)
+
+    def coeffs(self, r_L, v_L, r_f_L, v_f_L, t_go_s):  # noqa: D102
+        return apollo_coeffs(r_L, v_L, r_f_L, v_f_L, APOLLO_GATE_ACCEL_L, t_go_s)
+
+
+class ZemZevGuidance(GuidanceLaw):
+    """ZEM/ZEV optimal feedback to the gate, then terminal descent.
+
+    Ports: as :class:`GuidanceLaw` (inputs NavState + LandingTarget, output
+    GuidanceCommand, control rate).
+    """
+
+    name = "zem_zev"
+
+    def accel_L(self, r_L, v_L, r_f_L, v_f_L, t_go_s):  # noqa: D102
+        return zem_zev_accel_L(r_L, v_L, r_f_L, v_f_L, t_go_s, self.g_L)
+
+    def coeffs(self, r_L, v_L, r_f_L, v_f_L, t_go_s):  # noqa: D102
+        return zem_zev_coeffs(r_L, v_L, r_f_L, v_f_L, t_go_s)
+
+
+GUIDANCE_LAWS: dict[str, type[GuidanceLaw]] = {cls.name: cls for cls in (ApolloGuidance, ZemZevGuidance)}
+
+
+def make_guidance(
+    cfg: GuidanceConfig | Mapping[str, Any] | None = None, limits: GuidanceLimits | None = None
+) -> GuidanceLaw:
+    """Build the configured guidance law.
+
+    Args:
+        cfg: Guidance configuration (model, mapping or None for defaults).
+        limits: Vehicle limits (None: the default lander's).
+
+    Returns:
+        A fresh :class:`GuidanceLaw`.
+
+    Raises:
+        ValueError: A bad law name or parameter; the message names the field,
+            the bad value and what is allowed.
+    """
+    cfg = validated_config(GuidanceConfig, cfg, "guidance")
+    if cfg.law not in GUIDANCE_LAWS:  # unreachable after validation; kept for subclassed configs
+        raise ValueError(f"guidance.law = {cfg.law!r}; allowed: {', '.join(GUIDANCE_LAWS)}")
+    if limits is None:
+        limits = GuidanceLimits()
+    if not isinstance(limits, GuidanceLimits):
+        raise ValueError(f"limits = {limits!r}; allowed: a GuidanceLimits")
+    return GUIDANCE_LAWS[cfg.law](cfg, limits)

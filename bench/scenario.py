@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from gnc.config import format_validation_error
 from models.camera import CameraConfig
 from models.lander import LanderConfig
 from models.sensors import SensorsConfig
@@ -112,42 +113,6 @@ class Scenario(BaseModel):
         return self.terrain.seed if self.terrain.seed is not None else self.seed
 
 
-# --------------------------------------------------------------------------- errors
-def _fmt_loc(loc: tuple[Any, ...]) -> str:
-    return ".".join(str(p) for p in loc) if loc else "<scenario>"
-
-
-def _allowed_keys(loc: tuple[Any, ...]) -> str:
-    """Field names allowed at the parent of ``loc`` (for unknown-key errors)."""
-    model: type[BaseModel] = Scenario
-    for part in loc[:-1]:
-        field = model.model_fields.get(str(part))
-        ann = getattr(field, "annotation", None) if field else None
-        if not (isinstance(ann, type) and issubclass(ann, BaseModel)):
-            return ""
-        model = ann
-    return ", ".join(model.model_fields)
-
-
-def format_validation_error(err: ValidationError) -> str:
-    """Turn pydantic's multi-line report into one line: field, bad value, what is allowed."""
-    errors = err.errors(include_url=False)
-    first = errors[0]
-    loc = tuple(first.get("loc", ()))
-    msg = str(first.get("msg", "invalid"))
-    msg = msg.removeprefix("Value error, ")
-    if first.get("type") == "extra_forbidden":
-        allowed = _allowed_keys(loc)
-        line = f"unknown field '{_fmt_loc(loc)}'; allowed here: {allowed}" if allowed else f"unknown field '{_fmt_loc(loc)}'"
-    elif loc:
-        line = f"{_fmt_loc(loc)} = {first.get('input')!r}: {msg}"
-    else:
-        line = msg  # model-level validators already name their fields
-    if len(errors) > 1:
-        line += f" (and {len(errors) - 1} more error{'s' if len(errors) > 2 else ''})"
-    return line.replace("\n", " ")
-
-
 # --------------------------------------------------------------------------- loading
 def _parse_value(text: str) -> Any:
     """Parse an override value as a TOML value; bare words fall back to strings."""
@@ -204,7 +169,7 @@ def scenario_from_dict(data: dict[str, Any]) -> Scenario:
     try:
         return Scenario.model_validate(data)
     except ValidationError as err:
-        raise ScenarioError(format_validation_error(err)) from None
+        raise ScenarioError(format_validation_error(err, Scenario)) from None
 
 
 def load_scenario(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Scenario:

@@ -29,16 +29,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
-from vision import (  # noqa: E402
-    Tracker,
-    TrackerConfig,
-    block_average,
-    check_image,
-    detect_in_subimages,
-    laplacian8,
-    select_templates,
-    variance_map,
-)
+from vision import Tracker, TrackerConfig, check_image, detect_in_subimages  # noqa: E402
 
 FIG_DPI = 110
 """Resolution of the written PNGs [dots per inch]."""
@@ -101,34 +92,22 @@ def write_vision_figures(
     sx, sy, size = cfg.subsample_x, cfg.subsample_y, cfg.template_size
     paths: list[Path] = []
 
-    # Fig. 3: band-pass filtering and variance map of frame 0.
-    avg = block_average(first, sx, sy)
+    # Fig. 3: band-pass filtering and variance map of frame 0 (the tracker's own §2 pipeline).
+    areas = Tracker(cfg).fixation_areas(first, cfg.n_templates)
+    avg, lap, var, tl = areas.averaged, areas.laplacian, areas.variance, areas.top_left
     fig, ax = _image_axes(f"averaged image, eq. (2.1), Sx = {sx}, Sy = {sy}  ({avg.shape[1]} x {avg.shape[0]})")
     _show(ax, avg)
     paths.append(_save(fig, out / "fig3a_averaged.png"))
 
-    lap = laplacian8(avg)
     fig, ax = _image_axes("8-neighbour Laplacian of the averaged image")
     _show(ax, lap)
     paths.append(_save(fig, out / "fig3b_laplacian.png"))
 
     wx, wy = size // sx, size // sy
-    var = variance_map(lap, wx, wy)
     fig, ax = _image_axes(f"variance map, eq. (2.2), window {wx} x {wy}")
     _show(ax, var, cmap="magma")
     paths.append(_save(fig, out / "fig3c_variance.png"))
 
-    tl = select_templates(
-        var,
-        cfg.n_templates,
-        sx,
-        sy,
-        (size, size),
-        (height, width),
-        cfg.border_px,
-        cfg.template_separation_frac * min(height, width),
-        cfg.min_template_variance,
-    )
     fig, ax = _image_axes(f"extracted areas ({len(tl)} templates of {size} x {size} px)")
     _show(ax, first)
     for x, y in tl.tolist():

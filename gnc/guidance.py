@@ -83,8 +83,9 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from gnc.config import validated_config
 from gnc.navstate import NavState
 
 NS_PER_S = 1_000_000_000
@@ -112,53 +113,6 @@ _EPS = 1e-9
 
 
 # --------------------------------------------------------------------------- configuration
-def validated_config(model: type[BaseModel], cfg: BaseModel | Mapping[str, Any] | None, prefix: str) -> Any:
-    """Validate a config given as a model, a mapping or None (defaults).
-
-    Args:
-        model: The pydantic model class.
-        cfg: An instance of ``model``, a mapping of its fields, or None.
-        prefix: Name of the config in messages, e.g. ``"guidance"``.
-
-    Returns:
-        A validated ``model`` instance.
-
-    Raises:
-        ValueError: One line naming the field, the bad value and what is allowed.
-    """
-    if cfg is None:
-        return model()
-    if isinstance(cfg, model):
-        data: Any = cfg.model_dump()  # re-validate: model_construct or assignment may have bypassed checks
-    elif isinstance(cfg, Mapping):
-        data = dict(cfg)
-    else:
-        raise ValueError(f"{prefix} = {cfg!r}: expected a {model.__name__} or a mapping of its fields")
-    try:
-        return model.model_validate(data)
-    except ValidationError as err:
-        raise ValueError(_format_error(err, model, prefix)) from None
-
-
-def _format_error(err: ValidationError, model: type[BaseModel], prefix: str) -> str:
-    first = err.errors(include_url=False)[0]
-    loc = tuple(str(p) for p in first.get("loc", ()))
-    path = ".".join((prefix, *loc))
-    msg = str(first.get("msg", "invalid")).removeprefix("Value error, ")
-    if first.get("type") == "extra_forbidden":
-        sub: Any = model
-        for part in loc[:-1]:
-            ann = sub.model_fields[part].annotation if part in getattr(sub, "model_fields", {}) else None
-            sub = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
-            if sub is None:
-                break
-        allowed = ", ".join(sub.model_fields) if sub is not None else ""
-        return f"unknown field '{path}'; allowed: {allowed}"
-    if not loc:
-        return f"{prefix}: {msg}"
-    return f"{path} = {first.get('input')!r}: {msg}".replace("\n", " ")
-
-
 class TiltLimitConfig(BaseModel):
     """Maximum tilt of the thrust axis from vertical, tightening near the ground.
 

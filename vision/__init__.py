@@ -24,8 +24,10 @@ from vision.features import (
 )
 from vision.fixation import (
     LAPLACIAN8_KERNEL,
+    FixationAreas,
     MatchResult,
     block_average,
+    fixation_areas,
     laplacian8,
     match_templates,
     select_templates,
@@ -46,6 +48,7 @@ from vision.tracks import Tracks, check_image
 __all__ = [
     "LAPLACIAN8_KERNEL",
     "FBResult",
+    "FixationAreas",
     "Features",
     "LKResult",
     "MatchResult",
@@ -59,6 +62,7 @@ __all__ = [
     "detect_in_subimages",
     "detection_margin",
     "eigen_threshold_test",
+    "fixation_areas",
     "forward_backward",
     "forward_backward_opencv_fast",
     "gradients",

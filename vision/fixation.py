@@ -201,6 +201,57 @@ def select_templates(
 
 
 @dataclass(frozen=True, slots=True)
+class FixationAreas:
+    """The stages of §2 on one frame, kept for study and figures.
+
+    Attributes:
+        averaged: Block-averaged image E_s, eq. (2.1), (H // Sy, W // Sx) float32 [DN].
+        laplacian: Its 8-neighbour Laplacian E_L, same shape.
+        variance: Variance map V, eq. (2.2) [DN^2].
+        top_left: Selected template corners (x, y), (M, 2) int64 [px], full resolution.
+    """
+
+    averaged: np.ndarray
+    laplacian: np.ndarray
+    variance: np.ndarray
+    top_left: np.ndarray
+
+
+def fixation_areas(
+    image: np.ndarray,
+    n: int,
+    sx: int,
+    sy: int,
+    template_size: int,
+    border_px: int,
+    min_separation_px: float,
+    min_variance: float = 0.0,
+    occupied_xy: np.ndarray | None = None,
+) -> FixationAreas:
+    """Fixation-area detection of §2 on one frame: eqs. (2.1), Laplacian, (2.2), selection.
+
+    Args:
+        image: Frame, (H, W) uint8 or float32 [DN].
+        n: Templates wanted.
+        sx, sy: Block-averaging intervals [px].
+        template_size: Template side [px], a multiple of sx and sy.
+        border_px, min_separation_px, min_variance, occupied_xy: As in
+            :func:`select_templates`.
+
+    Returns:
+        The intermediate images and the selected templates.
+    """
+    averaged = block_average(image, sx, sy)
+    lap = laplacian8(averaged)
+    var = variance_map(lap, template_size // sx, template_size // sy)
+    top_left = select_templates(
+        var, n, sx, sy, (template_size, template_size), image.shape, border_px, min_separation_px,
+        min_variance, occupied_xy=occupied_xy,
+    )
+    return FixationAreas(averaged=averaged, laplacian=lap, variance=var, top_left=top_left)
+
+
+@dataclass(frozen=True, slots=True)
 class MatchResult:
     """Outcome of :func:`match_templates` for T templates.
 

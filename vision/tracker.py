@@ -51,7 +51,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from vision.features import detect_in_subimages, detection_margin
-from vision.fixation import MatchResult, _match_core, block_average, laplacian8, select_templates, variance_map
+from vision.fixation import FixationAreas, MatchResult, _match_core, fixation_areas
 from vision.lk import forward_backward, forward_backward_opencv_fast
 from vision.tracks import Tracks, check_image
 
@@ -454,29 +454,31 @@ class Tracker:
         )
         return out, ok
 
+    def fixation_areas(self, img: np.ndarray, n: int) -> FixationAreas:
+        """§2 on ``img`` with this tracker's parameters: ``n`` new templates
+        away from the ones in use (also used for the paper's figures)."""
+        cfg = self.config
+        return fixation_areas(
+            img,
+            n,
+            cfg.subsample_x,
+            cfg.subsample_y,
+            cfg.template_size,
+            cfg.border_px,
+            cfg.template_separation_frac * min(img.shape),
+            cfg.min_template_variance,
+            occupied_xy=self._tpl_xy + 0.5 * (cfg.template_size - 1),
+        )
+
     def _add_templates(self, img: np.ndarray) -> None:
         """Select replacement templates on the current frame (§2.3) and detect
         features in them."""
         cfg = self.config
-        sx, sy, size = cfg.subsample_x, cfg.subsample_y, cfg.template_size
+        size = cfg.template_size
         height, width = img.shape
         if height < size + 2 * cfg.border_px or width < size + 2 * cfg.border_px:
             return  # the frame is too small to hold a template away from the border
-        lap = laplacian8(block_average(img, sx, sy))
-        var = variance_map(lap, size // sx, size // sy)
-        centres = self._tpl_xy + 0.5 * (size - 1)
-        new = select_templates(
-            var,
-            cfg.n_templates - self._tpl_xy.shape[0],
-            sx,
-            sy,
-            (size, size),
-            (height, width),
-            cfg.border_px,
-            cfg.template_separation_frac * min(height, width),
-            cfg.min_template_variance,
-            occupied_xy=centres,
-        )
+        new = self.fixation_areas(img, cfg.n_templates - self._tpl_xy.shape[0]).top_left
         if new.shape[0] == 0:
             return
         # New areas most likely move with the rest of the image.

@@ -25,8 +25,10 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from gnc.config import format_validation_error
+from gnc.control import ControlConfig
+from gnc.guidance import GuidanceConfig
 from models.camera import CameraConfig
-from models.lander import LanderConfig
+from models.lander import CONTACT_TIMECONST_S, LanderConfig
 from models.sensors import SensorsConfig
 from models.terrain import TerrainConfig
 from models.world import SunConfig
@@ -71,6 +73,17 @@ class InitialState(BaseModel):
         return Rotation.from_euler("xyz", self.euler_LB_deg, degrees=True).as_quat(scalar_first=True)
 
 
+class LandingCriteria(BaseModel):
+    """What counts as a safe landing (checked at first footpad contact and after settling)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    v_vertical_max_mps: float = Field(1.0, gt=0, description="largest vertical speed at touchdown [m/s]")
+    v_horizontal_max_mps: float = Field(0.5, gt=0, description="largest horizontal speed at touchdown [m/s]")
+    tilt_max_deg: float = Field(10.0, gt=0, lt=90, description="largest tilt from vertical at touchdown and after settling [deg]")
+    settle_s: float = Field(5.0, ge=0, description="time after touchdown the lander must stay upright [s]")
+
+
 class Scenario(BaseModel):
     """A complete landing scenario. ``run(scenario) -> result`` is a pure function of it."""
 
@@ -85,16 +98,37 @@ class Scenario(BaseModel):
     initial: InitialState = InitialState()
     sensors: SensorsConfig = SensorsConfig()
     camera: CameraConfig = CameraConfig()
+    guidance: GuidanceConfig = GuidanceConfig()
+    control: ControlConfig = ControlConfig()
+    landing: LandingCriteria = LandingCriteria()
 
     @model_validator(mode="after")
     def _rates_divide(self) -> "Scenario":
         dt = self.sim.physics_dt_ns
+        dt_max = int(CONTACT_TIMECONST_S * NS_PER_S) // 2
+        if dt > dt_max:
+            raise ValueError(
+                f"sim.physics_dt_ns = {dt} is too large for stable contacts: MuJoCo needs the contact time "
+                f"constant ({CONTACT_TIMECONST_S * 1e3:g} ms) to be at least twice the step; allowed: <= {dt_max}"
+            )
         for name, period in self.periods_ns().items():
             if period % dt:
                 lo = max(dt, period // dt * dt)
                 raise ValueError(
                     f"{name} = {period} is not a whole multiple of sim.physics_dt_ns = {dt}; "
                     f"allowed: multiples of {dt}, e.g. {lo} or {lo + dt}"
+                )
+        return self
+
+    @model_validator(mode="after")
+    def _one_gravity(self) -> "Scenario":
+        g = self.sim.gravity_mps2
+        for name, value in (("guidance.gravity_mps2", self.guidance.gravity_mps2),
+                            ("control.gravity_mps2", self.control.gravity_mps2)):
+            if value != g:
+                raise ValueError(
+                    f"{name} = {value} differs from sim.gravity_mps2 = {g}; allowed: the same value "
+                    "(the flight software's gravity model is the world's; set all three together)"
                 )
         return self
 

@@ -51,33 +51,15 @@ from scipy.spatial.transform import Rotation
 
 from gnc.config import validated_config
 from gnc.guidance import LUNAR_GRAVITY_MPS2, GuidanceCommand, GuidanceLimits, TiltLimitConfig
+from gnc.messages import N_LEGS, ContactMessage
 from gnc.navstate import NavState
 
-N_LEGS = 4
 # Propellant modelled as a uniform sphere: I = SPHERE_INERTIA_FACTOR * m * r^2.
 SPHERE_INERTIA_FACTOR = 0.4
 # Specific force (vertical) at or below this is "no upward thrust wanted" [m/s^2].
 _F_Z_MIN_MPS2 = 1e-6
 _EZ = np.array([0.0, 0.0, 1.0])
 _Q_IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
-
-
-@dataclass(frozen=True, slots=True)
-class ContactMessage:
-    """Footpad contact flags.
-
-    Attributes:
-        t_ns: Time of validity [ns].
-        legs: Contact per footpad, (4,) bool, order fl, fr, rl, rr.
-    """
-
-    t_ns: int
-    legs: np.ndarray
-
-    def __post_init__(self) -> None:
-        legs = np.asarray(self.legs)
-        if legs.shape != (N_LEGS,):
-            raise ValueError(f"ContactMessage.legs has shape {legs.shape}; allowed: ({N_LEGS},) booleans")
 
 
 @dataclass(frozen=True, slots=True)

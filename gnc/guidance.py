@@ -92,6 +92,7 @@ NS_PER_S = 1_000_000_000
 LUNAR_GRAVITY_MPS2 = 1.62
 
 PHASE_APPROACH = "approach"
+PHASE_OFF = "off"
 PHASE_TERMINAL = "terminal"
 Phase = Literal["approach", "terminal"]
 
@@ -158,7 +159,9 @@ class GuidanceConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    law: Literal["apollo", "zem_zev"] = Field("zem_zev", description="approach-phase guidance law")
+    law: Literal["apollo", "zem_zev", "off"] = Field(
+        "zem_zev", description="approach-phase guidance law; 'off' commands free fall (failure studies)"
+    )
     gate_altitude_m: float = Field(30.0, gt=0.0, description="gate height above the target [m]")
     terminal_descent_rate_mps: float = Field(
         1.0, gt=0.0, le=5.0, description="gate and terminal-phase vertical descent speed [m/s]"
@@ -661,7 +664,29 @@ class ZemZevGuidance(GuidanceLaw):
         return zem_zev_coeffs(r_L, v_L, r_f_L, v_f_L, t_go_s)
 
 
-GUIDANCE_LAWS: dict[str, type[GuidanceLaw]] = {cls.name: cls for cls in (ApolloGuidance, ZemZevGuidance)}
+class NoGuidance(GuidanceLaw):
+    """Guidance switched off: commands free fall, so the engine stays off.
+
+    For failure studies (what the lander does with no guidance at all); it
+    never lands safely from altitude.
+
+    Ports: as :class:`GuidanceLaw`; the phase is always ``"off"``.
+    """
+
+    name = "off"
+
+    def accel_L(self, r_L, v_L, r_f_L, v_f_L, t_go_s):  # noqa: D102 (free fall)
+        return np.broadcast_to(self.g_L, np.shape(r_L)).copy()
+
+    def coeffs(self, r_L, v_L, r_f_L, v_f_L, t_go_s):  # noqa: D102 (constant gravity)
+        zero = np.zeros(np.shape(r_L))
+        return np.broadcast_to(self.g_L, np.shape(r_L)).copy(), zero, zero
+
+    def update(self, nav: NavState, target: LandingTarget) -> GuidanceCommand:
+        return GuidanceCommand(int(nav.t_ns), self.g_L.copy(), PHASE_OFF, float("nan"))
+
+
+GUIDANCE_LAWS: dict[str, type[GuidanceLaw]] = {cls.name: cls for cls in (ApolloGuidance, ZemZevGuidance, NoGuidance)}
 
 
 def make_guidance(

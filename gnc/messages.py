@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+N_LEGS = 4  # footpads, order fl, fr, rl, rr
+
 
 @dataclass(frozen=True, slots=True)
 class ImuMessage:
@@ -82,3 +84,21 @@ class ImageMessage:
     image: np.ndarray
     K: np.ndarray
     R_BC: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class ContactMessage:
+    """Footpad contact flags.
+
+    Attributes:
+        t_ns: Time of validity [ns].
+        legs: Contact per footpad, (4,) bool, order fl, fr, rl, rr.
+    """
+
+    t_ns: int
+    legs: np.ndarray
+
+    def __post_init__(self) -> None:
+        legs = np.asarray(self.legs)
+        if legs.shape != (N_LEGS,):
+            raise ValueError(f"ContactMessage.legs has shape {legs.shape}; allowed: ({N_LEGS},) booleans")

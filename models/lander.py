@@ -27,6 +27,13 @@ PATCH_GEOM_GROUP = 2  # the visual landing-site texture patch (coplanar with the
 
 FOOTPAD_NAMES = ("foot_fl", "foot_fr", "foot_rl", "foot_rr")
 
+# Contact softness (MuJoCo solref): time constant [s] and damping ratio. MuJoCo
+# needs the time constant to be at least twice the physics step for stable
+# contacts; the scenario checks the step against it at load time.
+CONTACT_TIMECONST_S = 0.02
+CONTACT_DAMPING_RATIO = 1.0
+CONTACT_SOLREF = f"{CONTACT_TIMECONST_S} {CONTACT_DAMPING_RATIO}"
+
 
 class EngineConfig(BaseModel):
     """Throttleable main engine, thrust along body +z."""
@@ -117,17 +124,17 @@ def lander_mjcf(cfg: LanderConfig, camera_fovy_deg: float) -> str:
     feet = footpad_positions_B(cfg)
     leg_top_z = -0.6 * hz
     g = LANDER_GEOM_GROUP
-    fric = f"{cfg.friction} 0.005 0.0001"
+    contact = f'friction="{cfg.friction} 0.005 0.0001" solref="{CONTACT_SOLREF}"'
     legs = []
     for name, (x, y, z) in zip(FOOTPAD_NAMES, feet):
         x0, y0 = np.sign(x) * hx * 0.9, np.sign(y) * hy * 0.9
         legs.append(
             f'<geom name="leg_{name[5:]}" type="capsule" size="0.06" fromto="{x0} {y0} {leg_top_z} {x} {y} {z}" '
-            f'group="{g}" contype="1" conaffinity="0" mass="0" rgba="0.7 0.7 0.7 1" friction="{fric}"/>'
+            f'group="{g}" contype="1" conaffinity="0" mass="0" rgba="0.7 0.7 0.7 1" {contact}/>'
         )
         legs.append(
             f'<geom name="{name}" type="sphere" size="{cfg.footpad_radius_m}" pos="{x} {y} {z}" '
-            f'group="{g}" contype="1" conaffinity="0" mass="0" rgba="0.8 0.7 0.3 1" friction="{fric}"/>'
+            f'group="{g}" contype="1" conaffinity="0" mass="0" rgba="0.8 0.7 0.3 1" {contact}/>'
         )
     bottom = -hz - 0.02  # sensors sit just below the body so rays and the view clear it
     return f"""
@@ -135,7 +142,7 @@ def lander_mjcf(cfg: LanderConfig, camera_fovy_deg: float) -> str:
       <freejoint name="lander_free"/>
       <inertial pos="0 0 0" mass="{cfg.dry_mass_kg}" diaginertia="{inertia[0]} {inertia[1]} {inertia[2]}"/>
       <geom name="hull" type="box" size="{hx} {hy} {hz}" group="{g}" contype="1" conaffinity="0"
-            mass="0" rgba="0.85 0.75 0.3 1" friction="{fric}"/>
+            mass="0" rgba="0.85 0.75 0.3 1" {contact}/>
       {''.join(legs)}
       <site name="engine" pos="0 0 {-hz}" size="0.1"/>
       <site name="rcs" pos="0 0 0" size="0.05"/>

@@ -33,6 +33,7 @@ import mujoco  # noqa: E402  (the GL backend must be chosen first)
 from models.actuators import PropulsionModel, PropulsionOutput  # noqa: E402
 from models.camera import R_MJCAM_C, CameraConfig, intrinsics  # noqa: E402
 from models.lander import (  # noqa: E402
+    CONTACT_SOLREF,
     FOOTPAD_NAMES,
     PATCH_GEOM_GROUP,
     TANK_MASS_FLOOR_KG,
@@ -162,7 +163,7 @@ def world_mjcf(terrain: Terrain, lander: LanderConfig, camera: CameraConfig, sun
            specular="0 0 0"/>
 {patch_geom}
     <geom name="terrain" type="hfield" hfield="terrain" material="regolith" group="{TERRAIN_GEOM_GROUP}"
-          pos="0 0 {float(terrain.height_m.min())}" contype="0" conaffinity="1" friction="{lander.friction} 0.005 0.0001"/>
+          pos="0 0 {float(terrain.height_m.min())}" contype="0" conaffinity="1" friction="{lander.friction} 0.005 0.0001" solref="{CONTACT_SOLREF}"/>
     {lander_mjcf(lander, camera.fovy_deg)}
   </worldbody>
   <actuator>{actuator_mjcf(lander)}

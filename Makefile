@@ -12,14 +12,12 @@ all: test
 bootstrap:
 	@./scripts/bootstrap.sh
 
-## demo: render the default scenario's camera view from a few altitudes, and the terrain map
+## demo: fly the default scenario (vision camera on) and write its results, plus the terrain map
 demo: bootstrap
 	@mkdir -p $(OUT)
 	$(LB) world --out $(OUT)/world.png
-	@for h in 500 200 100 30; do \
-	  $(LB) render --altitude $$h --out $(OUT)/camera_$${h}m.png || exit 1; \
-	done
-	@echo "demo: PNGs written to $(OUT)/"
+	$(LB) run --out $(OUT)
+	@echo "demo: results in $(OUT)/ (summary.json, telemetry.parquet, scenario.toml, plots.png, camera.mp4, world.png)"
 
 ## test: the fast suite (CI runs this; well under 10 minutes on 2 cores)
 test: bootstrap

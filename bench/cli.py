@@ -102,6 +102,21 @@ def cmd_vision_figures(args: argparse.Namespace) -> int:
     return 0
 
 
+EXIT_NOT_LANDED = 3
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from bench.run_outputs import run_and_write
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {args.out!r} is a file; give a folder")
+    scenario = load_scenario(args.scenario, args.overrides)
+    summary, table = run_and_write(scenario, out, video=not args.no_video, progress=True)
+    print(table)
+    return 0 if summary["landed"] else EXIT_NOT_LANDED
+
+
 # --------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -114,6 +129,13 @@ def build_parser() -> argparse.ArgumentParser:
     ps = ssub.add_parser("show", help="print the resolved scenario as TOML")
     _add_scenario_args(ps)
     ps.set_defaults(func=cmd_scenario_show)
+
+    p = sub.add_parser("run", help="fly one closed-loop landing and write its results",
+                       description="Fly one landing. Exit status: 0 landed, 3 not landed, 2 bad input.")
+    _add_scenario_args(p)
+    p.add_argument("--out", default="out/run", help="output folder (default out/run)")
+    p.add_argument("--no-video", action="store_true", help="skip camera.mp4 (frames are still rendered if the camera is on)")
+    p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("render", help="render the camera view from H metres above the landing site")
     _add_scenario_args(p)

@@ -1,0 +1,78 @@
+"""The files of one run (``landbench run --out DIR``).
+
+``DIR/summary.json`` (the stable contract), ``DIR/telemetry.parquet`` (one row
+per control tick), ``DIR/scenario.toml`` (the resolved scenario: rerunning it
+reproduces the landing), ``DIR/plots.png`` and ``DIR/camera.mp4``.
+
+Nothing is written until the run has finished, and every file is written
+atomically, so a crash or a bad input never leaves a half-written result or
+clobbers an earlier one; the video streams into a temporary file that is
+renamed into place only at the end.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from bench.io import atomic_write_text
+from bench.report import CameraVideo, frame_caption, summary_table, write_plots, write_telemetry_parquet
+from bench.run import run
+from bench.scenario import NS_PER_S, Scenario, scenario_to_toml
+
+SUMMARY = "summary.json"
+TELEMETRY = "telemetry.parquet"
+SCENARIO = "scenario.toml"
+PLOTS = "plots.png"
+VIDEO = "camera.mp4"
+
+
+def _json_safe(value: Any) -> Any:
+    """Replace non-finite floats (not valid JSON) by None, recursively."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def run_and_write(scenario: Scenario, out: Path, video: bool = True, progress: bool = False) -> tuple[dict, str]:
+    """Fly the scenario and write its files into ``out``.
+
+    Returns:
+        (summary dict as written to summary.json, the terminal summary table).
+    """
+    cam = scenario.camera
+    writer = None
+    if video and cam.enabled:
+        writer = CameraVideo(out / VIDEO, fps=NS_PER_S / cam.period_ns, size=(cam.width_px, cam.height_px))
+
+    def sink(t_ns, frame, truth) -> None:
+        writer.add(frame, text=frame_caption(t_ns / NS_PER_S, float(truth.r_BL_L[2])))
+
+    try:
+        result = run(scenario, frame_sink=sink if writer is not None else None, progress=progress)
+        summary = _json_safe(result.summary)
+        outputs = {"scenario": out / SCENARIO, "summary": out / SUMMARY, "telemetry": out / TELEMETRY, "plots": out / PLOTS}
+        atomic_write_text(outputs["scenario"], scenario_to_toml(scenario))
+        write_telemetry_parquet(result.telemetry, outputs["telemetry"])
+        touchdown = summary["touchdown"] if summary["touchdown"]["t_s"] is not None else None
+        write_plots(result.telemetry, result.terrain, outputs["plots"],
+                    title=f"{scenario.name}: seed {scenario.seed}, {scenario.guidance.law} guidance -> {summary['outcome']}",
+                    criteria=summary["criteria"], touchdown=touchdown,
+                    sun_elevation_deg=scenario.sun.elevation_deg, sun_azimuth_deg=scenario.sun.azimuth_deg)
+        if writer is not None:
+            path = writer.close()
+            if path is not None:
+                outputs["video"] = path
+        # Last: a summary.json present means the run's files are complete.
+        atomic_write_text(outputs["summary"], json.dumps(summary, indent=2) + "\n")
+    except BaseException:
+        if writer is not None:
+            writer.abort()  # no half-written video left behind, whatever failed
+        raise
+    return summary, summary_table(summary, {k: str(v) for k, v in outputs.items()})

@@ -1,0 +1,81 @@
+"""landbench run: the files it writes and their contract."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+
+from bench.cli import main
+from bench.report import read_telemetry_parquet
+from bench.scenario import load_scenario
+from tests.conftest import SMALL_SET
+
+QUICK = [*SMALL_SET, "initial.r_BL_L_m=[10.0, -5.0, 60.0]", "initial.v_BL_L_mps=[0.0, 0.0, -3.0]",
+         "camera.width_px=64", "camera.height_px=64", "landing.settle_s=2.0"]
+SUMMARY_KEYS = {"outcome", "landed", "touchdown", "fuel_used_kg", "sim_time_s", "wall_time_s", "realtime_factor", "seed"}
+TOUCHDOWN_KEYS = {"t_s", "v_vertical_mps", "v_horizontal_mps", "tilt_deg", "miss_distance_m"}
+
+
+def _sets(extra=()):
+    return [a for s in (*QUICK, *extra) for a in ("--set", s)]
+
+
+def test_run_writes_the_contract_and_its_scenario_reruns_it(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["run", "--out", str(out), *_sets()]) == 0
+    assert "LANDED" in capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    assert SUMMARY_KEYS <= summary.keys() and TOUCHDOWN_KEYS <= summary["touchdown"].keys()
+    assert summary["landed"] is True and summary["outcome"] == "landed" and summary["seed"] == 1
+    tel = read_telemetry_parquet(out / "telemetry.parquet")
+    assert len(tel["t_s"]) == int(round(summary["sim_time_s"] * 50)) + 1  # one row per 50 Hz control tick
+    assert {"r_z_m", "thrust_N", "imu_f_z_mps2", "alt_range_m", "st_q_w", "phase"} <= tel.keys()
+    assert cv2.imread(str(out / "plots.png")) is not None
+    cap = cv2.VideoCapture(str(out / "camera.mp4"))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == int(summary["sim_time_s"] * 10) + 1
+    # The written scenario reproduces the landing exactly.
+    assert load_scenario(out / "scenario.toml") == load_scenario(None, QUICK)
+    out2 = tmp_path / "rerun"
+    assert main(["run", str(out / "scenario.toml"), "--out", str(out2), "--no-video"]) == 0
+    again = json.loads((out2 / "summary.json").read_text())
+    wall = ("wall_time_s", "setup_time_s", "realtime_factor")
+    assert {k: v for k, v in again.items() if k not in wall} == {k: v for k, v in summary.items() if k not in wall}
+    tel2 = read_telemetry_parquet(out2 / "telemetry.parquet")
+    for k in tel:
+        np.testing.assert_array_equal(tel[k], tel2[k], err_msg=k)
+    assert not (out2 / "camera.mp4").exists()
+
+
+def test_failed_landing_exits_3_and_still_writes_results(tmp_path):
+    out = tmp_path / "crash"
+    assert main(["run", "--out", str(out), "--no-video", *_sets(['guidance.law="off"', "initial.v_BL_L_mps=[0.0, 0.0, -10.0]"])]) == 3
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["outcome"] == "hard_landing" and summary["landed"] is False
+
+
+def test_bad_input_writes_nothing(tmp_path, capsys):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "summary.json").write_text("earlier result")
+    assert main(["run", "--out", str(out), *_sets(['guidance.law="pdg"'])]) == 2
+    assert "guidance.law" in capsys.readouterr().err
+    assert (out / "summary.json").read_text() == "earlier result"
+    assert sorted(p.name for p in out.iterdir()) == ["summary.json"]
+
+
+def test_a_failure_after_the_run_leaves_no_partial_video(tmp_path, monkeypatch):
+    import pytest
+
+    import bench.run_outputs as ro
+
+    def broken_plots(*args, **kwargs):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(ro, "write_plots", broken_plots)
+    out = tmp_path / "run"
+    with pytest.raises(RuntimeError, match="disk full"):
+        ro.run_and_write(load_scenario(None, QUICK), out)
+    assert not any(p.suffix in (".mp4", ".tmp") or ".mp4." in p.name for p in out.iterdir())
+    assert not (out / "summary.json").exists()

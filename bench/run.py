@@ -36,11 +36,18 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bench.scenario import NS_PER_S, Scenario
+from bench.seeding import component_rng
+from bench.truth_tracker import TruthTracker
 from bench.world_builder import SensorSuite, build_sensors, build_terrain, build_world
 from gnc.control import Controller, VehicleParams
-from gnc.guidance import LandingTarget, make_guidance
-from gnc.messages import ContactMessage
+from gnc.estimator import make_estimator
+from gnc.flight import FlightSoftware
+from gnc.guidance import make_guidance
+from gnc.messages import ContactMessage, ImageMessage
 from gnc.navstate import NavState
+from models.camera import R_BC
+from vision.tracker import Tracker
+from vision.tracks import Tracks
 from models.lander import LanderConfig, footpad_positions_B
 from models.terrain import Terrain
 from models.world import PhysicsDivergedError, TruthState, World
@@ -48,8 +55,11 @@ from models.world import PhysicsDivergedError, TruthState, World
 OUTCOMES = ("landed", "hard_landing", "tipped_over", "fuel_exhausted", "timeout", "diverged")
 PHASE_TOUCHDOWN = "touchdown"
 
-FrameSink = Callable[[int, np.ndarray, TruthState], None]
-"""Called with (t_ns, frame (H, W) uint8, truth) for every camera frame."""
+FrameSink = Callable[[int, np.ndarray, TruthState, "Tracks | None"], None]
+"""Called with (t_ns, frame (H, W) uint8, truth, tracks or None) for every camera frame."""
+TRUTH_TRACK_POINTS = 80  # points the truth tracker keeps in view (about the paper tracker's count)
+NAV_DOF = 6  # position + velocity in the NEES
+VEL_RMS_BELOW_M = 100.0  # vel_err_rms_mps is taken below this altitude
 
 
 @dataclass
@@ -103,13 +113,20 @@ class _Telemetry:
         "t_go_s", "engine_on", "phase", "legs_in_contact",
         "imu_f_x_mps2", "imu_f_y_mps2", "imu_f_z_mps2", "imu_w_x_radps", "imu_w_y_radps", "imu_w_z_radps",
         "alt_range_m", "alt_valid", "st_q_w", "st_q_x", "st_q_y", "st_q_z",
+        "nav_r_x_m", "nav_r_y_m", "nav_r_z_m", "nav_v_x_mps", "nav_v_y_mps", "nav_v_z_mps",
+        "nav_err_r_x_m", "nav_err_r_y_m", "nav_err_r_z_m", "nav_err_v_x_mps", "nav_err_v_y_mps", "nav_err_v_z_mps",
+        "nav_sigma_r_x_m", "nav_sigma_r_y_m", "nav_sigma_r_z_m",
+        "nav_sigma_v_x_mps", "nav_sigma_v_y_mps", "nav_sigma_v_z_mps", "nav_nees", "fsw_mass_kg",
+        "vision_tracks", "vision_measurements", "vision_rejected",
+        "vision_v_x_mps", "vision_v_y_mps",
     )
 
     def columns(self, terrain: Terrain, lander: LanderConfig) -> dict[str, np.ndarray]:
         cols = {name: np.array(values) for name, values in zip(self.COLUMNS, zip(*self.rows))}
         for name in ("engine_on", "alt_valid"):
             cols[name] = cols[name].astype(bool)
-        cols["legs_in_contact"] = cols["legs_in_contact"].astype(np.int64)
+        for name in ("legs_in_contact", "vision_tracks", "vision_measurements", "vision_rejected"):
+            cols[name] = cols[name].astype(np.int64)
         cols["phase"] = cols["phase"].astype(str)
         # Height of the lowest footpad above the terrain under it (vectorised once, after the run).
         r_L = np.column_stack([cols["r_x_m"], cols["r_y_m"], cols["r_z_m"]])
@@ -147,32 +164,57 @@ def run(scenario: Scenario, frame_sink: FrameSink | None = None, progress: bool 
         world.close()
 
 
+def build_flight_software(scenario: Scenario, world: World) -> FlightSoftware:
+    """The flight computer of the run, with its initial navigation knowledge.
+
+    The initial estimate is the truth plus a draw from the hand-over
+    uncertainty (``estimator.init_*_sigma``), from the run's own
+    "estimator" stream.
+    """
+    vehicle = vehicle_params(scenario)
+    controller = Controller(scenario.control, vehicle)
+    guidance = make_guidance(scenario.guidance, controller.guidance_limits())
+    truth = world.truth()
+    est = scenario.estimator
+    rng = component_rng(scenario.seed, "estimator")
+    r0 = truth.r_BL_L + rng.normal(0.0, est.init_pos_sigma_m, 3)
+    v0 = truth.v_BL_L + rng.normal(0.0, est.init_vel_sigma_mps, 3)
+    nav_filter = make_estimator(est, r0, v0, 0)
+    tracker = Tracker(scenario.tracker) if scenario.tracks == "vision" and scenario.vision == "on" else None
+    return FlightSoftware(
+        guidance, controller, nav_filter, tracker, scenario.vision_nav, scenario.vision == "on",
+        K=world.K, R_BC=R_BC, r_cam_B=world.camera_position_B, r_alt_B=world.altimeter_position_B,
+        wet_mass_kg=scenario.lander.wet_mass_kg,
+        isp_s=scenario.lander.engine.isp_s,
+    )
+
+
 def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuite,
          frame_sink: FrameSink | None, progress: bool, setup_s: float) -> RunResult:
     sim, cam, crit = scenario.sim, scenario.camera, scenario.landing
     dt_ns = sim.physics_dt_ns
+    truth_tracks = scenario.vision == "on" and scenario.tracks == "truth"
     periods = {
         "imu": scenario.sensors.imu.period_ns,
         "altimeter": scenario.sensors.altimeter.period_ns,
         "star_tracker": scenario.sensors.star_tracker.period_ns,
         "control": sim.control_period_ns,
     }
-    if cam.enabled:
+    if cam.enabled or truth_tracks:
         periods["camera"] = cam.period_ns
     tick_ns = reduce(math.gcd, periods.values())  # every event falls on a tick; a multiple of dt
     steps_per_tick = tick_ns // dt_ns
     assert tick_ns % dt_ns == 0
 
-    vehicle = vehicle_params(scenario)
-    controller = Controller(scenario.control, vehicle)
-    guidance = make_guidance(scenario.guidance, controller.guidance_limits())
-    target = LandingTarget()
+    fsw = build_flight_software(scenario, world)
+    tracker_truth = (TruthTracker(terrain, world.K, (cam.width_px, cam.height_px), TRUTH_TRACK_POINTS,
+                                  component_rng(scenario.seed, "vision")) if truth_tracks else None)
     thrust_max = scenario.lander.engine.thrust_max_N
+    thrust_gain = 1.0 + scenario.lander.engine.thrust_error_frac
 
     tel = _Telemetry()
     imu_msg = alt_msg = st_msg = None
     act = None
-    cmd = None
     truth = world.truth()
     prev_truth = truth
     propellant0 = truth.propellant_kg
@@ -183,6 +225,7 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
     error: str | None = None
     settle_ns = int(round(crit.settle_s * NS_PER_S))
     bar = _progress_bar(sim.t_max_ns, progress)
+    timing = {"render_s": 0.0, "vision_s": 0.0, "filter_s": 0.0}
 
     t_ns = 0
     wall0 = time.perf_counter()
@@ -193,25 +236,45 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
             if touchdown is None and legs.any():
                 touchdown_ns = t_ns
                 touchdown = _touchdown_metrics(prev_truth, t_ns)
-            # Sensors due now (zero-order hold between samples).
+            # Sensors due now (zero-order hold between samples); the filter consumes them.
+            t0 = time.perf_counter()
             if t_ns % periods["imu"] == 0:
                 imu_msg = sensors.imu.sample(t_ns, world.specific_force_B(), world.angular_rate_B())
-            if t_ns % periods["altimeter"] == 0:
-                alt_msg = sensors.altimeter.sample(t_ns, world.altimeter_range_truth())
+                fsw.on_imu(imu_msg)
             if t_ns % periods["star_tracker"] == 0:
                 st_msg = sensors.star_tracker.sample(t_ns, truth.q_LB)
-            if cam.enabled and t_ns % periods["camera"] == 0:
-                frame = sensors.camera_frame(world)
-                if frame_sink is not None:
-                    frame_sink(t_ns, frame, truth)
+                fsw.on_attitude(st_msg)
+            if t_ns % periods["altimeter"] == 0:
+                alt_msg = sensors.altimeter.sample(t_ns, world.altimeter_range_truth())
+                fsw.on_altimeter(alt_msg)
+            timing["filter_s"] += time.perf_counter() - t0
+            if "camera" in periods and t_ns % periods["camera"] == 0:
+                tracks = None
+                frame = None
+                if cam.enabled:
+                    t0 = time.perf_counter()
+                    frame = sensors.camera_frame(world)
+                    timing["render_s"] += time.perf_counter() - t0
+                t0 = time.perf_counter()
+                if tracker_truth is not None:
+                    tracks = tracker_truth.step(*world.camera_pose())
+                    fsw.on_tracks(t_ns, tracks)
+                elif frame is not None:
+                    tracks = fsw.on_image(ImageMessage(t_ns, frame, world.K, R_BC))
+                timing["vision_s"] += time.perf_counter() - t0
+                if frame is not None and frame_sink is not None:
+                    frame_sink(t_ns, frame, truth, tracks)
             # Flight software at the control rate.
             if t_ns % periods["control"] == 0:
-                nav = NavState(t_ns, truth.r_BL_L, truth.v_BL_L, truth.q_LB, truth.omega_B, truth.mass_kg)
-                cmd = guidance.update(nav, target)
-                act = controller.update(nav, cmd, ContactMessage(t_ns, legs))
-                tel.rows.append(_row(t_ns, truth, act, cmd, legs, imu_msg, alt_msg, st_msg, thrust_max,
-                                     world.propulsion.clamp_thrust(act.thrust_N) * (1 + scenario.lander.engine.thrust_error_frac),
-                                     PHASE_TOUCHDOWN if touchdown is not None else cmd.phase))
+                truth_nav = None
+                if scenario.nav == "truth":
+                    truth_nav = NavState(t_ns, truth.r_BL_L, truth.v_BL_L, truth.q_LB, truth.omega_B, truth.mass_kg)
+                act = fsw.control(t_ns, ContactMessage(t_ns, legs), truth_nav)
+                est = fsw.filter.nav_state(fsw.mass_kg)
+                tel.rows.append(_row(t_ns, truth, act, fsw.last_guidance, legs, imu_msg, alt_msg, st_msg, thrust_max,
+                                     world.propulsion.clamp_thrust(act.thrust_N) * thrust_gain,
+                                     PHASE_TOUCHDOWN if touchdown is not None else fsw.last_guidance.phase,
+                                     est, fsw))
             # End conditions.
             if touchdown_ns is not None and t_ns - touchdown_ns >= settle_ns:
                 break
@@ -236,6 +299,7 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
     if outcome is None:
         outcome = _classify(touchdown, exhausted_ns, touchdown_ns, final_tilt, scenario)
     sim_time_s = world.t_ns / NS_PER_S
+    telemetry = tel.columns(terrain, scenario.lander) if tel.rows else {}
     summary: dict[str, Any] = {
         "outcome": outcome,
         "landed": outcome == "landed",
@@ -248,13 +312,52 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
         "setup_time_s": setup_s,
         "realtime_factor": sim_time_s / wall_s if wall_s > 0 else math.inf,
         "seed": scenario.seed,
+        "modes": {"nav": scenario.nav, "tracks": scenario.tracks, "vision": scenario.vision},
         "guidance_law": scenario.guidance.law,
         "camera_enabled": cam.enabled,
         "criteria": scenario.landing.model_dump(),
+        "nav": _nav_summary(telemetry, touchdown),
+        "vision": _vision_summary(fsw),
+        "time_split_s": timing,
         "error": error,
     }
-    telemetry = tel.columns(terrain, scenario.lander) if tel.rows else {}
     return RunResult(summary=summary, telemetry=telemetry, terrain=terrain)
+
+
+def _nav_summary(tel: dict[str, np.ndarray], touchdown: dict | None) -> dict[str, float | None]:
+    """Navigation-error figures from the telemetry (estimate vs truth)."""
+    if not tel:
+        return {"pos_err_touchdown_m": None, "vel_err_touchdown_mps": None, "vel_err_rms_mps": None,
+                "nees_in_bounds_frac": None}
+    from scipy.stats import chi2
+
+    t = tel["t_s"]
+    flying = t < touchdown["t_s"] if touchdown is not None else np.ones(t.size, bool)
+    k = int(np.flatnonzero(flying)[-1]) if flying.any() else 0  # last tick before touchdown
+    e_r = np.column_stack([tel[f"nav_err_r_{a}_m"] for a in "xyz"])
+    e_v = np.column_stack([tel[f"nav_err_v_{a}_mps"] for a in "xyz"])
+    low = flying & (tel["r_z_m"] < VEL_RMS_BELOW_M)
+    lo, hi = chi2.ppf(0.025, NAV_DOF), chi2.ppf(0.975, NAV_DOF)
+    nees = tel["nav_nees"][flying]
+    return {
+        "pos_err_touchdown_m": float(np.linalg.norm(e_r[k])),
+        "vel_err_touchdown_mps": float(np.linalg.norm(e_v[k])),
+        "vel_err_horizontal_touchdown_mps": float(np.hypot(e_v[k, 0], e_v[k, 1])),
+        "vel_err_rms_mps": float(np.sqrt(np.mean(np.sum(e_v[low] ** 2, axis=1)))) if low.any() else None,
+        "nees_in_bounds_frac": float(np.mean((nees >= lo) & (nees <= hi))) if nees.size else None,
+        "nees_mean": float(np.mean(nees)) if nees.size else None,
+    }
+
+
+def _vision_summary(fsw: FlightSoftware) -> dict[str, float | int | None]:
+    v = fsw.vision
+    return {
+        "frames": v.frames,
+        "tracks_median": float(np.median(v.track_counts)) if v.track_counts else None,
+        "measurements": v.measurements,
+        "rejected_frac": v.rejected / v.measurements if v.measurements else None,
+        "unusable_pairs": v.unusable,
+    }
 
 
 def _touchdown_metrics(before: TruthState, t_ns: int) -> dict[str, float]:
@@ -283,8 +386,13 @@ def _classify(touchdown: dict | None, exhausted_ns: int | None, touchdown_ns: in
     return "landed"
 
 
-def _row(t_ns, truth, act, cmd, legs, imu, alt, st, thrust_max, thrust_delivered, phase) -> tuple:
+def _row(t_ns, truth, act, cmd, legs, imu, alt, st, thrust_max, thrust_delivered, phase, est, fsw) -> tuple:
     nan3 = (math.nan,) * 3
+    e = np.concatenate([est.r_BL_L - truth.r_BL_L, est.v_BL_L - truth.v_BL_L])
+    P = est.P
+    nees = float(e @ np.linalg.solve(P, e)) if P is not None else math.nan
+    sig = np.sqrt(np.diag(P)) if P is not None else np.full(6, math.nan)
+    vm = fsw.vision.last
     return (
         t_ns / NS_PER_S, *truth.r_BL_L, *truth.v_BL_L, *truth.q_LB, *truth.omega_B,
         truth.mass_kg, truth.propellant_kg, tilt_deg(truth.q_LB),
@@ -293,6 +401,10 @@ def _row(t_ns, truth, act, cmd, legs, imu, alt, st, thrust_max, thrust_delivered
         *(imu.f_B if imu is not None else nan3), *(imu.omega_B if imu is not None else nan3),
         alt.range_m if alt is not None else math.nan, bool(alt.valid) if alt is not None else False,
         *(st.q_LB if st is not None else (math.nan,) * 4),
+        *est.r_BL_L, *est.v_BL_L, *e, *sig, nees, fsw.mass_kg,
+        len(fsw.vision.last_tracks) if fsw.vision.last_tracks is not None else 0,
+        fsw.vision.measurements, fsw.vision.rejected,
+        *(vm.v_L if vm is not None else (math.nan,) * 2),
     )
 
 

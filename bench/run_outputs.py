@@ -51,8 +51,11 @@ def run_and_write(scenario: Scenario, out: Path, video: bool = True, progress: b
     if video and cam.enabled:
         writer = CameraVideo(out / VIDEO, fps=NS_PER_S / cam.period_ns, size=(cam.width_px, cam.height_px))
 
-    def sink(t_ns, frame, truth) -> None:
-        writer.add(frame, text=frame_caption(t_ns / NS_PER_S, float(truth.r_BL_L[2])))
+    def sink(t_ns, frame, truth, tracks) -> None:
+        xy = prev = None
+        if tracks is not None and len(tracks):
+            xy, prev = tracks.xy, tracks.prev_xy
+        writer.add(frame, tracks_xy=xy, prev_xy=prev, text=frame_caption(t_ns / NS_PER_S, float(truth.r_BL_L[2])))
 
     try:
         result = run(scenario, frame_sink=sink if writer is not None else None, progress=progress)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import tomllib
+from typing import Literal
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -26,7 +27,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from gnc.config import format_validation_error
 from gnc.control import ControlConfig
+from gnc.estimator import EstimatorConfig
 from gnc.guidance import GuidanceConfig
+from gnc.vision_nav import VisionNavConfig
+from vision.tracker import TrackerConfig
 from models.camera import CameraConfig
 from models.lander import CONTACT_TIMECONST_S, LanderConfig
 from models.sensors import SensorsConfig
@@ -91,6 +95,13 @@ class Scenario(BaseModel):
 
     name: str = Field("default", description="free-form scenario name")
     seed: int = Field(1, ge=0, description="master seed; every random stream is spawned from it")
+    nav: Literal["truth", "estimator"] = Field(
+        "estimator", description="navigation given to guidance: the truth state, or the filter's estimate"
+    )
+    tracks: Literal["vision", "truth"] = Field(
+        "vision", description="feature tracks from the paper's tracker on rendered frames, or exact truth tracks"
+    )
+    vision: Literal["on", "off"] = Field("on", description="use vision velocity measurements ('off': IMU + altimeter)")
     sim: SimConfig = SimConfig()
     terrain: TerrainConfig = TerrainConfig()
     sun: SunConfig = SunConfig()
@@ -101,6 +112,9 @@ class Scenario(BaseModel):
     guidance: GuidanceConfig = GuidanceConfig()
     control: ControlConfig = ControlConfig()
     landing: LandingCriteria = LandingCriteria()
+    estimator: EstimatorConfig = EstimatorConfig()
+    tracker: TrackerConfig = TrackerConfig()
+    vision_nav: VisionNavConfig = VisionNavConfig()
 
     @model_validator(mode="after")
     def _rates_divide(self) -> "Scenario":
@@ -124,12 +138,22 @@ class Scenario(BaseModel):
     def _one_gravity(self) -> "Scenario":
         g = self.sim.gravity_mps2
         for name, value in (("guidance.gravity_mps2", self.guidance.gravity_mps2),
-                            ("control.gravity_mps2", self.control.gravity_mps2)):
+                            ("control.gravity_mps2", self.control.gravity_mps2),
+                            ("estimator.gravity_mps2", self.estimator.gravity_mps2)):
             if value != g:
                 raise ValueError(
                     f"{name} = {value} differs from sim.gravity_mps2 = {g}; allowed: the same value "
-                    "(the flight software's gravity model is the world's; set all three together)"
+                    "(the flight software's gravity model is the world's; set them together)"
                 )
+        return self
+
+    @model_validator(mode="after")
+    def _vision_needs_camera(self) -> "Scenario":
+        if self.vision == "on" and self.tracks == "vision" and not self.camera.enabled:
+            raise ValueError(
+                "vision = 'on' with tracks = 'vision' needs camera.enabled = true; allowed: enable the camera, "
+                "or set tracks = 'truth' or vision = 'off'"
+            )
         return self
 
     def periods_ns(self) -> dict[str, int]:

@@ -164,7 +164,7 @@ class GuidanceConfig(BaseModel):
     )
     gate_altitude_m: float = Field(30.0, gt=0.0, description="gate height above the target [m]")
     terminal_descent_rate_mps: float = Field(
-        1.0, gt=0.0, le=5.0, description="gate and terminal-phase vertical descent speed [m/s]"
+        0.8, gt=0.0, le=5.0, description="gate and terminal-phase vertical descent speed [m/s]"
     )
     gravity_mps2: float = Field(LUNAR_GRAVITY_MPS2, gt=0.0, description="surface gravity magnitude [m/s^2]")
     t_go_min_s: float = Field(5.0, gt=0.0, description="shortest approach time considered by the planner [s]")

@@ -150,7 +150,9 @@ class TerrainConfig(BaseModel):
     boulder_max_diameter_m: float = Field(4.0, gt=0.0, description="largest boulder diameter [m]")
 
     target_clear_radius_m: float = Field(
-        15.0, ge=0.0, description="no crater rim or boulder within this radius of the origin [m]"
+        70.0, ge=0.0,
+        description="no crater rim or boulder within this radius of the origin [m]: the landing ellipse. "
+        "Default: 3.4 sigma of a 20 m per-axis hand-over position error, which vision (velocity only) does not remove",
     )
 
     patch_size_m: float = Field(

@@ -395,6 +395,11 @@ class World:
 
     # ----------------------------------------------------------------- camera
     @property
+    def altimeter_position_B(self) -> np.ndarray:
+        """Altimeter position in the body frame (3,) [m] (mounting calibration)."""
+        return self.model.site_pos[self._site_alt].copy()
+
+    @property
     def camera_position_B(self) -> np.ndarray:
         """Camera centre in the body frame (3,) [m] (mounting calibration)."""
         return self.model.cam_pos[self._cam].copy()

@@ -17,7 +17,15 @@ from gnc.control import (
     make_controller,
     thrust_vector_command,
 )
-from gnc.guidance import PHASE_APPROACH, PHASE_TERMINAL, GuidanceCommand, LandingTarget, TiltLimitConfig, make_guidance
+from gnc.guidance import (
+    PHASE_APPROACH,
+    PHASE_TERMINAL,
+    GuidanceCommand,
+    GuidanceConfig,
+    LandingTarget,
+    TiltLimitConfig,
+    make_guidance,
+)
 from gnc.navstate import NavState
 
 G_L = np.array([0.0, 0.0, -1.62])
@@ -276,7 +284,8 @@ def test_guidance_and_control_land_a_rigid_body_with_attitude_dynamics():
             contact = ContactMessage(int(round(t * NS_PER_S)), np.array([True, True, False, False]))
     else:
         raise AssertionError("no touchdown")
-    assert abs(v[2] + 1.0) < 0.1 and np.linalg.norm(v[:2]) < 0.2 and np.linalg.norm(r[:2]) < 1.0
+    rate = GuidanceConfig().terminal_descent_rate_mps
+    assert abs(v[2] + rate) < 0.1 and np.linalg.norm(v[:2]) < 0.2 and np.linalg.norm(r[:2]) < 1.0
     assert np.rad2deg(max_tilt_err) < 2.0  # the attitude loop keeps up with the terminal phase
 
 

@@ -12,7 +12,7 @@ from bench.report import read_telemetry_parquet
 from bench.scenario import load_scenario
 from tests.conftest import SMALL_SET
 
-QUICK = [*SMALL_SET, "initial.r_BL_L_m=[10.0, -5.0, 60.0]", "initial.v_BL_L_mps=[0.0, 0.0, -3.0]",
+QUICK = [*SMALL_SET, 'nav="truth"', 'vision="off"', "initial.r_BL_L_m=[10.0, -5.0, 60.0]", "initial.v_BL_L_mps=[0.0, 0.0, -3.0]",
          "camera.width_px=64", "camera.height_px=64", "landing.settle_s=2.0"]
 SUMMARY_KEYS = {"outcome", "landed", "touchdown", "fuel_used_kg", "sim_time_s", "wall_time_s", "realtime_factor", "seed"}
 TOUCHDOWN_KEYS = {"t_s", "v_vertical_mps", "v_horizontal_mps", "tilt_deg", "miss_distance_m"}
@@ -40,7 +40,7 @@ def test_run_writes_the_contract_and_its_scenario_reruns_it(tmp_path, capsys):
     out2 = tmp_path / "rerun"
     assert main(["run", str(out / "scenario.toml"), "--out", str(out2), "--no-video"]) == 0
     again = json.loads((out2 / "summary.json").read_text())
-    wall = ("wall_time_s", "setup_time_s", "realtime_factor")
+    wall = ("wall_time_s", "setup_time_s", "realtime_factor", "time_split_s")
     assert {k: v for k, v in again.items() if k not in wall} == {k: v for k, v in summary.items() if k not in wall}
     tel2 = read_telemetry_parquet(out2 / "telemetry.parquet")
     for k in tel:

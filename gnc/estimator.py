@@ -1,0 +1,764 @@
+"""Navigation filter: an extended Kalman filter on IMU, altimeter, star tracker and vision velocity.
+
+Ports (Drake-style block ``NavFilter``)::
+
+                    +---------------------------------+
+    ImuMessage ---->| propagate_imu     (100 Hz)      |   (alias predict_imu)
+    AttitudeMsg --->| set_attitude      (10 Hz)       |   (alias update_attitude)
+    AltimeterMsg -->| update_altimeter  (20 Hz)       |----> NavState (nav_state, at the control rate)
+    velocity z,R -->| update_velocity   (camera rate) |----> UpdateRecord (return value, and .log)
+                    +---------------------------------+
+
+    Inputs: :class:`gnc.messages.ImuMessage`, :class:`gnc.messages.AttitudeMessage`,
+        :class:`gnc.messages.AltimeterMessage` (all through :meth:`NavFilter.process`
+        or their own methods), and a ground-relative velocity in L with its
+        covariance from vision (``update_velocity``). Messages must arrive in
+        time order (integer ns); an IMU sample not after the last propagation is
+        ignored.
+    Outputs: :class:`gnc.navstate.NavState` (``nav_state``) with ``P`` the 6x6
+        position/velocity covariance; one :class:`UpdateRecord` per measurement
+        update (returned and appended to ``NavFilter.log``); counters per input
+        (``NavFilter.counters``).
+
+State (10), in this order: ``r_BL_L`` (3) [m], ``v_BL_L`` (3) [m/s], accelerometer
+bias ``b_a_B`` (3) [m/s^2], and ``h_terrain`` (1) [m], the height of the ground under
+the altimeter footprint above the target's elevation (see the altimeter below; with
+the default white relief it is a nuisance state that carries nothing from one
+altimeter sample to the next). L is the landing frame (origin at the target on the
+surface, x east, y north, z up, gravity ``g_L = [0, 0, -g]``); B is the body frame.
+
+Model:
+    * Prediction, per IMU sample k at ``t_k`` (a filterpy ``predict``): the sample
+      is taken as the mean specific force over ``(t_{k-1}, t_k]`` (what a
+      delta-v IMU outputs, and what the bench's IMU sees while the thrust is held
+      over the control period), so ``a = R_LB (f_B - b_a) + g_L`` is held over
+      the interval and ``r += v dt + a dt^2 / 2``, ``v += a dt``. This is linear in
+      the state given ``R_LB``: ``F`` carries ``-R dt`` and ``-R dt^2 / 2`` in the bias
+      columns and ``B u`` the measured specific force plus gravity. ``R_LB`` is the
+      attitude at mid-interval.
+    * Attitude: the star tracker's ``q_LB`` is taken as truth; between fixes it
+      is carried forward with the gyro (``attitude_propagation="gyro"``, the
+      default) or held (``"hold"``). Gyro bias is not estimated (its effect over a
+      100 ms fix interval, ~1e-6 rad, is far below the tracker's noise). The
+      tracker's error ``sigma_theta`` (held for one fix period ``T``) tilts the
+      measured specific force by ``sigma_theta |f|``; it is folded into ``Q`` as an
+      extra acceleration white noise of density ``sigma_theta^2 |f|^2 T``.
+    * Accelerometer bias: random walk (density ``accel_bias_walk``), initial
+      1-sigma ``init_accel_bias_sigma_mps2`` per axis.
+    * Process noise per step ``dt``: accelerometer white noise of density ``N``
+      enters as ``Q_vv = N^2 dt I``, ``Q_rv = N^2 dt^2 / 2 I``, ``Q_rr = N^2 dt^3 / 4 I``
+      (a sampled noise held over the step); the bias walk as ``Q_bb = W^2 dt I``.
+    * Altimeter (``update_altimeter``): ASSUMPTION: the terrain is locally planar
+      and horizontal, at the target's elevation (z = 0) up to a relief ``h_terrain``
+      of 1-sigma ``terrain_relief_sigma_m`` (the ground under the lander is not at
+      the target's elevation: craters, boulders). The slant range from the
+      altimeter (at the lever arm ``l_B`` from the body origin) along the boresight
+      ``b_L = R_LB b_B`` is ``rho = (r_z + (R_LB l_B)_z - h_terrain) / c`` with
+      ``c = -b_L,z``; it is used only while ``c > cos(altimeter_max_incidence_deg)``.
+      Its noise is the altimeter spec, 1-sigma ``hypot(floor, frac * rho)``.
+      The relief is a Gauss-Markov process along the footprint track: between
+      two used samples whose footprints lie ``d`` apart its correlation is
+      ``phi = exp(-d / terrain_correlation_length_m)``. With the default length 0
+      (``phi = 0``) every sample sees independent ground, which is exactly the
+      spec noise plus a white relief term ``terrain_relief_sigma_m / c`` in
+      quadrature. Real relief is correlated along track; treated as white it is
+      averaged away and the vertical channel becomes overconfident, so set the
+      length (tens of metres for crater-scale relief) when the terrain is known
+      to be correlated. The Jacobian of ``phi`` with respect to the state is
+      neglected.
+    * Velocity (``update_velocity``): a ground-relative velocity in L with its
+      covariance (``H = [0 I 0]``), e.g. from the DIMES-style vision measurement.
+    * Measurement time: a measurement stamped ``dt_m = t_meas - t_filter`` away from
+      the filter time (at most ``max_update_lag_s``) is predicted to first order:
+      ``r_z + v_z dt_m`` for the altimeter, ``v + a dt_m`` for the velocity.
+    * Gating: every update is chi-square gated; it is rejected when its
+      ``NIS = y^T S^-1 y`` exceeds ``chi2.ppf(gate_prob, dim)``; a rejected update
+      leaves the state and covariance unchanged.
+    * Messages with a non-finite value (or a malformed array) are rejected and
+      counted, never propagated into the state.
+
+The sensor defaults below are the datasheet values of the default sensors
+(``models/sensors.py``: IMU, altimeter, star tracker) and the default lander's
+altimeter mounting; flight software may know its sensors' datasheets, not the
+truth.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.stats import chi2
+
+from gnc.config import validated_config
+from gnc.guidance import LUNAR_GRAVITY_MPS2
+from gnc.messages import AltimeterMessage, AttitudeMessage, ImuMessage
+from gnc.navstate import NavState
+
+NS_PER_S = 1_000_000_000
+ARCSEC_TO_RAD = math.pi / (180.0 * 3600.0)
+
+# State layout.
+DIM_X = 10
+IDX_R = slice(0, 3)
+IDX_V = slice(3, 6)
+IDX_BA = slice(6, 9)
+IDX_RZ = 2
+IDX_VZ = 5
+IDX_H = 9  # terrain height under the altimeter footprint, relative to the target's elevation
+
+KIND_ALTIMETER = "altimeter"
+KIND_VELOCITY = "velocity"
+# Why an update was not applied (UpdateRecord.reason); "" when accepted.
+REASON_GATE = "gate"
+REASON_NONFINITE = "nonfinite"
+REASON_STALE = "stale"
+REASON_INVALID_R = "invalid_covariance"
+
+# Small-angle threshold below which the rotation-vector exponential uses its series [rad].
+_SMALL_ANGLE_RAD = 1e-9
+# Quaternions from the star tracker whose norm is off by more than this are rejected [-].
+_QUAT_NORM_TOL = 1e-3
+
+
+# --------------------------------------------------------------------------- configuration
+class EstimatorConfig(BaseModel):
+    """Navigation-filter tuning: sensor datasheet values, initial uncertainty, gating.
+
+    Defaults match the default IMU, altimeter and star tracker of
+    ``models/sensors.py`` and the default lander's altimeter mounting.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    gravity_mps2: float = Field(LUNAR_GRAVITY_MPS2, gt=0.0, description="surface gravity magnitude [m/s^2]")
+    # IMU datasheet.
+    accel_noise_density: float = Field(
+        1e-3, ge=0.0, description="accelerometer white noise density [m/s^2/sqrt(Hz)]"
+    )
+    accel_bias_walk: float = Field(1e-4, ge=0.0, description="accelerometer bias random walk [m/s^2/sqrt(s)]")
+    init_accel_bias_sigma_mps2: float = Field(
+        5e-3, gt=0.0, description="initial accelerometer bias 1-sigma per axis (IMU turn-on bias) [m/s^2]"
+    )
+    # Star tracker datasheet.
+    attitude_sigma_arcsec: float = Field(10.0, ge=0.0, description="star-tracker attitude noise, 1-sigma per axis [arcsec]")
+    attitude_period_s: float = Field(
+        0.1, gt=0.0, description="star-tracker period: how long one attitude error is held [s]"
+    )
+    attitude_propagation: Literal["gyro", "hold"] = Field(
+        "gyro", description="between star-tracker fixes: integrate the gyro, or hold the last fix"
+    )
+    # Altimeter datasheet and mounting.
+    altimeter_noise_sigma_m: float = Field(0.05, ge=0.0, description="altimeter range noise floor, 1-sigma [m]")
+    altimeter_noise_frac: float = Field(1e-3, ge=0.0, description="altimeter range noise per metre of range [-]")
+    altimeter_lever_arm_B_m: tuple[float, float, float] = Field(
+        (0.3, 0.0, -0.77), description="altimeter position relative to the body origin, in B [m]"
+    )
+    altimeter_max_incidence_deg: float = Field(
+        60.0, gt=0.0, lt=90.0, description="largest boresight angle from nadir used for updates [deg]"
+    )
+    terrain_relief_sigma_m: float = Field(
+        3.0, ge=0.0, description="1-sigma height of the ground under the lander about the target's elevation [m]"
+    )
+    terrain_correlation_length_m: float = Field(
+        30.0, ge=0.0,
+        description="correlation length of that relief along the altimeter footprint track [m]; 0: white",
+    )
+    # Initial uncertainty (the bench draws the initial estimate with these).
+    init_pos_sigma_m: float = Field(20.0, gt=0.0, description="initial position 1-sigma per axis [m]")
+    init_vel_sigma_mps: float = Field(1.0, gt=0.0, description="initial velocity 1-sigma per axis [m/s]")
+    # Update management.
+    gate_prob: float = Field(
+        0.999, gt=0.0, lt=1.0, description="chi-square gate: probability of accepting a consistent measurement [-]"
+    )
+    max_update_lag_s: float = Field(
+        0.2, ge=0.0, description="largest |t_meas - t_filter| of a measurement that is still used [s]"
+    )
+
+
+# --------------------------------------------------------------------------- records
+@dataclass(frozen=True, slots=True)
+class UpdateRecord:
+    """One measurement update, accepted or not (arrays are read-only copies).
+
+    Attributes:
+        t_ns: Measurement time of validity [ns].
+        kind: ``"altimeter"`` or ``"velocity"``.
+        z: Measurement, (m,) [m] or [m/s].
+        y: Innovation ``z - h(x_prior)``, (m,); NaN when not computed.
+        S: Innovation covariance, (m, m); NaN when not computed.
+        nis: Normalised innovation squared ``y^T S^-1 y`` [-]; NaN when not computed.
+        accepted: Whether the update was applied.
+        reason: Why it was not applied (``"gate"``, ``"nonfinite"``, ``"stale"``,
+            ``"invalid_covariance"``); ``""`` when accepted.
+        x_prior: State before the update, (10,) (for the altimeter, before the terrain
+            state is carried to the new footprint).
+        P_prior: Covariance before the update, (10, 10).
+        x_post: State after the update (``x_prior`` when rejected), (10,).
+        P_post: Covariance after the update (``P_prior`` when rejected), (10, 10).
+    """
+
+    t_ns: int
+    kind: str
+    z: np.ndarray
+    y: np.ndarray
+    S: np.ndarray
+    nis: float
+    accepted: bool
+    reason: str
+    x_prior: np.ndarray
+    P_prior: np.ndarray
+    x_post: np.ndarray
+    P_post: np.ndarray
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    """A read-only copy (records must not change after the fact)."""
+    out = np.array(a, dtype=float)
+    out.flags.writeable = False
+    return out
+
+
+def _new_counters() -> dict[str, dict[str, int]]:
+    return {
+        "imu": {"used": 0, "stale": 0, "invalid": 0, "no_attitude": 0},
+        "attitude": {"used": 0, "invalid": 0},
+        KIND_ALTIMETER: {"accepted": 0, "rejected": 0, "invalid": 0, "skipped": 0},
+        KIND_VELOCITY: {"accepted": 0, "rejected": 0, "invalid": 0},
+    }
+
+
+# --------------------------------------------------------------------------- attitude helpers (plain floats: cheap at 100 Hz)
+Quat = tuple[float, float, float, float]
+
+
+def _quat_mul(a: Quat, b: Quat) -> Quat:
+    """Hamilton product ``a (x) b`` of scalar-first quaternions."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    )
+
+
+def _quat_exp(wx: float, wy: float, wz: float, dt: float) -> Quat:
+    """Quaternion of the rotation vector ``omega * dt`` (scalar-first)."""
+    rate = math.sqrt(wx * wx + wy * wy + wz * wz)
+    half = 0.5 * rate * dt
+    if half < _SMALL_ANGLE_RAD:
+        k = 0.5 * dt  # sin(x)/x -> 1
+        return (1.0, k * wx, k * wy, k * wz)
+    k = math.sin(half) / rate
+    return (math.cos(half), k * wx, k * wy, k * wz)
+
+
+def _quat_normalized(q: Quat) -> Quat:
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
+
+
+def quat_to_matrix(q: Quat) -> np.ndarray:
+    """Rotation matrix ``R_LB`` (3, 3) of a unit scalar-first quaternion ``q_LB``.
+
+    Same convention as ``scipy.spatial.transform.Rotation.from_quat(q, scalar_first=True)``
+    (tested against it), without building a Rotation per IMU step.
+    """
+    w, x, y, z = q
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    return np.array(
+        [
+            [1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy)],
+            [2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx)],
+            [2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy)],
+        ]
+    )
+
+
+def _const(_x: np.ndarray, value: np.ndarray) -> np.ndarray:
+    """filterpy callback returning a precomputed H or h(x) (both are evaluated at the prior)."""
+    return value
+
+
+def _vec3(a: Any, name: str) -> np.ndarray:
+    """A finite (3,) float array, or a one-line ValueError naming ``name``."""
+    arr = np.asarray(a, dtype=float)
+    if arr.shape != (3,):
+        raise ValueError(f"{name} has shape {arr.shape}; expected (3,)")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} = {arr.tolist()}: must be finite")
+    return arr
+
+
+# --------------------------------------------------------------------------- the filter
+class NavFilter:
+    """Extended Kalman filter (filterpy) on position, velocity, accelerometer bias and terrain height.
+
+    Build it with :func:`make_estimator`. See the module docstring for the model.
+
+    Attributes:
+        cfg: The validated configuration.
+        ekf: The filterpy :class:`~filterpy.kalman.ExtendedKalmanFilter` holding
+            ``x`` (10,) and ``P`` (10, 10).
+        log: One :class:`UpdateRecord` per measurement update, in call order.
+        counters: Per input (``imu``, ``attitude``, ``altimeter``, ``velocity``),
+            counts of used / accepted / rejected / invalid / skipped / stale messages.
+        consecutive_rejections: Per update kind, how many updates in a row were
+            rejected by the gate (a fault-detection hook; reset on acceptance).
+    """
+
+    def __init__(self, cfg: EstimatorConfig, x0: np.ndarray, P0: np.ndarray, t0_ns: int,
+                 q0_LB: Quat | None) -> None:
+        """Use :func:`make_estimator`; this constructor does not validate its inputs."""
+        self.cfg = cfg
+        ekf = ExtendedKalmanFilter(dim_x=DIM_X, dim_z=1, dim_u=3)
+        ekf.x = x0.copy()
+        ekf.P = P0.copy()
+        self.ekf = ekf
+        self.log: list[UpdateRecord] = []
+        self.counters = _new_counters()
+        self.consecutive_rejections = {KIND_ALTIMETER: 0, KIND_VELOCITY: 0}
+
+        self._t_ns = int(t0_ns)
+        self._g_L = np.array([0.0, 0.0, -cfg.gravity_mps2])
+        self._q_LB: Quat | None = q0_LB  # attitude at the filter time
+        self._omega_B = (0.0, 0.0, 0.0)  # latest gyro sample [rad/s]
+        self._a_L = np.zeros(3)  # latest estimated total acceleration [m/s^2] (for measurement-time shifts)
+        self._gyro = cfg.attitude_propagation == "gyro"
+        self._lever_B = np.array(cfg.altimeter_lever_arm_B_m, dtype=float)
+        self._footprint_L: np.ndarray | None = None  # (2,) horizontal footprint of the last applied range [m]
+        self._cos_max_incidence = math.cos(math.radians(cfg.altimeter_max_incidence_deg))
+        self._accel_psd = cfg.accel_noise_density**2  # [(m/s^2)^2 / Hz]
+        self._att_var_time = (cfg.attitude_sigma_arcsec * ARCSEC_TO_RAD) ** 2 * cfg.attitude_period_s  # [rad^2 s]
+        self._gate = {n: float(chi2.ppf(cfg.gate_prob, n)) for n in (1, 2, 3)}
+        self._max_lag_ns = int(round(cfg.max_update_lag_s * NS_PER_S))
+
+        # Per-step matrices, rebuilt only when the IMU period changes.
+        self._dt_ns = -1
+        self._F = np.eye(DIM_X)
+        self._Q_bias = np.zeros((DIM_X, DIM_X))
+        self._Q_shape = np.zeros((DIM_X, DIM_X))
+        self._H_vel = np.zeros((3, DIM_X))
+        self._H_vel[:, IDX_V] = np.eye(3)
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def time_ns(self) -> int:
+        """Time of the state: the last propagation (or t0) [ns]."""
+        return self._t_ns
+
+    @property
+    def x(self) -> np.ndarray:
+        """State copy, (10,): r_BL_L [m], v_BL_L [m/s], b_a_B [m/s^2], h_terrain [m]."""
+        return self.ekf.x.copy()
+
+    @property
+    def P(self) -> np.ndarray:
+        """Covariance copy, (10, 10)."""
+        return self.ekf.P.copy()
+
+    @property
+    def q_LB(self) -> np.ndarray | None:
+        """Attitude used at the filter time, (4,) scalar-first; None before the first fix."""
+        return None if self._q_LB is None else np.array(self._q_LB)
+
+    # ------------------------------------------------------------------ dispatch
+    def process(self, msg: ImuMessage | AttitudeMessage | AltimeterMessage) -> UpdateRecord | None:
+        """Route one sensor message to its handler.
+
+        Returns:
+            The altimeter's :class:`UpdateRecord` when one was made, else None.
+        """
+        if isinstance(msg, ImuMessage):
+            self.propagate_imu(msg)
+            return None
+        if isinstance(msg, AttitudeMessage):
+            self.set_attitude(msg)
+            return None
+        if isinstance(msg, AltimeterMessage):
+            return self.update_altimeter(msg)
+        raise TypeError(f"NavFilter.process: unsupported message type {type(msg).__name__}")
+
+    # ------------------------------------------------------------------ attitude
+    def set_attitude(self, msg: AttitudeMessage) -> bool:
+        """Take a star-tracker fix (carried to the filter time with the latest gyro sample).
+
+        Args:
+            msg: Attitude message; ``q_LB`` (4,) scalar-first.
+
+        Returns:
+            True when used; False (counted as invalid) for a non-finite, malformed
+            or non-unit quaternion.
+        """
+        try:
+            w, x, y, z = (float(c) for c in np.asarray(msg.q_LB, dtype=float).reshape(4))
+        except (TypeError, ValueError):
+            self.counters["attitude"]["invalid"] += 1
+            return False
+        norm = math.sqrt(w * w + x * x + y * y + z * z)
+        if not math.isfinite(norm) or abs(norm - 1.0) > _QUAT_NORM_TOL:
+            self.counters["attitude"]["invalid"] += 1
+            return False
+        q: Quat = (w / norm, x / norm, y / norm, z / norm)
+        if self._gyro and msg.t_ns != self._t_ns:
+            # The fix is valid at msg.t_ns; the state is at self._t_ns.
+            dt = (self._t_ns - msg.t_ns) / NS_PER_S
+            q = _quat_normalized(_quat_mul(q, _quat_exp(*self._omega_B, dt)))
+        self._q_LB = q
+        self.counters["attitude"]["used"] += 1
+        return True
+
+    # ------------------------------------------------------------------ prediction
+    def _set_step_matrices(self, dt_ns: int) -> None:
+        """Rebuild the dt-dependent parts of F, B and Q (once per distinct IMU period)."""
+        dt = dt_ns / NS_PER_S
+        eye3 = np.eye(3)
+        self._F[IDX_R, IDX_V] = dt * eye3
+        self.ekf.B = np.vstack([0.5 * dt * dt * eye3, dt * eye3, np.zeros((DIM_X - 6, 3))])
+        # Acceleration noise held over one step, per unit PSD: dv = n dt, dr = n dt^2/2, var(n) = PSD/dt.
+        shape = np.zeros((DIM_X, DIM_X))
+        shape[IDX_R, IDX_R] = 0.25 * dt**3 * eye3
+        shape[IDX_R, IDX_V] = shape[IDX_V, IDX_R] = 0.5 * dt**2 * eye3
+        shape[IDX_V, IDX_V] = dt * eye3
+        self._Q_shape = shape
+        q_bias = np.zeros((DIM_X, DIM_X))
+        q_bias[IDX_BA, IDX_BA] = self.cfg.accel_bias_walk**2 * dt * eye3
+        self._Q_bias = q_bias
+        self._dt_ns = dt_ns
+
+    def propagate_imu(self, msg: ImuMessage) -> bool:
+        """Propagate the state and covariance to ``msg.t_ns`` with one IMU sample.
+
+        Args:
+            msg: IMU sample; ``f_B`` (3,) [m/s^2] is the mean specific force over the
+                interval since the previous sample, ``omega_B`` (3,) [rad/s].
+
+        Returns:
+            True when the filter was propagated; False when the sample was ignored:
+            not after the filter time (``stale``), non-finite or malformed
+            (``invalid``), or no attitude known yet (``no_attitude``; the filter
+            time does not advance).
+        """
+        counts = self.counters["imu"]
+        t_ns = msg.t_ns
+        if t_ns <= self._t_ns:
+            counts["stale"] += 1
+            return False
+        try:
+            fx, fy, fz = msg.f_B.tolist()
+            wx, wy, wz = msg.omega_B.tolist()
+        except (AttributeError, TypeError, ValueError):
+            counts["invalid"] += 1
+            return False
+        # One sum is non-finite iff some term is (barring overflow of absurd values, also rejected).
+        if not math.isfinite(fx + fy + fz + wx + wy + wz):
+            counts["invalid"] += 1
+            return False
+        self._omega_B = (wx, wy, wz)
+        if self._q_LB is None:
+            counts["no_attitude"] += 1
+            return False
+
+        dt_ns = t_ns - self._t_ns
+        if dt_ns != self._dt_ns:
+            self._set_step_matrices(dt_ns)
+        dt = dt_ns / NS_PER_S
+        if self._gyro:
+            half = _quat_exp(wx, wy, wz, 0.5 * dt)
+            q_mid = _quat_mul(self._q_LB, half)
+            self._q_LB = _quat_normalized(_quat_mul(q_mid, half))
+        else:
+            q_mid = self._q_LB
+        R_LB = quat_to_matrix(q_mid)  # mid-interval attitude
+
+        ekf = self.ekf
+        F = self._F
+        F[IDX_V, IDX_BA] = R_LB * -dt
+        F[IDX_R, IDX_BA] = R_LB * (-0.5 * dt * dt)
+        ekf.F = F
+        u_L = R_LB @ np.array((fx, fy, fz)) + self._g_L  # measured specific force + gravity (bias via F)
+        # Star-tracker error tilts the specific force: extra acceleration PSD sigma^2 |f|^2 T.
+        psd = self._accel_psd + self._att_var_time * (fx * fx + fy * fy + fz * fz)
+        ekf.Q = self._Q_bias + psd * self._Q_shape
+        ekf.predict(u_L)
+        self._a_L = u_L - R_LB @ ekf.x[IDX_BA]
+        self._t_ns = t_ns
+        counts["used"] += 1
+        return True
+
+    # ------------------------------------------------------------------ updates
+    def _lag_ns(self, t_ns: int) -> int:
+        return int(t_ns) - self._t_ns
+
+    def _gated_update(self, t_ns: int, kind: str, z: np.ndarray, hx: np.ndarray, H: np.ndarray,
+                      R: np.ndarray, prior: tuple[np.ndarray, np.ndarray] | None = None) -> UpdateRecord:
+        """Chi-square gate, then (if it passes) filterpy's EKF update; log and count.
+
+        ``prior`` is an (x, P) to gate and update from instead of the filter's (the
+        terrain state carried to the new footprint); it is committed only on acceptance.
+        """
+        ekf = self.ekf
+        x_prior = _frozen(ekf.x)
+        P_prior = _frozen(ekf.P)
+        P_gate = ekf.P if prior is None else prior[1]
+        y = z - hx
+        S = H @ P_gate @ H.T + R
+        try:
+            nis = float(y @ np.linalg.solve(S, y))
+        except np.linalg.LinAlgError:
+            nis = math.nan
+        counts = self.counters[kind]
+        if not (nis <= self._gate[len(z)]):  # NaN NIS (singular S) is rejected too
+            counts["rejected"] += 1
+            self.consecutive_rejections[kind] += 1
+            rec = UpdateRecord(t_ns, kind, _frozen(z), _frozen(y), _frozen(S), nis, False, REASON_GATE,
+                               x_prior, P_prior, x_prior, P_prior)
+        else:
+            if prior is not None:
+                ekf.x, ekf.P = prior
+            ekf.update(z, _const, _const, R=R, args=(H,), hx_args=(hx,))
+            P = ekf.P
+            ekf.P = 0.5 * (P + P.T)  # keep P symmetric against round-off
+            counts["accepted"] += 1
+            self.consecutive_rejections[kind] = 0
+            rec = UpdateRecord(t_ns, kind, _frozen(z), _frozen(y), _frozen(S), nis, True, "",
+                               x_prior, P_prior, _frozen(ekf.x), _frozen(ekf.P))
+        self.log.append(rec)
+        return rec
+
+    def _not_applied(self, t_ns: int, kind: str, z: np.ndarray, reason: str, counter: str) -> UpdateRecord:
+        """Log and count a measurement that never reached the gate."""
+        self.counters[kind][counter] += 1
+        m = z.shape[0]
+        x = _frozen(self.ekf.x)
+        P = _frozen(self.ekf.P)
+        nan_y = np.full(m, math.nan)
+        nan_S = np.full((m, m), math.nan)
+        nan_y.flags.writeable = nan_S.flags.writeable = False
+        rec = UpdateRecord(int(t_ns), kind, _frozen(z), nan_y, nan_S, math.nan, False, reason, x, P, x, P)
+        self.log.append(rec)
+        return rec
+
+    def update_altimeter(self, msg: AltimeterMessage) -> UpdateRecord | None:
+        """Slant-range update against a horizontal plane at the target's elevation.
+
+        Args:
+            msg: Altimeter sample: ``range_m`` [m], ``valid``, ``boresight_B`` (3,).
+
+        Returns:
+            The update's record; None when there is nothing to use (``valid`` is
+            False, no attitude yet, or the boresight is more than
+            ``altimeter_max_incidence_deg`` from nadir), counted as ``skipped``.
+        """
+        counts = self.counters[KIND_ALTIMETER]
+        if not msg.valid:
+            counts["skipped"] += 1
+            return None
+        rho = float(msg.range_m)
+        z = np.array([rho])
+        try:
+            bx, by, bz = np.asarray(msg.boresight_B, dtype=float).reshape(3).tolist()
+        except (TypeError, ValueError):
+            return self._not_applied(msg.t_ns, KIND_ALTIMETER, z, REASON_NONFINITE, "invalid")
+        if not math.isfinite(rho + bx + by + bz):
+            return self._not_applied(msg.t_ns, KIND_ALTIMETER, z, REASON_NONFINITE, "invalid")
+        lag_ns = self._lag_ns(msg.t_ns)
+        if abs(lag_ns) > self._max_lag_ns:
+            return self._not_applied(msg.t_ns, KIND_ALTIMETER, z, REASON_STALE, "rejected")
+        if self._q_LB is None:
+            counts["skipped"] += 1
+            return None
+        R_LB = quat_to_matrix(self._q_LB)
+        b_L = R_LB @ np.array((bx, by, bz))
+        cos_nadir = -b_L[2] / math.sqrt(bx * bx + by * by + bz * bz)  # -b_L,z of the unit boresight
+        if cos_nadir <= self._cos_max_incidence:
+            counts["skipped"] += 1
+            return None
+        lag_s = lag_ns / NS_PER_S
+        # Carry the terrain state from the last used footprint to this one (applied on acceptance).
+        x, P = self.ekf.x, self.ekf.P
+        p_alt_L = x[IDX_R] + R_LB @ self._lever_B
+        footprint_L = p_alt_L[:2] + (rho / math.sqrt(bx * bx + by * by + bz * bz)) * b_L[:2]
+        phi = self._terrain_phi(footprint_L)
+        prior = None
+        if phi != 1.0:
+            x, P = x.copy(), P.copy()
+            x[IDX_H] *= phi
+            P[IDX_H, :] *= phi
+            P[:, IDX_H] *= phi
+            P[IDX_H, IDX_H] += self.cfg.terrain_relief_sigma_m**2 * (1.0 - phi * phi)
+            prior = (x, P)
+        height = p_alt_L[2] + x[IDX_VZ] * lag_s - x[IDX_H]  # altimeter height above the ground [m]
+        rho_hat = height / cos_nadir
+        H = np.zeros((1, DIM_X))
+        H[0, IDX_RZ] = 1.0 / cos_nadir
+        H[0, IDX_VZ] = lag_s / cos_nadir
+        H[0, IDX_H] = -1.0 / cos_nadir
+        var = self.altimeter_sigma_m(rho_hat, include_relief=False) ** 2
+        rec = self._gated_update(msg.t_ns, KIND_ALTIMETER, z, np.array([rho_hat]), H, np.array([[var]]), prior)
+        if rec.accepted:
+            self._footprint_L = footprint_L
+        return rec
+
+    def _terrain_phi(self, footprint_L: np.ndarray) -> float:
+        """Correlation of the terrain height between the last used footprint and this one [-]."""
+        length = self.cfg.terrain_correlation_length_m
+        if length == 0.0:
+            return 0.0  # white relief: every sample sees independent ground
+        if self._footprint_L is None:
+            return 1.0  # first sample: the initial prior applies as it is
+        d = footprint_L - self._footprint_L
+        return math.exp(-math.hypot(d[0], d[1]) / length)
+
+    def update_velocity(self, t_ns: int, z_v_L: np.ndarray, R: np.ndarray,
+                        axes: tuple[int, ...] = (0, 1, 2)) -> UpdateRecord:
+        """Ground-relative velocity update (``H = [0 I 0]``), e.g. from vision.
+
+        Args:
+            t_ns: Time of validity of the measurement [ns].
+            z_v_L: Measured velocity components of B relative to the ground, in
+                L, (len(axes),) [m/s].
+            R: Their covariance, (len(axes), len(axes)) [(m/s)^2], symmetric positive definite.
+            axes: Which velocity components of L are measured (default all
+                three; ``(0, 1)`` for a horizontal-only measurement).
+
+        Returns:
+            The update's record (``accepted`` False for a gated, stale, non-finite
+            or non-positive-definite measurement; the state is then unchanged).
+
+        Raises:
+            ValueError: ``z_v_L`` or ``R`` has the wrong shape (a caller bug).
+        """
+        z = np.asarray(z_v_L, dtype=float)
+        R = np.asarray(R, dtype=float)
+        idx = list(axes)
+        n = len(idx)
+        if not (1 <= n <= 3 and len(set(idx)) == n and all(a in (0, 1, 2) for a in idx)):
+            raise ValueError(f"update_velocity: axes = {axes!r}; expected distinct indices among 0, 1, 2")
+        if z.shape != (n,):
+            raise ValueError(f"update_velocity: z_v_L has shape {z.shape}; expected ({n},) [m/s]")
+        if R.shape != (n, n):
+            raise ValueError(f"update_velocity: R has shape {R.shape}; expected ({n}, {n}) [(m/s)^2]")
+        if not (np.all(np.isfinite(z)) and np.all(np.isfinite(R))):
+            return self._not_applied(t_ns, KIND_VELOCITY, z, REASON_NONFINITE, "invalid")
+        R = 0.5 * (R + R.T)
+        try:
+            np.linalg.cholesky(R)
+        except np.linalg.LinAlgError:
+            return self._not_applied(t_ns, KIND_VELOCITY, z, REASON_INVALID_R, "invalid")
+        lag_ns = self._lag_ns(t_ns)
+        if abs(lag_ns) > self._max_lag_ns:
+            return self._not_applied(t_ns, KIND_VELOCITY, z, REASON_STALE, "rejected")
+        hx = (self.ekf.x[IDX_V] + self._a_L * (lag_ns / NS_PER_S))[idx]
+        return self._gated_update(int(t_ns), KIND_VELOCITY, z, hx, self._H_vel[idx], R)
+
+    def altimeter_sigma_m(self, range_m: float, cos_nadir: float = 1.0, include_relief: bool = True) -> float:
+        """1-sigma of a slant range [m]: the altimeter spec, plus the relief by default.
+
+        Args:
+            range_m: Slant range [m].
+            cos_nadir: Cosine of the boresight's angle from nadir, ``-b_L,z`` (0, 1].
+            include_relief: True (default): the spec plus ``terrain_relief_sigma_m /
+                cos_nadir`` in quadrature, the error of the range read as the height
+                above a ground other than the spot the beam hits (the target's
+                elevation, or the mean ground in a camera's view). False: the sensor
+                spec ``hypot(floor, frac * range)`` alone, the error of the range to
+                the spot under the beam (the noise of the filter's own update).
+        """
+        if not 0.0 < cos_nadir <= 1.0:
+            raise ValueError(f"altimeter_sigma_m: cos_nadir = {cos_nadir!r}; allowed: (0, 1]")
+        cfg = self.cfg
+        var = cfg.altimeter_noise_sigma_m**2 + (cfg.altimeter_noise_frac * max(float(range_m), 0.0)) ** 2
+        if include_relief:
+            var += (cfg.terrain_relief_sigma_m / cos_nadir) ** 2
+        return math.sqrt(var)
+
+    # Names used by the flight computer (gnc/flight.py).
+    predict_imu = propagate_imu
+    update_attitude = set_attitude
+
+    # ------------------------------------------------------------------ output
+    def nav_state(self, mass_kg: float) -> NavState:
+        """The navigated state for guidance and control.
+
+        Args:
+            mass_kg: Current vehicle mass [kg] (not estimated here).
+
+        Returns:
+            NavState at the filter time: position and velocity from the state,
+            ``q_LB`` the attitude at the filter time (NaN before the first fix),
+            ``omega_B`` the latest gyro sample (zeros before the first), and ``P``
+            the 6x6 position/velocity covariance.
+        """
+        x = self.ekf.x
+        q = np.full(4, math.nan) if self._q_LB is None else np.array(self._q_LB)
+        return NavState(
+            t_ns=self._t_ns,
+            r_BL_L=x[IDX_R].copy(),
+            v_BL_L=x[IDX_V].copy(),
+            q_LB=q,
+            omega_B=np.array(self._omega_B),
+            mass_kg=float(mass_kg),
+            P=self.ekf.P[:6, :6].copy(),
+        )
+
+
+# --------------------------------------------------------------------------- factory
+def initial_covariance(cfg: EstimatorConfig) -> np.ndarray:
+    """Diagonal initial covariance (10, 10) from the config's 1-sigma values."""
+    sig = np.concatenate([
+        np.repeat([cfg.init_pos_sigma_m, cfg.init_vel_sigma_mps, cfg.init_accel_bias_sigma_mps2], 3),
+        [cfg.terrain_relief_sigma_m],
+    ])
+    return np.diag(sig**2)
+
+
+def make_estimator(
+    cfg: EstimatorConfig | Mapping[str, Any] | None,
+    x0_r_L: Any,
+    x0_v_L: Any,
+    t0_ns: int,
+    q0_LB: Any = None,
+) -> NavFilter:
+    """Validate the config and the initial state, and build the filter.
+
+    Args:
+        cfg: An :class:`EstimatorConfig`, a mapping of its fields, or None (defaults).
+        x0_r_L: Initial position estimate r_BL_L, (3,) [m].
+        x0_v_L: Initial velocity estimate v_BL_L, (3,) [m/s].
+        t0_ns: Time of the initial estimate [ns] (integer).
+        q0_LB: Optional initial attitude, (4,) scalar-first; without it, IMU samples
+            are ignored until the first star-tracker fix.
+
+    Returns:
+        The filter, with zero bias and terrain estimates and the config's initial covariance.
+
+    Raises:
+        ValueError: One line naming the bad field (``estimator.<field>``, ``x0_r_L``,
+            ``x0_v_L``, ``t0_ns`` or ``q0_LB``) and what is allowed.
+    """
+    c: EstimatorConfig = validated_config(EstimatorConfig, cfg, "estimator")
+    r0 = _vec3(x0_r_L, "x0_r_L")
+    v0 = _vec3(x0_v_L, "x0_v_L")
+    if isinstance(t0_ns, bool) or not isinstance(t0_ns, (int, np.integer)):
+        raise ValueError(f"t0_ns = {t0_ns!r}: expected an integer number of nanoseconds")
+    q0: Quat | None = None
+    if q0_LB is not None:
+        q = np.asarray(q0_LB, dtype=float)
+        if q.shape != (4,):
+            raise ValueError(f"q0_LB has shape {q.shape}; expected (4,) scalar-first")
+        norm = float(np.linalg.norm(q))
+        if not (math.isfinite(norm) and abs(norm - 1.0) <= _QUAT_NORM_TOL):
+            raise ValueError(f"q0_LB = {q.tolist()}: expected a finite unit quaternion")
+        q0 = tuple(float(v) for v in q / norm)  # type: ignore[assignment]
+    x0 = np.concatenate([r0, v0, np.zeros(DIM_X - 6)])
+    return NavFilter(c, x0, initial_covariance(c), int(t0_ns), q0)

@@ -1,0 +1,625 @@
+"""Navigation filter (gnc/estimator.py) against a small numpy truth simulator.
+
+The simulator here is independent of the filter: a smooth powered descent with an
+analytic trajectory, the attitude built from the thrust direction, and the sensors
+of models/sensors.py re-implemented from their specs (IMU white noise, turn-on bias
+and bias walk; star-tracker rotation noise; altimeter range to a plane with noise,
+terrain relief and dropouts; a velocity measurement with a known covariance).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+from filterpy.kalman import ExtendedKalmanFilter
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
+
+from gnc.estimator import (
+    EstimatorConfig,
+    NavFilter,
+    initial_covariance,
+    make_estimator,
+    quat_to_matrix,
+)
+from gnc.messages import AltimeterMessage, AttitudeMessage, ImuMessage
+from gnc.navstate import NavState
+
+NS = 1_000_000_000
+G = 1.62  # lunar gravity [m/s^2]
+G_L = np.array([0.0, 0.0, -G])
+IMU_DT_NS = 10_000_000  # 100 Hz
+ALT_EVERY = 5  # altimeter every 5 IMU ticks (20 Hz)
+ST_EVERY = 10  # star tracker every 10 ticks (10 Hz)
+VEL_EVERY = 10  # velocity measurement every 10 ticks (10 Hz)
+DURATION_S = 60.0
+BORESIGHT_B = np.array([0.0, 0.0, -1.0])
+
+# Sensor specs (the default sensors of models/sensors.py).
+ACC_DENSITY = 1e-3
+ACC_BIAS_SIGMA = 5e-3
+ACC_BIAS_WALK = 1e-4
+GYRO_DENSITY = 1e-5
+GYRO_BIAS_SIGMA = 1e-5
+ST_SIGMA_RAD = math.radians(10.0 / 3600.0)
+ALT_FLOOR_M = 0.05
+ALT_FRAC = 1e-3
+ALT_DROPOUT = 0.01
+TERRAIN_SIGMA_M = 3.0
+LEVER_B = np.array([0.3, 0.0, -0.77])
+# Velocity measurement covariance (a full SPD matrix) [(m/s)^2].
+R_VEL = np.array([[0.010, 0.002, 0.0], [0.002, 0.008, 0.001], [0.0, 0.001, 0.02]])
+
+N_SEEDS = 10
+NEES_BAND_PROB = 0.95
+
+
+# --------------------------------------------------------------------------- truth simulator
+@dataclass
+class Truth:
+    t_ns: np.ndarray  # (N+1,) tick times
+    r: np.ndarray  # (N+1, 3) position of B in L [m]
+    v: np.ndarray  # (N+1, 3) [m/s]
+    rot: Rotation  # (N+1,) R_LB at the ticks
+    imu: list[ImuMessage]  # sample k covers (t_{k-1}, t_k], k = 1..N (index k-1)
+    bias_after: np.ndarray  # (N+1, 3): accelerometer bias the filter should hold after tick k [m/s^2]
+    star: dict[int, AttitudeMessage]  # tick -> fix
+    alt: dict[int, AltimeterMessage]  # tick -> sample
+    vel: dict[int, np.ndarray]  # tick -> measured velocity (3,)
+
+
+def _cubic(p0, v0, p1, v1, T):
+    """Coefficients c2, c3 of p0 + v0 t + c2 t^2 + c3 t^3 meeting p1, v1 at T."""
+    d = p1 - p0 - v0 * T
+    dv = v1 - v0
+    c3 = (dv * T - 2 * d) / T**3
+    c2 = (d - c3 * T**3) / T**2
+    return c2, c3
+
+
+def _kinematics(t):
+    """Analytic position, velocity, acceleration of a powered descent, each (n, 3)."""
+    p0, v0 = np.array([-400.0, 250.0, 500.0]), np.array([12.0, -6.0, -12.0])
+    p1, v1 = np.array([0.0, 0.0, 30.0]), np.array([0.0, 0.0, -1.0])
+    c2, c3 = _cubic(p0, v0, p1, v1, DURATION_S)
+    tt = t[:, None]
+    r = p0 + v0 * tt + c2 * tt**2 + c3 * tt**3
+    v = v0 + 2 * c2 * tt + 3 * c3 * tt**2
+    a = 2 * c2 + 6 * c3 * tt
+    # A horizontal weave, so the acceleration is not a polynomial.
+    w, amp = 0.15, 4.0
+    s, c = np.sin(w * t), np.cos(w * t)
+    r[:, 0] += amp * s
+    v[:, 0] += amp * w * c
+    a[:, 0] += -amp * w * w * s
+    r[:, 1] += amp * c
+    v[:, 1] += -amp * w * s
+    a[:, 1] += -amp * w * w * c
+    return r, v, a
+
+
+def _attitude(t, a_L):
+    """R_LB: body +z along the thrust (a - g), slow yaw, plus a 2 deg tilt wobble."""
+    z = a_L - G_L
+    z /= np.linalg.norm(z, axis=1, keepdims=True)
+    yaw = 0.2 * np.sin(0.05 * t) + 0.01 * t
+    xh = np.stack([np.cos(yaw), np.sin(yaw), np.zeros_like(t)], axis=1)
+    y = np.cross(z, xh)
+    y /= np.linalg.norm(y, axis=1, keepdims=True)
+    x = np.cross(y, z)
+    base = Rotation.from_matrix(np.stack([x, y, z], axis=2))
+    wobble = Rotation.from_rotvec(np.radians(2.0) * np.sin(0.4 * t)[:, None] * np.array([1.0, 0.0, 0.0]))
+    return wobble * base
+
+
+def simulate(seed: int, duration_s: float = DURATION_S, terrain_corr_m: float = 0.0) -> Truth:
+    """Truth and sensor messages of one descent (no filter inside).
+
+    The ground under the altimeter is at height ``h`` above z = 0, with ``h ~ N(0, TERRAIN_SIGMA_M^2)``: independent per sample when
+    ``terrain_corr_m`` is 0, else a Gauss-Markov process along the footprint track
+    with that correlation length.
+    """
+    rng = np.random.default_rng(seed)
+    n = int(round(duration_s * NS / IMU_DT_NS))
+    dt = IMU_DT_NS / NS
+    t_ns = np.arange(n + 1, dtype=np.int64) * IMU_DT_NS
+    t = t_ns / NS
+    r, v, a = _kinematics(t)
+    rot = _attitude(t, a)
+
+    # IMU sample k: mean specific force over (t_{k-1}, t_k] in B at the mid-interval attitude,
+    # mean body rate over the interval; plus bias and white noise (sigma = density / sqrt(dt)).
+    rotvec = (rot[:-1].inv() * rot[1:]).as_rotvec()  # (n, 3)
+    rot_mid = rot[:-1] * Rotation.from_rotvec(0.5 * rotvec)
+    f_mean_L = (v[1:] - v[:-1]) / dt - G_L
+    bias = np.empty((n + 2, 3))
+    bias[0] = rng.normal(0.0, ACC_BIAS_SIGMA, 3)
+    bias[1:] = bias[0] + np.cumsum(rng.normal(0.0, ACC_BIAS_WALK * math.sqrt(dt), (n + 1, 3)), axis=0)
+    f_B = rot_mid.inv().apply(f_mean_L) + bias[:n] + rng.normal(0.0, ACC_DENSITY / math.sqrt(dt), (n, 3))
+    gyro_bias = rng.normal(0.0, GYRO_BIAS_SIGMA, 3)
+    w_B = rotvec / dt + gyro_bias + rng.normal(0.0, GYRO_DENSITY / math.sqrt(dt), (n, 3))
+    imu = [ImuMessage(int(t_ns[k + 1]), f_B[k], w_B[k]) for k in range(n)]
+    # Sample k (k >= 1) used bias[k - 1]; after tick k the filter holds the bias of sample k + 1.
+    bias_after = bias[: n + 1]
+
+    star = {}
+    for k in range(0, n + 1, ST_EVERY):
+        err = Rotation.from_rotvec(rng.normal(0.0, ST_SIGMA_RAD, 3))
+        star[k] = AttitudeMessage(int(t_ns[k]), (rot[k] * err).as_quat(canonical=True, scalar_first=True))
+
+    alt = {}
+    h, footprint = rng.normal(0.0, TERRAIN_SIGMA_M), None
+    for k in range(ALT_EVERY, n + 1, ALT_EVERY):
+        R = rot[k].as_matrix()
+        b_L = R @ BORESIGHT_B
+        p_alt = r[k] + R @ LEVER_B
+        here = p_alt[:2] + (p_alt[2] - h) / -b_L[2] * b_L[:2]
+        phi = 0.0 if terrain_corr_m == 0 or footprint is None else math.exp(-np.linalg.norm(here - footprint) / terrain_corr_m)
+        h = phi * h + math.sqrt(1 - phi * phi) * rng.normal(0.0, TERRAIN_SIGMA_M)
+        footprint = here
+        rho = (p_alt[2] - h) / -b_L[2]
+        noise = rng.normal(0.0, math.hypot(ALT_FLOOR_M, ALT_FRAC * rho))
+        if rng.random() < ALT_DROPOUT:
+            alt[k] = AltimeterMessage(int(t_ns[k]), math.nan, False, BORESIGHT_B)
+        else:
+            alt[k] = AltimeterMessage(int(t_ns[k]), rho + noise, True, BORESIGHT_B)
+
+    chol = np.linalg.cholesky(R_VEL)
+    vel = {k: v[k] + chol @ rng.normal(size=3) for k in range(VEL_EVERY, n + 1, VEL_EVERY)}
+    return Truth(t_ns, r, v, rot, imu, bias_after, star, alt, vel)
+
+
+# The simulator's relief is white unless a test asks otherwise, so the filters under test
+# model it as white too (the bench default, 30 m, matches the rendered world's terrain).
+WHITE_RELIEF = {"terrain_correlation_length_m": 0.0}
+
+
+def start_filter(truth: Truth, seed: int, cfg=None) -> NavFilter:
+    """Filter started the way the bench does it: estimate = truth + N(0, sigma)."""
+    cfg = {**WHITE_RELIEF, **(cfg or {})}
+    c = EstimatorConfig.model_validate(cfg)
+    rng = np.random.default_rng(10_000 + seed)
+    r0 = truth.r[0] + rng.normal(0.0, c.init_pos_sigma_m, 3)
+    v0 = truth.v[0] + rng.normal(0.0, c.init_vel_sigma_mps, 3)
+    nav = make_estimator(cfg, r0, v0, 0)
+    nav.set_attitude(truth.star[0])
+    return nav
+
+
+@dataclass
+class RunStats:
+    nees6: np.ndarray  # at 10 Hz
+    nees9: np.ndarray
+    err_v_final: np.ndarray  # (3,)
+    sig_v_final: np.ndarray  # (3,)
+    nis_alt: np.ndarray
+    nis_vel: np.ndarray
+    nav: NavFilter
+
+
+def run_filter(truth: Truth, nav: NavFilter, use_velocity: bool) -> RunStats:
+    """Feed every message in time order; NEES at 10 Hz after the updates."""
+    nees6, nees9 = [], []
+    for k in range(1, len(truth.t_ns)):
+        nav.propagate_imu(truth.imu[k - 1])
+        if k in truth.star:
+            nav.set_attitude(truth.star[k])
+        if k in truth.alt:
+            nav.update_altimeter(truth.alt[k])
+        if use_velocity and k in truth.vel:
+            nav.update_velocity(int(truth.t_ns[k]), truth.vel[k], R_VEL)
+        if k % VEL_EVERY == 0:
+            e = nav.ekf.x[:9] - np.concatenate([truth.r[k], truth.v[k], truth.bias_after[k]])
+            P = nav.ekf.P[:9, :9]
+            nees6.append(e[:6] @ np.linalg.solve(P[:6, :6], e[:6]))
+            nees9.append(e @ np.linalg.solve(P, e))
+    nis = {kind: np.array([r.nis for r in nav.log if r.kind == kind and r.accepted]) for kind in ("altimeter", "velocity")}
+    return RunStats(
+        np.array(nees6), np.array(nees9), nav.ekf.x[3:6] - truth.v[-1], np.sqrt(np.diag(nav.ekf.P)[3:6]),
+        nis["altimeter"], nis["velocity"], nav,
+    )
+
+
+@pytest.fixture(scope="module")
+def campaign() -> dict[bool, list[RunStats]]:
+    """N_SEEDS descents, each filtered with and without the velocity updates."""
+    out: dict[bool, list[RunStats]] = {True: [], False: []}
+    for seed in range(N_SEEDS):
+        truth = simulate(seed)
+        for use_vel in (True, False):
+            out[use_vel].append(run_filter(truth, start_filter(truth, seed), use_vel))
+    return out
+
+
+# --------------------------------------------------------------------------- consistency and accuracy
+def test_nees_is_consistent_over_seeds(campaign):
+    runs = campaign[True]
+    for dof, key in ((6, "nees6"), (9, "nees9")):
+        nees = np.concatenate([getattr(r, key) for r in runs])
+        lo, hi = chi2.ppf((1 - NEES_BAND_PROB) / 2, dof), chi2.ppf((1 + NEES_BAND_PROB) / 2, dof)
+        inside = np.mean((nees >= lo) & (nees <= hi))
+        assert inside >= 0.9, f"{dof}-dof NEES inside the 95% band only {inside:.3f} of the time"
+        # Pooled mean within 20 % of dof (errors are strongly correlated in time, so the
+        # effective sample is a few dozen: +-20 % is a loose but meaningful check).
+        assert abs(nees.mean() / dof - 1) < 0.2, f"mean {dof}-dof NEES {nees.mean():.2f}"
+
+
+@pytest.mark.parametrize("use_velocity", [True, False])
+def test_final_nees_summed_over_seeds_is_chi_square(campaign, use_velocity):
+    # The seeds are independent, so the sum of their final NEES is chi-square with
+    # N_SEEDS * dof degrees of freedom. This is the check that also holds without vision,
+    # where the horizontal error is nearly constant in time (so a fraction of time steps in
+    # the band is, in effect, a fraction of only N_SEEDS draws).
+    runs = campaign[use_velocity]
+    for dof, key in ((6, "nees6"), (9, "nees9")):
+        total = sum(getattr(r, key)[-1] for r in runs)
+        lo, hi = chi2.ppf([0.005, 0.995], N_SEEDS * dof)
+        assert lo < total < hi, f"sum of final {dof}-dof NEES {total:.1f} outside [{lo:.1f}, {hi:.1f}]"
+
+
+def test_nis_averages_match_measurement_dimension(campaign):
+    runs = campaign[True]
+    nis_alt = np.concatenate([r.nis_alt for r in runs])
+    nis_vel = np.concatenate([r.nis_vel for r in runs])
+    assert len(nis_alt) > 5000 and len(nis_vel) > 5000
+    # Thousands of nearly independent innovations: the means are tight around 1 and 3.
+    assert abs(nis_alt.mean() - 1.0) < 0.1, nis_alt.mean()
+    assert abs(nis_vel.mean() - 3.0) < 0.2, nis_vel.mean()
+    # Consistent measurements are almost never gated out (gate_prob 0.999).
+    for r in runs:
+        counts = r.nav.counters
+        assert counts["velocity"]["rejected"] <= 3
+        assert counts["altimeter"]["rejected"] <= 6
+        assert counts["altimeter"]["skipped"] > 0  # the dropouts
+
+
+def test_velocity_updates_make_horizontal_velocity_observable(campaign):
+    sig_meas = np.sqrt(np.diag(R_VEL))
+    with_vel = np.array([r.err_v_final for r in campaign[True]])
+    without = np.array([r.err_v_final for r in campaign[False]])
+    # With vision: the final velocity error is below the measurement sigma (RMS over seeds).
+    rms_with = np.sqrt(np.mean(with_vel**2, axis=0))
+    assert np.all(rms_with < sig_meas), (rms_with, sig_meas)
+    # Without: the altimeter fixes the vertical channel but not the horizontal one, whose
+    # error stays at the initial 1 m/s sigma; the filter knows it.
+    rms_h_without = np.sqrt(np.mean(without[:, :2] ** 2))
+    assert 0.5 < rms_h_without < 1.6, rms_h_without
+    sig_h_without = np.array([r.sig_v_final[:2] for r in campaign[False]])
+    assert np.all((sig_h_without > 0.9) & (sig_h_without < 1.1))
+    assert np.sqrt(np.mean(without[:, 2] ** 2)) < 0.3
+    assert np.sqrt(np.mean(with_vel[:, :2] ** 2)) < 0.15 * rms_h_without
+
+
+TERRAIN_CORR_M = 30.0  # correlation length of the relief in the correlated-terrain campaign [m]
+N_SEEDS_CORRELATED = 6
+
+
+def test_correlated_terrain_needs_the_terrain_state():
+    # Relief correlated along the track is a slowly varying altimeter bias. Treated as white
+    # (terrain_correlation_length_m = 0) it is averaged away and the vertical channel becomes
+    # overconfident; the Gauss-Markov terrain state with the right length stays consistent.
+    runs: dict[float, list[RunStats]] = {0.0: [], TERRAIN_CORR_M: []}
+    for seed in range(N_SEEDS_CORRELATED):
+        truth = simulate(seed, terrain_corr_m=TERRAIN_CORR_M)
+        for length in runs:
+            nav = start_filter(truth, seed, {"terrain_correlation_length_m": length})
+            runs[length].append(run_filter(truth, nav, use_velocity=True))
+    nees_gm = np.concatenate([r.nees6 for r in runs[TERRAIN_CORR_M]])
+    lo, hi = chi2.ppf([(1 - NEES_BAND_PROB) / 2, (1 + NEES_BAND_PROB) / 2], 6)
+    assert np.mean((nees_gm >= lo) & (nees_gm <= hi)) >= 0.9
+    assert abs(nees_gm.mean() / 6 - 1) < 0.2, nees_gm.mean()
+    nis_alt = np.concatenate([r.nis_alt for r in runs[TERRAIN_CORR_M]])
+    assert abs(nis_alt.mean() - 1.0) < 0.1, nis_alt.mean()
+    nees_white = np.concatenate([r.nees6 for r in runs[0.0]])
+    assert nees_white.mean() > 5 * 6, nees_white.mean()
+
+
+# --------------------------------------------------------------------------- gating
+@pytest.fixture(scope="module")
+def converged() -> tuple[Truth, NavFilter]:
+    """A filter after 20 s of the descent, with every update."""
+    truth = simulate(99, duration_s=20.0)
+    nav = start_filter(truth, 99)
+    run_filter(truth, nav, use_velocity=True)
+    return truth, nav
+
+
+def _assert_unchanged(nav: NavFilter, x: np.ndarray, P: np.ndarray) -> None:
+    np.testing.assert_array_equal(nav.ekf.x, x)
+    np.testing.assert_array_equal(nav.ekf.P, P)
+
+
+def test_outlier_velocity_is_rejected_and_leaves_state_unchanged(converged):
+    truth, nav = converged
+    x, P = nav.x, nav.P
+    rec = nav.update_velocity(nav.time_ns, truth.v[-1] + [20.0, 0.0, 0.0], R_VEL)
+    assert not rec.accepted and rec.reason == "gate" and rec.nis > 1e3
+    _assert_unchanged(nav, x, P)
+    np.testing.assert_array_equal(rec.x_post, x)
+    assert nav.log[-1] is rec
+
+
+def test_altimeter_blunder_is_rejected_and_leaves_state_unchanged(converged):
+    truth, nav = converged
+    R = truth.rot[-1].as_matrix()
+    rho = (truth.r[-1, 2] + R[2] @ LEVER_B) / -(R @ BORESIGHT_B)[2]
+    x, P = nav.x, nav.P
+    rejected_before = nav.counters["altimeter"]["rejected"]
+    rec = nav.update_altimeter(AltimeterMessage(nav.time_ns, rho + 200.0, True, BORESIGHT_B))
+    assert not rec.accepted and rec.reason == "gate" and rec.nis > 1e3
+    assert nav.counters["altimeter"]["rejected"] == rejected_before + 1
+    _assert_unchanged(nav, x, P)
+    # The same range without the blunder passes.
+    assert nav.update_altimeter(AltimeterMessage(nav.time_ns, rho, True, BORESIGHT_B)).accepted
+
+
+def test_burst_of_bad_velocities_does_not_diverge_the_filter():
+    truth = simulate(7, duration_s=30.0)
+    nav = start_filter(truth, 7)
+    rng = np.random.default_rng(1)
+    bad_ticks = set(range(100 * VEL_EVERY, 120 * VEL_EVERY, VEL_EVERY))  # 20 in a row, from 10 s
+    nees = []
+    for k in range(1, len(truth.t_ns)):
+        nav.propagate_imu(truth.imu[k - 1])
+        if k in truth.star:
+            nav.set_attitude(truth.star[k])
+        if k in truth.alt:
+            nav.update_altimeter(truth.alt[k])
+        if k in truth.vel:
+            z = truth.vel[k]
+            if k in bad_ticks:
+                d = rng.normal(size=3)
+                z = z + 20.0 * d / np.linalg.norm(d)
+            rec = nav.update_velocity(int(truth.t_ns[k]), z, R_VEL)
+            if k in bad_ticks:
+                assert not rec.accepted and rec.nis > 1e3
+        if k % VEL_EVERY == 0 and k > 120 * VEL_EVERY:
+            e = nav.ekf.x[:6] - np.concatenate([truth.r[k], truth.v[k]])
+            nees.append(e @ np.linalg.solve(nav.ekf.P[:6, :6], e))
+    assert 20 <= nav.counters["velocity"]["rejected"] <= 22  # the burst, and at most a rare good one
+    assert nav.consecutive_rejections["velocity"] == 0  # good data was taken again
+    assert np.mean(nees) < 12.0
+    assert np.linalg.norm(nav.ekf.x[3:6] - truth.v[-1]) < 0.5
+
+
+# --------------------------------------------------------------------------- prediction
+def _imu(k: int, f_B, w_B=(0.0, 0.0, 0.0)) -> ImuMessage:
+    return ImuMessage(k * IMU_DT_NS, np.asarray(f_B, float), np.asarray(w_B, float))
+
+
+def test_prediction_matches_closed_form_constant_acceleration():
+    q = Rotation.from_euler("xyz", [10.0, -20.0, 35.0], degrees=True)
+    f_B = np.array([0.3, -0.2, 2.5])
+    a_L = q.apply(f_B) + G_L
+    r0, v0 = np.array([-100.0, 50.0, 400.0]), np.array([5.0, -3.0, -20.0])
+    nav = make_estimator({"init_accel_bias_sigma_mps2": 1e-3}, r0, v0, 0, q0_LB=q.as_quat(scalar_first=True))
+    n = 1000
+    for k in range(1, n + 1):
+        assert nav.propagate_imu(_imu(k, f_B))
+    t = n * IMU_DT_NS / NS
+    np.testing.assert_allclose(nav.x[:3], r0 + v0 * t + 0.5 * a_L * t**2, rtol=1e-9)
+    np.testing.assert_allclose(nav.x[3:6], v0 + a_L * t, rtol=1e-9)
+    assert nav.time_ns == n * IMU_DT_NS
+
+
+def test_covariance_and_rotating_prediction_match_an_explicit_loop():
+    cfg = EstimatorConfig()
+    q0 = Rotation.from_euler("xyz", [5.0, 3.0, -40.0], degrees=True)
+    w_B = np.array([0.02, -0.01, 0.05])  # [rad/s]
+    f_B = np.array([0.1, 0.2, 2.0])
+    r0, v0 = np.array([10.0, 20.0, 300.0]), np.array([1.0, 2.0, -10.0])
+    nav = make_estimator(cfg, r0, v0, 0, q0_LB=q0.as_quat(scalar_first=True))
+    n, dt = 300, IMU_DT_NS / NS
+    # Independent recursion: mid-interval attitude by scipy, F and Q written out.
+    x = np.concatenate([r0, v0, np.zeros(4)])
+    P = initial_covariance(cfg)
+    att_psd = cfg.accel_noise_density**2 + (math.radians(cfg.attitude_sigma_arcsec / 3600)
+                                             * np.linalg.norm(f_B)) ** 2 * cfg.attitude_period_s
+    I3 = np.eye(3)
+    for k in range(1, n + 1):
+        R = (q0 * Rotation.from_rotvec(w_B * (k - 0.5) * dt)).as_matrix()
+        F = np.eye(10)
+        F[0:3, 3:6] = dt * I3
+        F[0:3, 6:9] = -0.5 * dt**2 * R
+        F[3:6, 6:9] = -dt * R
+        Q = np.zeros((10, 10))  # the terrain state (index 9) does not move between altimeter samples
+        Q[0:3, 0:3] = att_psd * dt**3 / 4 * I3
+        Q[0:3, 3:6] = Q[3:6, 0:3] = att_psd * dt**2 / 2 * I3
+        Q[3:6, 3:6] = att_psd * dt * I3
+        Q[6:9, 6:9] = cfg.accel_bias_walk**2 * dt * I3
+        a = R @ (f_B - x[6:9]) + G_L
+        x = np.concatenate([x[0:3] + x[3:6] * dt + 0.5 * a * dt**2, x[3:6] + a * dt, x[6:10]])
+        P = F @ P @ F.T + Q
+        nav.propagate_imu(_imu(k, f_B, w_B))
+    np.testing.assert_allclose(nav.x, x, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(nav.P, P, rtol=1e-9, atol=1e-15)
+    q_end = q0 * Rotation.from_rotvec(w_B * n * dt)
+    np.testing.assert_allclose(Rotation.from_quat(nav.q_LB, scalar_first=True).as_matrix(), q_end.as_matrix(),
+                               atol=1e-12)
+
+
+def test_quat_to_matrix_matches_scipy():
+    rng = np.random.default_rng(3)
+    for q in Rotation.random(20, random_state=rng).as_quat(scalar_first=True):
+        np.testing.assert_allclose(quat_to_matrix(tuple(q)),
+                                   Rotation.from_quat(q, scalar_first=True).as_matrix(), atol=1e-14)
+
+
+def test_hold_mode_keeps_the_last_fix():
+    q0 = Rotation.from_euler("z", 30.0, degrees=True).as_quat(scalar_first=True)
+    nav = make_estimator({"attitude_propagation": "hold"}, [0, 0, 100.0], [0, 0, 0], 0, q0_LB=q0)
+    for k in range(1, 11):
+        nav.propagate_imu(_imu(k, [0, 0, G], [0.0, 0.0, 0.5]))
+    np.testing.assert_allclose(nav.q_LB, q0)
+
+
+def test_measurement_time_offset_is_predicted_with_velocity():
+    # An altimeter sample 10 ms ahead of the filter (it arrived before that tick's IMU sample).
+    nav = make_estimator(None, [0, 0, 100.0], [0, 0, -20.0], 0, q0_LB=[1, 0, 0, 0])
+    rho = 100.0 - 20.0 * 0.01 + LEVER_B[2]
+    rec = nav.update_altimeter(AltimeterMessage(IMU_DT_NS, rho, True, BORESIGHT_B))
+    assert rec.accepted and abs(rec.y[0]) < 1e-9
+    # Beyond max_update_lag_s it is refused, and the state is unchanged.
+    x = nav.x
+    rec = nav.update_altimeter(AltimeterMessage(NS, rho, True, BORESIGHT_B))
+    assert not rec.accepted and rec.reason == "stale"
+    np.testing.assert_array_equal(nav.x, x)
+    # A velocity stamped 30 ms behind the filter is predicted with the last acceleration.
+    f_B = np.array([0.5, 0.0, 2.0])
+    assert nav.propagate_imu(_imu(1, f_B))
+    a_L = f_B + G_L  # identity attitude, zero bias estimate
+    z = nav.x[3:6] - a_L * 0.03
+    rec = nav.update_velocity(nav.time_ns - 30_000_000, z, 1e-4 * np.eye(3))
+    assert rec.accepted
+    np.testing.assert_allclose(rec.y, 0.0, atol=1e-6)
+
+
+def test_oblique_boresight_is_skipped():
+    tilt = Rotation.from_euler("x", 65.0, degrees=True).as_quat(scalar_first=True)
+    nav = make_estimator(None, [0, 0, 100.0], [0, 0, 0], 0, q0_LB=tilt)
+    assert nav.update_altimeter(AltimeterMessage(0, 240.0, True, BORESIGHT_B)) is None
+    assert nav.counters["altimeter"]["skipped"] == 1 and not nav.log
+
+
+# --------------------------------------------------------------------------- inputs, outputs and bookkeeping
+@pytest.mark.parametrize(
+    "cfg, field",
+    [
+        ({"init_pos_sigma_m": -1.0}, "estimator.init_pos_sigma_m"),
+        ({"gate_prob": 1.5}, "estimator.gate_prob"),
+        ({"accel_noise_density": float("nan")}, "estimator.accel_noise_density"),
+        ({"altimeter_lever_arm_B_m": (0.0, 0.0)}, "estimator.altimeter_lever_arm_B_m"),
+        ({"attitude_propagation": "magic"}, "estimator.attitude_propagation"),
+        ({"no_such_knob": 1}, "estimator.no_such_knob"),
+    ],
+)
+def test_bad_config_is_a_one_line_error_naming_the_field(cfg, field):
+    with pytest.raises(ValueError) as exc:
+        make_estimator(cfg, [0, 0, 100.0], [0, 0, 0], 0)
+    msg = str(exc.value)
+    assert field in msg and "\n" not in msg
+
+
+@pytest.mark.parametrize(
+    "r0, v0, t0, q0, field",
+    [
+        ([0, 0], [0, 0, 0], 0, None, "x0_r_L"),
+        ([0, 0, 100.0], [0, math.nan, 0], 0, None, "x0_v_L"),
+        ([0, 0, 100.0], [0, 0, 0], 1.5, None, "t0_ns"),
+        ([0, 0, 100.0], [0, 0, 0], 0, [2.0, 0, 0, 0], "q0_LB"),
+    ],
+)
+def test_bad_initial_state_is_a_one_line_error_naming_it(r0, v0, t0, q0, field):
+    with pytest.raises(ValueError, match=field):
+        make_estimator(None, r0, v0, t0, q0_LB=q0)
+
+
+def test_nan_messages_are_rejected_and_counted():
+    nav = make_estimator(None, [0, 0, 100.0], [1, 0, -5.0], 0, q0_LB=[1, 0, 0, 0])
+    assert nav.propagate_imu(_imu(1, [0, 0, G]))
+    x, P, t = nav.x, nav.P, nav.time_ns
+    assert not nav.propagate_imu(_imu(2, [0, math.nan, G]))
+    assert not nav.set_attitude(AttitudeMessage(t, np.array([math.nan, 0, 0, 1.0])))
+    rec_a = nav.update_altimeter(AltimeterMessage(t, math.nan, True, BORESIGHT_B))
+    rec_v = nav.update_velocity(t, [1.0, math.inf, 0.0], np.eye(3))
+    assert not rec_a.accepted and rec_a.reason == "nonfinite"
+    assert not rec_v.accepted and rec_v.reason == "nonfinite"
+    _assert_unchanged(nav, x, P)
+    assert nav.time_ns == t
+    c = nav.counters
+    assert (c["imu"]["invalid"], c["attitude"]["invalid"], c["altimeter"]["invalid"], c["velocity"]["invalid"]) == (
+        1, 1, 1, 1)
+    # A dropout (valid False) is not an error: skipped, no record.
+    assert nav.update_altimeter(AltimeterMessage(t, math.nan, False, BORESIGHT_B)) is None
+    assert c["altimeter"]["skipped"] == 1 and len(nav.log) == 2
+    # A non-positive-definite velocity covariance is refused too.
+    assert nav.update_velocity(t, [1.0, 0.0, -5.0], -np.eye(3)).reason == "invalid_covariance"
+    with pytest.raises(ValueError, match="z_v_L"):
+        nav.update_velocity(t, [1.0, 0.0], np.eye(3))
+
+
+def test_old_or_repeated_imu_samples_are_not_propagated_twice():
+    nav = make_estimator(None, [0, 0, 100.0], [1, 0, -5.0], 0, q0_LB=[1, 0, 0, 0])
+    assert nav.propagate_imu(_imu(2, [0, 0, G]))
+    x = nav.x
+    assert not nav.propagate_imu(_imu(2, [0, 0, G]))
+    assert not nav.propagate_imu(_imu(1, [0, 0, G]))
+    np.testing.assert_array_equal(nav.x, x)
+    assert nav.counters["imu"] == {"used": 1, "stale": 2, "invalid": 0, "no_attitude": 0}
+
+
+def test_no_propagation_before_the_first_attitude():
+    nav = make_estimator(None, [0, 0, 100.0], [1, 0, -5.0], 0)
+    assert not nav.propagate_imu(_imu(1, [0, 0, G]))
+    assert nav.time_ns == 0 and nav.counters["imu"]["no_attitude"] == 1
+    assert not np.all(np.isfinite(nav.nav_state(2000.0).q_LB))
+    assert nav.set_attitude(AttitudeMessage(0, np.array([1.0, 0, 0, 0])))
+    assert nav.propagate_imu(_imu(2, [0, 0, G]))
+
+
+def test_nav_state_and_records(converged):
+    truth, nav = converged
+    ns = nav.nav_state(1800.0)
+    assert isinstance(ns, NavState) and ns.is_finite()
+    assert ns.t_ns == nav.time_ns == truth.t_ns[-1]
+    np.testing.assert_array_equal(ns.r_BL_L, nav.ekf.x[:3])
+    np.testing.assert_array_equal(ns.P, nav.ekf.P[:6, :6])
+    np.testing.assert_array_equal(ns.omega_B, truth.imu[-1].omega_B)
+    angle = (Rotation.from_quat(ns.q_LB, scalar_first=True).inv() * truth.rot[-1]).magnitude()
+    assert angle < 10 * ST_SIGMA_RAD
+    rec = next(r for r in nav.log if r.accepted and r.kind == "velocity")
+    assert rec.z.shape == rec.y.shape == (3,) and rec.S.shape == (3, 3) and rec.P_post.shape == (10, 10)
+    assert not rec.x_post.flags.writeable  # records are immutable
+    assert np.all(np.diag(rec.P_post)[3:6] < np.diag(rec.P_prior)[3:6])
+
+
+def test_filter_is_a_filterpy_ekf():
+    nav = make_estimator(None, [0, 0, 100.0], [0, 0, 0], 0)
+    assert isinstance(nav.ekf, ExtendedKalmanFilter)
+    assert nav.ekf.x.shape == (10,) and nav.ekf.P.shape == (10, 10)
+
+
+def test_flight_computer_names_and_altimeter_sigma():
+    nav = make_estimator(None, [0, 0, 100.0], [0, 0, 0], 0)
+    assert nav.update_attitude(AttitudeMessage(0, np.array([1.0, 0, 0, 0])))
+    assert nav.predict_imu(_imu(1, [0, 0, G])) and nav.time_ns == IMU_DT_NS
+    # Spec hypot(0.05, 1e-3 * range), plus the 3 m relief over the cosine.
+    assert nav.altimeter_sigma_m(400.0, include_relief=False) == pytest.approx(math.hypot(0.05, 0.4))
+    assert nav.altimeter_sigma_m(400.0, 0.5) == pytest.approx(math.sqrt(0.05**2 + 0.4**2 + 6.0**2))
+
+
+def test_terrain_state_is_carried_between_footprints():
+    # Two ranges whose footprints lie 10 m apart, with a 10 m correlation length: the
+    # second update's innovation covariance uses phi = exp(-1) on the terrain state.
+    length, sigma_t = 10.0, 3.0
+    cfg = {"terrain_correlation_length_m": length, "terrain_relief_sigma_m": sigma_t}
+    nav = make_estimator(cfg, [0, 0, 100.0], [0, 0, 0], 0, q0_LB=[1, 0, 0, 0])
+    rho = 100.0 + LEVER_B[2]
+    rec1 = nav.update_altimeter(AltimeterMessage(0, rho, True, BORESIGHT_B))
+    assert rec1.accepted
+    x = nav.ekf.x.copy()
+    x[0] += 10.0  # move the lander (and the footprint) 10 m east
+    nav.ekf.x = x
+    rec2 = nav.update_altimeter(AltimeterMessage(0, rho, True, BORESIGHT_B))
+    phi = math.exp(-1.0)
+    P = rec1.P_post.copy()
+    T_h = np.eye(10)
+    T_h[9, 9] = phi
+    P = T_h @ P @ T_h.T
+    P[9, 9] += sigma_t**2 * (1 - phi**2)
+    H = np.zeros(10)
+    H[2], H[9] = 1.0, -1.0
+    rho_hat = x[2] + LEVER_B[2] - phi * rec1.x_post[9]
+    spec_var = ALT_FLOOR_M**2 + (ALT_FRAC * rho_hat) ** 2
+    assert rec2.S[0, 0] == pytest.approx(H @ P @ H + spec_var, rel=1e-12)
+    assert rec2.y[0] == pytest.approx(rho - rho_hat, abs=1e-9)
+    # White relief (length 0): the spec plus the relief variance, whatever came before.
+    white = make_estimator(WHITE_RELIEF, [0, 0, 100.0], [0, 0, 0], 0, q0_LB=[1, 0, 0, 0])
+    for _ in range(2):
+        rec = white.update_altimeter(AltimeterMessage(0, rho, True, BORESIGHT_B))
+        rho_hat = rec.x_prior[2] + LEVER_B[2]
+        spec_var = ALT_FLOOR_M**2 + (ALT_FRAC * rho_hat) ** 2
+        assert rec.S[0, 0] == pytest.approx(rec.P_prior[2, 2] + sigma_t**2 + spec_var, rel=1e-12)

@@ -903,6 +903,18 @@ def summary_table(summary: Mapping[str, Any], outputs: Mapping[str, str | Path] 
         label = f"tilt after {_fmt(settle, 'g', 's')}" if settle is not None else "final tilt"
         lines.append(_limit_row(label, summary["final_tilt_deg"], crit.get("tilt_max_deg"), ".1f", "deg"))
 
+    nav, vis = summary.get("nav") or {}, summary.get("vision") or {}
+    if nav.get("vel_err_touchdown_mps") is not None:
+        lines.append(
+            f"navigation: velocity error at touchdown {_fmt(nav['vel_err_touchdown_mps'], '.3f', 'm/s')}, "
+            f"position {_fmt(nav['pos_err_touchdown_m'], '.1f', 'm')}, NEES in 95 % band "
+            f"{_fmt(nav.get('nees_in_bounds_frac'), '.0%')}"
+        )
+    if vis.get("frames"):
+        lines.append(
+            f"vision: {vis['frames']} frames, median {_fmt(vis.get('tracks_median'), '.0f')} tracks, "
+            f"{_fmt(vis.get('rejected_frac'), '.1%')} of measurements gated out"
+        )
     lines.append(f"fuel used          {_fmt(summary['fuel_used_kg'], '.2f', 'kg'):>12}")
     rtf = summary["realtime_factor"]
     lines.append(

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 
 from bench.io import save_figure, write_npy, write_png
 from bench.scenario import Scenario

@@ -122,7 +122,7 @@ class _Telemetry:
     )
 
     def columns(self, terrain: Terrain, lander: LanderConfig) -> dict[str, np.ndarray]:
-        cols = {name: np.array(values) for name, values in zip(self.COLUMNS, zip(*self.rows))}
+        cols = {name: np.array(values) for name, values in zip(self.COLUMNS, zip(*self.rows, strict=True), strict=True)}
         for name in ("engine_on", "alt_valid"):
             cols[name] = cols[name].astype(bool)
         for name in ("legs_in_contact", "vision_tracks", "vision_measurements", "vision_rejected"):

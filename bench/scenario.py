@@ -16,6 +16,7 @@ naming the field, the bad value and what is allowed.
 from __future__ import annotations
 
 import math
+import re
 import tomllib
 from typing import Literal
 from importlib import resources
@@ -25,6 +26,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from bench.dispersions import Dispersion, check_dispersion_paths
 from gnc.config import format_validation_error
 from gnc.control import ControlConfig
 from gnc.estimator import EstimatorConfig
@@ -115,6 +117,10 @@ class Scenario(BaseModel):
     estimator: EstimatorConfig = EstimatorConfig()
     tracker: TrackerConfig = TrackerConfig()
     vision_nav: VisionNavConfig = VisionNavConfig()
+    dispersions: dict[str, Dispersion] = Field(
+        default_factory=dict,
+        description="field path -> distribution, drawn per case in Monte Carlo campaigns (a single run flies nominal)",
+    )
 
     @model_validator(mode="after")
     def _rates_divide(self) -> "Scenario":
@@ -145,6 +151,12 @@ class Scenario(BaseModel):
                     f"{name} = {value} differs from sim.gravity_mps2 = {g}; allowed: the same value "
                     "(the flight software's gravity model is the world's; set them together)"
                 )
+        return self
+
+    @model_validator(mode="after")
+    def _dispersions_name_fields(self) -> "Scenario":
+        if self.dispersions:
+            check_dispersion_paths(self.model_dump(mode="json"), self.dispersions)
         return self
 
     @model_validator(mode="after")
@@ -180,6 +192,19 @@ def _parse_value(text: str) -> Any:
         return text
 
 
+def _split_key(key: str) -> list[str] | None:
+    """Parts of a TOML dotted key (quoted parts may hold dots), or None if it is not one."""
+    try:
+        node: Any = tomllib.loads(f"{key} = 0")
+    except tomllib.TOMLDecodeError:
+        return None
+    parts = []
+    while isinstance(node, dict) and len(node) == 1:
+        (part, node), = node.items()
+        parts.append(part)
+    return parts
+
+
 def apply_override(data: dict[str, Any], assignment: str) -> None:
     """Apply one ``a.b.c=value`` override to a nested dict in place.
 
@@ -188,11 +213,11 @@ def apply_override(data: dict[str, Any], assignment: str) -> None:
     """
     key, sep, value = assignment.partition("=")
     key = key.strip()
-    if not sep or not key or any(not p for p in key.split(".")):
+    parts = _split_key(key) if sep and key else None
+    if not parts:
         raise ScenarioError(
             f"--set {assignment!r}: expected KEY=VALUE with a dotted key, e.g. --set seed=7 or --set sun.elevation_deg=20"
         )
-    parts = key.split(".")
     node = data
     for i, part in enumerate(parts[:-1]):
         child = node.setdefault(part, {})
@@ -278,11 +303,19 @@ def _toml_value(v: Any) -> str:
     raise TypeError(f"cannot write {type(v).__name__} to TOML")
 
 
+_BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")
+
+
+def _toml_key(key: str) -> str:
+    """A TOML key, quoted unless it is a bare key (dotted field paths must be quoted)."""
+    return key if _BARE_KEY.match(key) else _toml_value(key)
+
+
 def _toml_lines(table: dict[str, Any], prefix: str) -> list[str]:
-    lines = [f"{k} = {_toml_value(v)}" for k, v in table.items() if not isinstance(v, dict) and v is not None]
+    lines = [f"{_toml_key(k)} = {_toml_value(v)}" for k, v in table.items() if not isinstance(v, dict) and v is not None]
     for k, v in table.items():
         if isinstance(v, dict):
-            name = f"{prefix}.{k}" if prefix else k
+            name = f"{prefix}.{_toml_key(k)}" if prefix else _toml_key(k)
             lines += ["", f"[{name}]", *_toml_lines(v, name)]
     return lines
 

@@ -1,0 +1,207 @@
+"""Dispersions and per-case seeds for Monte Carlo campaigns.
+
+A scenario's ``[dispersions]`` table maps a dotted field path to a
+distribution. A single ``landbench run`` flies the nominal scenario; a
+campaign draws each case's values and applies them **to the scenario object
+itself** (then re-validates it), so everything downstream (world, sensors,
+flight software) sees the dispersed values and a case is reproduced by its
+own resolved ``scenario.toml``.
+
+Distributions (``dist``):
+    * ``normal``: nominal + N(0, sigma); ``sigma`` scalar or per component.
+    * ``truncnorm``: nominal + N(0, sigma) truncated to [low, high] (offsets
+      from nominal, in sigmas' units), by scipy.stats.truncnorm.
+    * ``uniform``: U(low, high), absolute values.
+    * ``integers``: an integer in [low, high], uniformly (e.g. terrain seeds).
+    * ``choice``: one of ``values``, uniformly.
+Integer fields (e.g. ``terrain.seed``) take rounded draws.
+
+Seeds: ``SeedSequence(campaign_seed).spawn(n)`` gives one stream per case; a
+case's scenario seed is drawn from its stream, and inside the case every
+component (terrain, sensors, dispersions, ...) has its own child stream
+(:mod:`bench.seeding`). A case's result therefore never depends on the
+number of workers or the order in which cases run.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal, Union
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+from scipy.stats import truncnorm
+
+from bench.seeding import component_rng
+
+SEED_BITS = 63  # case seeds fit TOML's signed 64-bit integers
+
+
+class _Dist(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class Normal(_Dist):
+    """Nominal plus a Gaussian offset."""
+
+    dist: Literal["normal"]
+    sigma: float | list[float] = Field(description="1-sigma of the offset (scalar or per component)")
+
+
+class TruncNormal(_Dist):
+    """Nominal plus a Gaussian offset truncated to [low, high] (offset units)."""
+
+    dist: Literal["truncnorm"]
+    sigma: float | list[float] = Field(description="1-sigma of the offset (scalar or per component)")
+    low: float | list[float] = Field(description="lowest offset from nominal")
+    high: float | list[float] = Field(description="highest offset from nominal")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "TruncNormal":
+        if np.any(np.asarray(self.low, float) >= np.asarray(self.high, float)):
+            raise ValueError(f"truncnorm low = {self.low} must be below high = {self.high}")
+        return self
+
+
+class Uniform(_Dist):
+    """Uniform between absolute bounds."""
+
+    dist: Literal["uniform"]
+    low: float | list[float] = Field(description="lower bound (absolute)")
+    high: float | list[float] = Field(description="upper bound (absolute)")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "Uniform":
+        if np.any(np.asarray(self.low, float) > np.asarray(self.high, float)):
+            raise ValueError(f"uniform low = {self.low} must not exceed high = {self.high}")
+        return self
+
+
+class Integers(_Dist):
+    """A uniformly drawn integer in [low, high] (e.g. a terrain seed; the nominal may be unset)."""
+
+    dist: Literal["integers"]
+    low: int = Field(ge=0, description="smallest value")
+    high: int = Field(description="largest value")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "Integers":
+        if self.low > self.high:
+            raise ValueError(f"integers low = {self.low} must not exceed high = {self.high}")
+        return self
+
+
+class Choice(_Dist):
+    """One of a list of values."""
+
+    dist: Literal["choice"]
+    values: list[Any] = Field(min_length=1, description="the values to choose from")
+
+
+Dispersion = Annotated[Union[Normal, TruncNormal, Uniform, Integers, Choice], Field(discriminator="dist")]
+
+
+def _get(data: dict[str, Any], path: str) -> Any:
+    node: Any = data
+    for part in path.split("."):
+        if not isinstance(node, dict) or part not in node:
+            raise KeyError(path)
+        node = node[part]
+    return node
+
+
+def _set(data: dict[str, Any], path: str, value: Any) -> None:
+    parts = path.split(".")
+    node = data
+    for part in parts[:-1]:
+        node = node[part]
+    node[parts[-1]] = value
+
+
+def check_dispersion_paths(scenario_data: dict[str, Any], dispersions: dict[str, Any]) -> None:
+    """Every dispersed path must name a numeric field of the scenario.
+
+    Raises:
+        ValueError: One line naming the path, what it holds and what is allowed.
+    """
+    for path, spec in dispersions.items():
+        try:
+            nominal = _get(scenario_data, path)
+        except KeyError:
+            raise ValueError(
+                f"dispersions.'{path}': no such scenario field; allowed: a dotted path to a numeric field, "
+                "e.g. 'initial.r_BL_L_m' or 'lander.dry_mass_kg'"
+            ) from None
+        if spec.dist in ("choice", "integers"):
+            continue  # absolute draws: the nominal may be anything, even unset
+        values = nominal if isinstance(nominal, (list, tuple)) else [nominal]
+        numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+        if not numeric:
+            raise ValueError(
+                f"dispersions.'{path}' = {nominal!r} is not numeric; allowed: numeric fields, or dist = 'choice'"
+            )
+        n = len(values)
+        for name in ("sigma", "low", "high"):
+            v = getattr(spec, name, None)
+            if isinstance(v, list) and len(v) != n:
+                raise ValueError(
+                    f"dispersions.'{path}'.{name} has {len(v)} components; the field has {n}"
+                )
+
+
+def _draw(spec: Any, nominal: Any, rng: np.random.Generator) -> Any:
+    vector = isinstance(nominal, (list, tuple))
+    nom = np.atleast_1d(np.asarray(nominal, dtype=float)) if spec.dist not in ("choice", "integers") else None
+    if spec.dist == "choice":
+        return spec.values[int(rng.integers(len(spec.values)))]
+    if spec.dist == "integers":
+        return int(rng.integers(spec.low, spec.high, endpoint=True))
+    shape = nom.shape
+    if spec.dist == "normal":
+        value = nom + rng.normal(0.0, 1.0, shape) * np.broadcast_to(np.asarray(spec.sigma, float), shape)
+    elif spec.dist == "truncnorm":
+        sigma = np.broadcast_to(np.asarray(spec.sigma, float), shape)
+        lo = np.broadcast_to(np.asarray(spec.low, float), shape) / sigma
+        hi = np.broadcast_to(np.asarray(spec.high, float), shape) / sigma
+        value = nom + sigma * truncnorm.rvs(lo, hi, size=shape, random_state=rng)
+    else:  # uniform
+        value = rng.uniform(np.broadcast_to(np.asarray(spec.low, float), shape),
+                            np.broadcast_to(np.asarray(spec.high, float), shape))
+    if all(isinstance(v, int) and not isinstance(v, bool) for v in (nominal if vector else [nominal])):
+        value = np.rint(value).astype(np.int64)
+    out = [v.item() for v in value]
+    return out if vector else out[0]
+
+
+def apply_dispersions(scenario, rng: np.random.Generator | None = None):
+    """Draw every dispersion and return the dispersed, re-validated scenario.
+
+    Args:
+        scenario: The nominal scenario (its ``dispersions`` table says what to draw).
+        rng: The draws' generator; by default the scenario's own "dispersions" stream.
+
+    Returns:
+        (the dispersed scenario, {path: drawn value}). The dispersed scenario
+        keeps its seed and has an empty ``dispersions`` table (it is one case).
+    """
+    from bench.scenario import scenario_from_dict
+
+    rng = component_rng(scenario.seed, "dispersions") if rng is None else rng
+    data = scenario.model_dump(mode="json")
+    drawn: dict[str, Any] = {}
+    for path in sorted(scenario.dispersions):  # sorted: the draws do not depend on the table's order
+        spec = scenario.dispersions[path]
+        value = _draw(spec, _get(data, path), rng)
+        _set(data, path, value)
+        drawn[path] = value
+    data["dispersions"] = {}
+    return scenario_from_dict(data), drawn
+
+
+def case_seeds(campaign_seed: int, n_cases: int) -> list[int]:
+    """One seed per case, from ``SeedSequence(campaign_seed).spawn(n_cases)``.
+
+    A case's seed depends only on (campaign seed, case index), never on how
+    many cases or workers there are.
+    """
+    children = np.random.SeedSequence(campaign_seed).spawn(n_cases)
+    return [int(c.generate_state(1, np.uint64)[0] >> (64 - SEED_BITS)) for c in children]

@@ -117,6 +117,58 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0 if summary["landed"] else EXIT_NOT_LANDED
 
 
+def cmd_mc(args: argparse.Namespace) -> int:
+    from bench import mc
+
+    if args.replay:
+        if args.case is None or not args.out:
+            raise ValueError("--replay DIR needs --case I and --out RUN")
+        return _mc_replay(Path(args.replay), args.case, Path(args.out))
+    if args.backend != "local":
+        raise ValueError(f"--backend {args.backend!r}: only 'local' is available in this version")
+    directory = Path(args.resume or args.out or "")
+    if not (args.resume or args.out):
+        raise ValueError("give --out DIR for a new campaign, or --resume DIR")
+    if args.runs is None:
+        if not args.resume:
+            raise ValueError("--runs N is required for a new campaign")
+        meta = json.loads((directory / mc.CAMPAIGN).read_text())
+        args.runs, args.seed = meta["runs"], meta["campaign_seed"]
+    base = load_scenario(args.scenario, args.overrides)
+    seed = args.seed if args.seed is not None else base.seed
+    rows = mc.run_campaign(base, args.runs, directory, seed, workers=args.workers, resume=bool(args.resume),
+                           dry_run=args.dry_run, retention=args.retention, case_timeout_s=args.case_timeout,
+                           progress=True)
+    if args.dry_run:
+        print(f"dry run: {args.runs} dispersed scenarios in {directory / mc.CASES}/NNNNN/scenario.toml")
+        return 0
+    landed = sum(bool(r.get("landed")) for r in rows)
+    try:
+        from bench.mc_report import campaign_table, write_campaign_report
+
+        crit = base.landing.model_dump()
+        write_campaign_report(rows, crit, directory / mc.REPORT, title=f"{base.name}: {len(rows)} cases, seed {seed}")
+        print(campaign_table(rows, crit))
+    except ImportError:
+        print(f"{landed}/{len(rows)} landed")
+    print(f"cases: {directory / mc.CASES_PARQUET}")
+    return 0
+
+
+def _mc_replay(directory: Path, case: int, out: Path) -> int:
+    from bench import mc
+    from bench.run_outputs import run_and_write
+
+    meta = json.loads((directory / mc.CAMPAIGN).read_text())
+    if not 0 <= case < meta["runs"]:
+        raise ValueError(f"--case {case}: the campaign has cases 0..{meta['runs'] - 1}")
+    base = load_scenario(directory / mc.BASE_SCENARIO)
+    scenario, _ = mc.case_scenario(base, meta["campaign_seed"], meta["runs"], case)
+    summary, table = run_and_write(scenario, out, video=True, progress=True)
+    print(table)
+    return 0 if summary["landed"] else EXIT_NOT_LANDED
+
+
 # --------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -136,6 +188,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="out/run", help="output folder (default out/run)")
     p.add_argument("--no-video", action="store_true", help="skip camera.mp4 (frames are still rendered if the camera is on)")
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("mc", help="Monte Carlo campaign of dispersed landings")
+    _add_scenario_args(p)
+    p.add_argument("--runs", type=int, help="number of cases")
+    p.add_argument("--workers", type=int, default=1, help="cases run at once (local processes)")
+    p.add_argument("--backend", default="local", choices=("local", "ray"), help="where cases run")
+    p.add_argument("--address", default=None, help="Ray cluster address (ray backend)")
+    p.add_argument("--seed", type=int, default=None, help="campaign seed (default: the scenario's seed)")
+    p.add_argument("--out", default=None, help="campaign folder (new campaign), or replay output folder")
+    p.add_argument("--resume", default=None, metavar="DIR", help="finish an interrupted campaign")
+    p.add_argument("--replay", default=None, metavar="DIR", help="rerun one case of a campaign exactly")
+    p.add_argument("--case", type=int, default=None, help="case index for --replay")
+    p.add_argument("--dry-run", action="store_true", help="write the dispersed scenarios without running them")
+    p.add_argument("--retention", default="summary", choices=("summary", "failed", "all"),
+                   help="whose telemetry and video are kept")
+    p.add_argument("--case-timeout", type=float, default=None, metavar="S", help="per-case wall-clock limit [s]")
+    p.set_defaults(func=cmd_mc)
 
     p = sub.add_parser("render", help="render the camera view from H metres above the landing site")
     _add_scenario_args(p)

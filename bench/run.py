@@ -303,7 +303,8 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
     summary: dict[str, Any] = {
         "outcome": outcome,
         "landed": outcome == "landed",
-        "touchdown": touchdown or {k: None for k in ("t_s", "v_vertical_mps", "v_horizontal_mps", "tilt_deg", "miss_distance_m")},
+        "touchdown": touchdown or {k: None for k in ("t_s", "v_vertical_mps", "v_horizontal_mps", "tilt_deg",
+                                                      "miss_distance_m", "x_m", "y_m")},
         "final_tilt_deg": final_tilt,
         "fuel_used_kg": propellant0 - truth.propellant_kg,
         "propellant_left_kg": truth.propellant_kg,
@@ -368,6 +369,8 @@ def _touchdown_metrics(before: TruthState, t_ns: int) -> dict[str, float]:
         "v_horizontal_mps": float(math.hypot(v[0], v[1])),
         "tilt_deg": tilt_deg(before.q_LB),
         "miss_distance_m": float(math.hypot(before.r_BL_L[0], before.r_BL_L[1])),
+        "x_m": float(before.r_BL_L[0]),
+        "y_m": float(before.r_BL_L[1]),
     }
 
 

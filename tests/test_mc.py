@@ -1,0 +1,102 @@
+"""Monte Carlo campaigns: case-by-case reproducibility, failures, timeouts, resume, replay, dry run."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import pyarrow.parquet as pq
+import pytest
+
+from bench import mc
+from bench.cli import main
+from bench.scenario import load_scenario
+from tests.conftest import SMALL_SET
+
+QUICK = [*SMALL_SET, 'nav="truth"', 'vision="off"', "camera.enabled=false", "landing.settle_s=1.0",
+         "initial.r_BL_L_m=[10.0, -5.0, 60.0]", "initial.v_BL_L_mps=[0.0, 0.0, -3.0]"]
+WALL = ("wall_time_s", "setup_time_s", "realtime_factor", "case_wall_time_s")
+
+
+def _strip(rows):
+    return [{k: v for k, v in r.items() if k not in WALL and not k.startswith("time_split")} for r in rows]
+
+
+def _sets(extra=()):
+    return [a for s in (*QUICK, *extra) for a in ("--set", s)]
+
+
+def test_cases_are_identical_with_one_or_two_workers(tmp_path):
+    base = load_scenario(None, QUICK)
+    one = mc.run_campaign(base, 3, tmp_path / "w1", campaign_seed=11, workers=1, progress=False)
+    two = mc.run_campaign(base, 3, tmp_path / "w2", campaign_seed=11, workers=2, progress=False)
+    assert _strip(one) == _strip(two)
+    assert [r["case"] for r in one] == [0, 1, 2] and all(r["outcome"] == "landed" for r in one)
+    # Dispersions were drawn per case, and they differ between cases.
+    assert len({r["disp_lander.dry_mass_kg"] for r in one}) == 3
+    table = pq.read_table(tmp_path / "w1" / mc.CASES_PARQUET).to_pylist()
+    assert _strip(table) == _strip(one)
+    assert "touchdown_miss_distance_m" in table[0] and "seed" in table[0]
+
+
+def test_a_raising_case_and_a_timeout_are_recorded_and_the_campaign_goes_on(tmp_path):
+    # A mass dispersion wide enough to draw negative masses: those cases fail validation.
+    base = load_scenario(None, [*QUICK, 'dispersions."lander.dry_mass_kg"={dist="normal", sigma=3000.0}'])
+    rows = mc.run_campaign(base, 4, tmp_path / "c", campaign_seed=2, workers=2, progress=False)
+    assert len(rows) == 4
+    errors = [r for r in rows if r["outcome"] == "error"]
+    assert errors and all("dry_mass_kg" in r["error"] for r in errors)
+    assert any(r["outcome"] == "landed" for r in rows)
+    slow = mc.run_campaign(load_scenario(None, QUICK), 2, tmp_path / "t", campaign_seed=2, workers=2,
+                           case_timeout_s=0.5, progress=False)
+    assert [r["outcome"] for r in slow] == ["error", "error"] and all("timeout" in r["error"] for r in slow)
+
+
+def test_kill_and_resume_loses_and_duplicates_nothing(tmp_path):
+    out = tmp_path / "camp"
+    cmd = [sys.executable, "-m", "bench.cli", "mc", "--runs", "4", "--workers", "1", "--seed", "5",
+           "--out", str(out), *_sets()]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and len(list((out / mc.CASES).glob("*.json"))) < 1:
+        time.sleep(0.2)
+    import os
+
+    os.killpg(proc.pid, signal.SIGKILL)  # the master and its worker, mid-campaign
+    proc.wait()
+    done_before = sorted(p.name for p in (out / mc.CASES).glob("*.json"))
+    assert 1 <= len(done_before) < 4
+    before = {p.name: p.read_text() for p in (out / mc.CASES).glob("*.json")}
+    assert main(["mc", "--resume", str(out), *_sets()]) == 0
+    rows = mc.read_rows(out, 4)
+    assert [r["case"] for r in rows] == [0, 1, 2, 3]
+    for name, text in before.items():  # finished cases were not redone
+        assert (out / mc.CASES / name).read_text() == text
+    fresh = mc.run_campaign(load_scenario(None, QUICK), 4, tmp_path / "fresh", campaign_seed=5, progress=False)
+    assert _strip(rows) == _strip(fresh)
+
+
+def test_replay_reproduces_a_case_row(tmp_path):
+    rows = mc.run_campaign(load_scenario(None, QUICK), 2, tmp_path / "c", campaign_seed=9, progress=False)
+    assert main(["mc", "--replay", str(tmp_path / "c"), "--case", "1", "--out", str(tmp_path / "r")]) == 0
+    summary = json.loads((tmp_path / "r" / "summary.json").read_text())
+    row = {k: v for k, v in rows[1].items() if not k.startswith("disp_") and k not in ("case", "case_wall_time_s")}
+    assert _strip([mc.summary_row(summary)]) == _strip([row])
+
+
+def test_dry_run_writes_the_dispersed_scenarios(tmp_path):
+    base = load_scenario(None, QUICK)
+    assert mc.run_campaign(base, 3, tmp_path / "d", campaign_seed=4, dry_run=True, progress=False) == []
+    for i in range(3):
+        written = load_scenario(tmp_path / "d" / mc.CASES / f"{i:05d}" / mc.BASE_SCENARIO)
+        assert written == mc.case_scenario(base, 4, 3, i)[0]
+
+
+def test_bad_campaign_arguments(tmp_path, capsys):
+    assert main(["mc", "--runs", "0", "--out", str(tmp_path / "x"), *_sets()]) == 2
+    assert "--runs" in capsys.readouterr().err
+    assert main(["mc", "--resume", str(tmp_path / "nothing"), "--runs", "2", *_sets()]) == 2
+    assert "campaign" in capsys.readouterr().err

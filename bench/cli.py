@@ -142,16 +142,19 @@ def cmd_mc(args: argparse.Namespace) -> int:
     if args.dry_run:
         print(f"dry run: {args.runs} dispersed scenarios in {directory / mc.CASES}/NNNNN/scenario.toml")
         return 0
-    landed = sum(bool(r.get("landed")) for r in rows)
-    try:
-        from bench.mc_report import campaign_table, write_campaign_report
+    from bench.mc_report import campaign_table, write_campaign_report
 
-        crit = base.landing.model_dump()
-        write_campaign_report(rows, crit, directory / mc.REPORT, title=f"{base.name}: {len(rows)} cases, seed {seed}")
-        print(campaign_table(rows, crit))
-    except ImportError:
-        print(f"{landed}/{len(rows)} landed")
-    print(f"cases: {directory / mc.CASES_PARQUET}")
+    crit = base.landing.model_dump()
+    terrain = None
+    if "terrain.seed" not in base.dispersions:  # one terrain for all cases: draw it under the points
+        from bench.world_builder import build_terrain
+
+        terrain = build_terrain(base)
+    write_campaign_report(rows, crit, directory / mc.REPORT, terrain=terrain,
+                          title=f"{base.name}: {len(rows)} cases, campaign seed {seed}",
+                          sun_elevation_deg=base.sun.elevation_deg, sun_azimuth_deg=base.sun.azimuth_deg)
+    print(campaign_table(rows, crit))
+    print(f"cases: {directory / mc.CASES_PARQUET}, report: {directory / mc.REPORT}")
     return 0
 
 

@@ -129,13 +129,21 @@ def cmd_mc(args: argparse.Namespace) -> int:
     directory = Path(args.resume or args.out or "")
     if not (args.resume or args.out):
         raise ValueError("give --out DIR for a new campaign, or --resume DIR")
-    if args.runs is None:
-        if not args.resume:
+    if args.resume:
+        # A resumed campaign is defined by its folder: base scenario, seed and size.
+        meta_path = directory / mc.CAMPAIGN
+        if not meta_path.exists():
+            raise ValueError(f"--resume {directory}: no {mc.CAMPAIGN} there; start the campaign with --out")
+        meta = json.loads(meta_path.read_text())
+        runs = args.runs if args.runs is not None else meta["runs"]
+        seed = args.seed if args.seed is not None else meta["campaign_seed"]
+        base = load_scenario(directory / mc.BASE_SCENARIO)
+    else:
+        if args.runs is None:
             raise ValueError("--runs N is required for a new campaign")
-        meta = json.loads((directory / mc.CAMPAIGN).read_text())
-        args.runs, args.seed = meta["runs"], meta["campaign_seed"]
-    base = load_scenario(args.scenario, args.overrides)
-    seed = args.seed if args.seed is not None else base.seed
+        base = load_scenario(args.scenario, args.overrides)
+        runs, seed = args.runs, (args.seed if args.seed is not None else base.seed)
+    args.runs = runs
     rows = mc.run_campaign(base, args.runs, directory, seed, workers=args.workers, resume=bool(args.resume),
                            dry_run=args.dry_run, retention=args.retention, case_timeout_s=args.case_timeout,
                            progress=True)

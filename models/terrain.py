@@ -90,6 +90,7 @@ SHADOW_FLOOR = 0.15  # brightness of shadowed texels relative to flat lit ground
 SHADE_MAX = 2.0  # cap on relative brightness of steep sun-facing texels
 ALBEDO_REL_FLOOR = 0.2  # lower bound on albedo / albedo_mean (fBm tails)
 SHADOW_FLAT_EPS_M = 1e-4  # height margin before a texel counts as cast-shadowed [m]
+SHADOW_STRIP_ROWS = 256  # rows of the rotated grid swept at a time when baking cast shadows
 # Residual = fine DEM minus its Gaussian low-pass with this sigma [geometry spacings]; the
 # tent average + linear interpolation of the geometry passes about the same band.
 RESIDUAL_LOWPASS_SIGMA_SPACINGS = 0.5
@@ -725,11 +726,16 @@ def _lit_fraction(height_m: np.ndarray, texel_m: float, sun: tuple[float, float,
     low = float(height_m.min()) - 1.0e6  # outside the tile: never casts a shadow
     g = cv2.warpAffine(height_m, to_src, (side, side), flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=low)
     # g = h + (distance from the sun side) * tan(el): a texel is lit iff no texel before it in its row has a larger g.
-    g += np.arange(side, dtype=np.float32)[None, :] * np.float32(texel_m * sz / horiz)
-    highest_before = np.maximum.accumulate(g, axis=1)
-    highest_before -= np.float32(SHADOW_FLAT_EPS_M)
+    # Rows are independent, so they are swept in strips: the running maximum never
+    # needs a second full-size array (this was the terrain generator's memory peak).
+    ramp = np.arange(side, dtype=np.float32)[None, :] * np.float32(texel_m * sz / horiz)
     shadow = np.zeros((side, side), np.uint8)
-    np.less(g[:, 1:], highest_before[:, :-1], out=shadow[:, 1:].view(bool))
+    for r0 in range(0, side, SHADOW_STRIP_ROWS):
+        strip = g[r0:r0 + SHADOW_STRIP_ROWS]
+        strip += ramp
+        highest_before = np.maximum.accumulate(strip, axis=1)
+        highest_before -= np.float32(SHADOW_FLAT_EPS_M)
+        np.less(strip[:, 1:], highest_before[:, :-1], out=shadow[r0:r0 + SHADOW_STRIP_ROWS, 1:].view(bool))
     del g, highest_before
     shadow *= np.uint8(UINT8_MAX)  # 0/255 so the warp back gives soft edges
     back = cv2.warpAffine(shadow, cv2.invertAffineTransform(to_src), (m, m), flags=flags,

@@ -8,7 +8,9 @@ leaves a truncated file or clobbers a result that was already there.
 from __future__ import annotations
 
 import io
+import math
 import os
+from typing import Any
 import tempfile
 from pathlib import Path
 
@@ -20,6 +22,19 @@ def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+def json_safe(value: Any) -> Any:
+    """A JSON-ready copy: NumPy scalars become Python ones, non-finite floats None (recursively)."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    return value
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> Path:

@@ -25,17 +25,15 @@ Layout of ``DIR``: ``campaign.json`` (seed, runs, retention),
 from __future__ import annotations
 
 import json
-import math
 import multiprocessing as mp
 import shutil
 import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 
 from bench.dispersions import apply_dispersions, case_seeds
-from bench.io import atomic_write_text
+from bench.io import atomic_write_bytes, atomic_write_text, json_safe
 from bench.scenario import Scenario, load_scenario, scenario_from_dict, scenario_to_toml
 
 CAMPAIGN = "campaign.json"
@@ -99,19 +97,7 @@ def _case_worker(base_data: dict, campaign_seed: int, n_cases: int, index: int, 
     except Exception as exc:  # a case that raises is a failed case, not a failed campaign
         row.update({"outcome": "error", "landed": False, "error": f"{type(exc).__name__}: {exc}"})
     row["case_wall_time_s"] = time.perf_counter() - t0
-    atomic_write_text(case_path / f"{index:05d}.json", json.dumps(_json_safe(row)) + "\n")
-
-
-def _json_safe(v: Any) -> Any:
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    if isinstance(v, dict):
-        return {k: _json_safe(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_json_safe(x) for x in v]
-    if isinstance(v, np.generic):
-        return v.item()
-    return v
+    atomic_write_text(case_path / f"{index:05d}.json", json.dumps(json_safe(row)) + "\n")
 
 
 def _failed_row(index: int, seed: int, error: str, wall_s: float) -> dict[str, Any]:
@@ -219,8 +205,6 @@ def write_cases_parquet(rows: list[dict[str, Any]], path: Path) -> Path:
 
     import pyarrow as pa
     import pyarrow.parquet as pq
-
-    from bench.io import atomic_write_bytes
 
     keys: list[str] = []
     for r in rows:

@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from bench.io import save_figure
+from bench.report import check_criteria
 
 if TYPE_CHECKING:  # typing only
     from matplotlib.figure import Figure
@@ -43,7 +44,6 @@ OUTCOME_COLORS = {
     "fuel_exhausted": "tab:purple", "timeout": "tab:brown", "diverged": "tab:pink", "error": "black",
 }
 OTHER_COLOR = "tab:gray"  # outcomes not in OUTCOMES
-CRITERIA_KEYS = ("v_vertical_max_mps", "v_horizontal_max_mps", "tilt_max_deg")
 CONFIDENCE = 0.95
 ELLIPSE_SIGMA = 3.0
 ELLIPSE_MIN_POINTS = 3  # fewer touchdowns: no ellipse is drawn
@@ -157,24 +157,6 @@ def _check_rows(rows: Any) -> list[Mapping[str, Any]]:
     return list(rows)
 
 
-def _check_criteria(criteria: Mapping[str, Any] | None) -> dict[str, float]:
-    """The landing limits that are given, as floats (other keys are ignored)."""
-    if criteria is None:
-        return {}
-    if not isinstance(criteria, Mapping):
-        raise ValueError(f"criteria must be a mapping with keys {CRITERIA_KEYS}, got {type(criteria).__name__}")
-    out = {}
-    for key in CRITERIA_KEYS:
-        value = criteria.get(key)
-        if value is None:
-            continue
-        try:
-            out[key] = float(value)
-        except (TypeError, ValueError):
-            raise ValueError(f"criteria[{key!r}] = {value!r} is not a number") from None
-    return out
-
-
 def _num(value: Any) -> float:
     """A row value as a float; NaN for None, non-numbers and booleans."""
     if value is None or isinstance(value, (bool, str, bytes)):
@@ -272,7 +254,7 @@ def campaign_table(rows: Sequence[Mapping[str, Any]], criteria: Mapping[str, Any
         ValueError: ``rows`` is not a list of dicts, or a criterion is not a number.
     """
     rows = _check_rows(rows)
-    limits = _check_criteria(criteria)
+    limits = check_criteria(criteria)
     n = len(rows)
     ok = sum(_landed(r) for r in rows)
     lines = [f"landbench mc: {n} case{'s' if n != 1 else ''}"]
@@ -458,7 +440,7 @@ def campaign_figure(
     has the gid ``error_ellipse``.
     """
     rows = _check_rows(rows)
-    limits = _check_criteria(criteria)
+    limits = check_criteria(criteria)
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=FIGURE_SIZE_IN, layout="constrained")

@@ -252,7 +252,7 @@ def read_telemetry_parquet(path: str | Path) -> dict[str, np.ndarray]:
 
 
 # ==================================================================== plots
-def _check_criteria(criteria: Mapping[str, Any] | None) -> dict[str, float]:
+def check_criteria(criteria: Mapping[str, Any] | None) -> dict[str, float]:
     """The landing limits that are given, as floats (unknown keys such as ``settle_s`` are ignored)."""
     if criteria is None:
         return {}
@@ -418,7 +418,7 @@ def write_plots(
             written then.
     """
     cols = _validate_telemetry(telemetry, required=PLOT_REQUIRED_COLUMNS)
-    limits = _check_criteria(criteria)
+    limits = check_criteria(criteria)
     t_td = _touchdown_time(touchdown)
     from matplotlib.figure import Figure  # no pyplot: no global state, no GUI backend
 

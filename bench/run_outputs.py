@@ -13,11 +13,9 @@ renamed into place only at the end.
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
-from typing import Any
 
-from bench.io import atomic_write_text
+from bench.io import atomic_write_text, json_safe
 from bench.report import CameraVideo, frame_caption, summary_table, write_plots, write_telemetry_parquet
 from bench.run import run
 from bench.scenario import NS_PER_S, Scenario, scenario_to_toml
@@ -27,17 +25,6 @@ TELEMETRY = "telemetry.parquet"
 SCENARIO = "scenario.toml"
 PLOTS = "plots.png"
 VIDEO = "camera.mp4"
-
-
-def _json_safe(value: Any) -> Any:
-    """Replace non-finite floats (not valid JSON) by None, recursively."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    return value
 
 
 def run_and_write(scenario: Scenario, out: Path, video: bool = True, progress: bool = False) -> tuple[dict, str]:
@@ -59,7 +46,7 @@ def run_and_write(scenario: Scenario, out: Path, video: bool = True, progress: b
 
     try:
         result = run(scenario, frame_sink=sink if writer is not None else None, progress=progress)
-        summary = _json_safe(result.summary)
+        summary = json_safe(result.summary)
         outputs = {"scenario": out / SCENARIO, "summary": out / SUMMARY, "telemetry": out / TELEMETRY, "plots": out / PLOTS}
         atomic_write_text(outputs["scenario"], scenario_to_toml(scenario))
         write_telemetry_parquet(result.telemetry, outputs["telemetry"])

@@ -9,7 +9,6 @@ import sys
 import time
 
 import pyarrow.parquet as pq
-import pytest
 
 from bench import mc
 from bench.cli import main

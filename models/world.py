@@ -384,15 +384,6 @@ class World:
             touching |= self._foot_geoms == other
         return touching
 
-    def lander_terrain_contacts(self) -> int:
-        """Number of contacts between any lander geom and the terrain."""
-        con = self.data.contact
-        n = 0
-        for i in range(self.data.ncon):
-            if self._geom_terrain in (con.geom1[i], con.geom2[i]):
-                n += 1
-        return n
-
     # ----------------------------------------------------------------- camera
     @property
     def altimeter_position_B(self) -> np.ndarray:

@@ -724,19 +724,23 @@ def _lit_fraction(height_m: np.ndarray, texel_m: float, sun: tuple[float, float,
                        [ay, ax, c_src - (ay + ax) * c_dst]])
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
     low = float(height_m.min()) - 1.0e6  # outside the tile: never casts a shadow
-    g = cv2.warpAffine(height_m, to_src, (side, side), flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=low)
     # g = h + (distance from the sun side) * tan(el): a texel is lit iff no texel before it in its row has a larger g.
-    # Rows are independent, so they are swept in strips: the running maximum never
-    # needs a second full-size array (this was the terrain generator's memory peak).
+    # Rows are independent, so the rotated grid is warped and swept in strips of
+    # rows: neither g (up to 2 m^2 texels) nor its running maximum is ever held
+    # whole (they were the terrain generator's memory peak).
     ramp = np.arange(side, dtype=np.float32)[None, :] * np.float32(texel_m * sz / horiz)
     shadow = np.zeros((side, side), np.uint8)
     for r0 in range(0, side, SHADOW_STRIP_ROWS):
-        strip = g[r0:r0 + SHADOW_STRIP_ROWS]
+        rows = min(SHADOW_STRIP_ROWS, side - r0)
+        to_src_strip = to_src.copy()
+        to_src_strip[:, 2] += to_src[:, 1] * r0  # strip row v' is rotated row v' + r0
+        strip = cv2.warpAffine(height_m, to_src_strip, (side, rows), flags=flags, borderMode=cv2.BORDER_CONSTANT,
+                               borderValue=low)
         strip += ramp
         highest_before = np.maximum.accumulate(strip, axis=1)
         highest_before -= np.float32(SHADOW_FLAT_EPS_M)
-        np.less(strip[:, 1:], highest_before[:, :-1], out=shadow[r0:r0 + SHADOW_STRIP_ROWS, 1:].view(bool))
-    del g, highest_before
+        np.less(strip[:, 1:], highest_before[:, :-1], out=shadow[r0:r0 + rows, 1:].view(bool))
+    del strip, highest_before
     shadow *= np.uint8(UINT8_MAX)  # 0/255 so the warp back gives soft edges
     back = cv2.warpAffine(shadow, cv2.invertAffineTransform(to_src), (m, m), flags=flags,
                           borderMode=cv2.BORDER_CONSTANT, borderValue=0)
@@ -890,13 +894,20 @@ def generate_terrain(
     # geometry scale (smooth, so the texture shows no trace of the vertex grid).
     residual = _gaussian_lowpass(fine, RESIDUAL_LOWPASS_SIGMA_SPACINGS * spacing_m / texel_m)
     np.subtract(fine, residual, out=residual)
+    # Each (m, m) array is freed as soon as it is spent: at m = 4096 each is
+    # 67 MB, and this function sets a campaign worker's peak memory.
+    caster = None
+    if cfg.bake_cast_shadows != "none" and sun_elevation_deg < 90.0:
+        caster = residual if cfg.bake_cast_shadows == "residual" else fine
+    del fine
 
     # Baked shading of the residual.
     shade = _relative_shading(residual, texel_m, sun, cfg.photometric_function)
     np.minimum(shade, SHADE_MAX, out=shade)
-    if cfg.bake_cast_shadows != "none" and sun_elevation_deg < 90.0:
-        shade *= _lit_fraction(residual if cfg.bake_cast_shadows == "residual" else fine, texel_m, sun)
-    del residual, fine
+    del residual
+    if caster is not None:
+        shade *= _lit_fraction(caster, texel_m, sun)
+    del caster
     shade *= np.float32(1.0 - SHADOW_FLOOR)
     shade += np.float32(SHADOW_FLOOR)
 
@@ -918,6 +929,7 @@ def generate_terrain(
     dn *= np.float32(cfg.texture_mean_dn)
     np.clip(dn, 0.0, UINT8_MAX, out=dn)
     texture = np.rint(dn, out=dn).astype(np.uint8)
+    del dn, albedo_rel, shade
     terrain = Terrain(height_m=height.astype(np.float32, copy=False), size_m=float(size_m), albedo=texture,
                       craters=craters.astype(np.float64), boulders=boulders.astype(np.float64))
     if cfg.patch_size_m <= 0:
@@ -951,8 +963,16 @@ def _make_patch(terrain: Terrain, cfg: TerrainConfig, sun: tuple[float, float, f
     centres = _texel_centres_m(2 * half_m, p)
     # Coarse-texture coordinates (texel index, centre convention) of the patch texel centres.
     idx = ((centres + terrain.size_m / 2) / coarse_texel_m - 0.5).astype(np.float32)
+    # Only the texels under the patch (plus the cubic kernel's reach) are
+    # converted to float: the whole texture would be a 67 MB copy at 4096^2.
+    m = terrain.albedo.shape[0]
+    lo = max(0, int(np.floor(idx[0])) - 2)
+    hi = min(m, int(np.ceil(idx[-1])) + 3)
+    idx -= np.float32(lo)  # exact: lo is an integer within a factor 2 of idx (or 0)
     map_x, map_y = np.meshgrid(idx, idx)
-    base = cv2.remap(terrain.albedo.astype(np.float32), map_x, map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    coarse = terrain.albedo[lo:hi, lo:hi].astype(np.float32)
+    base = cv2.remap(coarse, map_x, map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    del coarse, map_x, map_y
 
     detail = fbm_surface(p, patch_texel_m, 1.0, cfg.roughness_hurst, rng,
                          max_wavelength_m=PATCH_DETAIL_MAX_WAVELENGTH_TEXELS * coarse_texel_m)
@@ -961,9 +981,11 @@ def _make_patch(terrain: Terrain, cfg: TerrainConfig, sun: tuple[float, float, f
     shade = _relative_shading(detail, patch_texel_m, sun, cfg.photometric_function)
     np.minimum(shade, SHADE_MAX, out=shade)
     # Feather: full detail inside, fading to none over the outer band (smoothstep).
-    dist_to_edge = half_m - np.maximum(np.abs(centres)[:, None], np.abs(centres)[None, :])
-    t = np.clip(dist_to_edge / (PATCH_FEATHER_FRAC * half_m), 0.0, 1.0)
-    weight = (t * t * (3.0 - 2.0 * t)).astype(np.float32)
+    # Smoothstep of the distance to the nearest edge. The step is monotonic, so
+    # it is the smaller of the two 1-D steps: no (p, p) float64 temporaries.
+    t = np.clip((half_m - np.abs(centres)) / (PATCH_FEATHER_FRAC * half_m), 0.0, 1.0)
+    step = (t * t * (3.0 - 2.0 * t)).astype(np.float32)
+    weight = np.minimum(step[:, None], step[None, :])
     base *= 1.0 + weight * (shade - 1.0)
     albedo = np.clip(np.rint(base), 0.0, UINT8_MAX).astype(np.uint8)
     return TerrainPatch(height_m=heights, size_m=float(2 * half_m), albedo=albedo)

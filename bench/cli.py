@@ -124,8 +124,6 @@ def cmd_mc(args: argparse.Namespace) -> int:
         if args.case is None or not args.out:
             raise ValueError("--replay DIR needs --case I and --out RUN")
         return _mc_replay(Path(args.replay), args.case, Path(args.out))
-    if args.backend != "local":
-        raise ValueError(f"--backend {args.backend!r}: only 'local' is available in this version")
     directory = Path(args.resume or args.out or "")
     if not (args.resume or args.out):
         raise ValueError("give --out DIR for a new campaign, or --resume DIR")
@@ -146,7 +144,7 @@ def cmd_mc(args: argparse.Namespace) -> int:
     args.runs = runs
     rows = mc.run_campaign(base, args.runs, directory, seed, workers=args.workers, resume=bool(args.resume),
                            dry_run=args.dry_run, retention=args.retention, case_timeout_s=args.case_timeout,
-                           progress=True)
+                           progress=True, backend=args.backend, address=args.address)
     if args.dry_run:
         print(f"dry run: {args.runs} dispersed scenarios in {directory / mc.CASES}/NNNNN/scenario.toml")
         return 0
@@ -203,9 +201,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("mc", help="Monte Carlo campaign of dispersed landings")
     _add_scenario_args(p)
     p.add_argument("--runs", type=int, help="number of cases")
-    p.add_argument("--workers", type=int, default=1, help="cases run at once (local processes)")
-    p.add_argument("--backend", default="local", choices=("local", "ray"), help="where cases run")
-    p.add_argument("--address", default=None, help="Ray cluster address (ray backend)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="cases run at once (default: 1 with local; every cluster CPU with ray)")
+    p.add_argument("--backend", default="local", choices=("local", "ray"),
+                   help="local: worker processes on this machine; ray: a Ray cluster (pip install 'landbench[ray]')")
+    p.add_argument("--address", default=None,
+                   help="Ray cluster address for --backend ray (default: $RAY_ADDRESS, else a local Ray instance)")
     p.add_argument("--seed", type=int, default=None, help="campaign seed (default: the scenario's seed)")
     p.add_argument("--out", default=None, help="campaign folder (new campaign), or replay output folder")
     p.add_argument("--resume", default=None, metavar="DIR", help="finish an interrupted campaign")

@@ -2,7 +2,7 @@
 # Bootstrap landbench on a fresh Debian/Ubuntu machine:
 #   1. system packages: a Python >= 3.11 with venv, and Mesa's headless OpenGL
 #      (EGL + OSMesa software rendering), installed through apt when missing;
-#   2. .venv with landbench installed (editable) and its test extras.
+#   2. .venv with landbench installed (editable) with its test and Ray extras.
 # Idempotent: re-running does nothing when everything is in place.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -72,6 +72,6 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 if [ ! -f "$STAMP" ] || [ pyproject.toml -nt "$STAMP" ]; then
   "$VENV/bin/python" -m pip install -q --upgrade pip
-  "$VENV/bin/python" -m pip install -q -e '.[dev]'
+  "$VENV/bin/python" -m pip install -q -e '.[dev,ray]'  # ray: the tests run the Ray backend too
   touch "$STAMP"
 fi

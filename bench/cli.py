@@ -68,9 +68,24 @@ def cmd_perf(args: argparse.Namespace) -> int:
     from bench.perf import format_perf, run_perf
 
     scenario = load_scenario(args.scenario, args.overrides)
+    if args.campaign is not None:
+        from bench.perf import format_campaign_perf, run_campaign_perf
+
+        workers = _int_list(args.campaign_workers, "--campaign-workers")
+        result = run_campaign_perf(scenario, args.campaign, workers, campaign_seed=scenario.seed,
+                                   backend=args.backend)
+        print(json.dumps(result, indent=2) if args.json else format_campaign_perf(result))
+        return 0 if all(v["identical_to_baseline"] for v in result["results"].values()) else 1
     result = run_perf(scenario, frames=args.frames)
     print(json.dumps(result, indent=2) if args.json else format_perf(result))
     return 0
+
+
+def _int_list(text: str, flag: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(t) for t in text.split(","))
+    except ValueError:
+        raise ValueError(f"{flag} {text!r}: expected comma-separated integers, e.g. 1,2") from None
 
 
 def cmd_track_eval(args: argparse.Namespace) -> int:
@@ -251,6 +266,11 @@ def build_parser() -> argparse.ArgumentParser:
     _add_scenario_args(p)
     p.add_argument("--frames", type=int, default=60, help="frames timed per resolution")
     p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--campaign", type=int, default=None, metavar="N",
+                   help="instead: time an N-case Monte Carlo campaign at each --campaign-workers count")
+    p.add_argument("--campaign-workers", default="1,2", metavar="K,K",
+                   help="worker counts for --campaign (default 1,2; the first is the baseline)")
+    p.add_argument("--backend", default="local", choices=("local", "ray"), help="campaign backend for --campaign")
     p.set_defaults(func=cmd_perf)
     return parser
 

@@ -31,12 +31,12 @@ Layout of ``DIR``: ``campaign.json`` (seed, runs, retention),
 
 from __future__ import annotations
 
+import contextlib
 import json
 import multiprocessing as mp
 import os
-import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -87,6 +87,37 @@ def summary_row(summary: dict[str, Any]) -> dict[str, Any]:
     return row
 
 
+# Threads a case may use are set per worker: the CPUs divided among the
+# workers. Without this, llvmpipe, OpenCV and BLAS each start one thread per
+# core in every worker, and K workers on K cores fight over them.
+THREAD_ENV_VARS = ("LP_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def threads_per_worker(workers: int) -> int:
+    """The CPUs this process may use, shared out among ``workers`` (at least 1 each)."""
+    return max(1, len(os.sched_getaffinity(0)) // workers)
+
+
+@contextlib.contextmanager
+def _thread_env(threads: int) -> Iterator[None]:
+    """Set the thread-count variables a spawned child reads at start (the user's own win)."""
+    added = [k for k in THREAD_ENV_VARS if k not in os.environ]
+    os.environ.update({k: str(threads) for k in added})
+    try:
+        yield
+    finally:
+        for k in added:
+            os.environ.pop(k, None)
+
+
+def _limit_threads(threads: int) -> None:
+    """In a worker, before any rendering: llvmpipe reads its variable when GL starts."""
+    import cv2
+
+    os.environ.setdefault("LP_NUM_THREADS", str(threads))
+    cv2.setNumThreads(threads)
+
+
 def _peak_rss_mb() -> float:
     """This process's peak resident memory [MB] (Linux reports ru_maxrss in KiB)."""
     import resource
@@ -95,15 +126,14 @@ def _peak_rss_mb() -> float:
 
 
 def _case_row(base_data: dict, campaign_seed: int, n_cases: int, index: int, case_dir: Path,
-              retention: str) -> dict[str, Any]:
+              retention: str, threads: int) -> dict[str, Any]:
     """Fly one case in this process and return its row.
 
     Telemetry, plots and video go to ``case_dir/NNNNN/`` and are kept per
     ``retention``. Called inside a fresh worker process (either backend), so
     ``case_peak_rss_mb`` is the worker's peak memory for this one case.
     """
-    from bench.run_outputs import run_and_write
-
+    _limit_threads(threads)
     t0 = time.perf_counter()
     row: dict[str, Any] = {"case": index}
     try:
@@ -114,10 +144,23 @@ def _case_row(base_data: dict, campaign_seed: int, n_cases: int, index: int, cas
         _flatten("", {f"disp_{k}": v for k, v in drawn.items()}, disp)
         row.update(disp)
         out = case_dir / f"{index:05d}"
-        summary, _ = run_and_write(scenario, out, video=retention == "all", progress=False)
+        if retention == "all":
+            from bench.run_outputs import run_and_write
+
+            summary, _ = run_and_write(scenario, out, video=True, progress=False)
+        else:
+            # Files only for a case that failed, and only if asked: plots and
+            # Parquet would cost every case time and ~60 MB of imports.
+            from bench.run import run
+
+            result = run(scenario)
+            summary = json_safe(result.summary)
+            if retention == "failed" and not summary["landed"]:
+                from bench.run_outputs import write_run_outputs
+
+                write_run_outputs(scenario, result, out)
+            del result
         row.update(summary_row(summary))
-        if retention == "summary" or (retention == "failed" and summary["landed"]):
-            shutil.rmtree(out, ignore_errors=True)
     except Exception as exc:  # noqa: BLE001 - a case that raises is a failed case, not a failed campaign
         row.update({"outcome": "error", "landed": False, "error": f"{type(exc).__name__}: {exc}"})
     row["case_wall_time_s"] = time.perf_counter() - t0
@@ -130,14 +173,14 @@ def _write_row(cases_dir: Path, row: dict[str, Any]) -> None:
 
 
 def _case_worker(base_data: dict, campaign_seed: int, n_cases: int, index: int, case_dir: str,
-                 retention: str) -> None:
+                 retention: str, threads: int) -> None:
     """Local backend, child process: fly one case and write its row itself.
 
     The child writes the row (not the master), so a case that finished is
     kept even if the master is killed the next instant.
     """
     cases_dir = Path(case_dir)
-    _write_row(cases_dir, _case_row(base_data, campaign_seed, n_cases, index, cases_dir, retention))
+    _write_row(cases_dir, _case_row(base_data, campaign_seed, n_cases, index, cases_dir, retention, threads))
 
 
 def _ray_case(base_data: dict, campaign_seed: int, n_cases: int, index: int,
@@ -154,7 +197,7 @@ def _ray_case(base_data: dict, campaign_seed: int, n_cases: int, index: int,
 
     with tempfile.TemporaryDirectory(prefix="landbench-case-") as tmp:
         scratch = Path(tmp)
-        row = _case_row(base_data, campaign_seed, n_cases, index, scratch, retention)
+        row = _case_row(base_data, campaign_seed, n_cases, index, scratch, retention, threads=1)  # 1 CPU per task
         kept = scratch / f"{index:05d}"
         files = {p.relative_to(scratch).as_posix(): p.read_bytes()
                  for p in sorted(kept.rglob("*")) if p.is_file()} if kept.exists() else {}
@@ -266,6 +309,7 @@ class _Job:
 def _run_local(job: _Job, todo: list[int], workers: int, done: Callable[[int], Any]) -> None:
     """Local backend: one spawned process per case, at most ``workers`` at a time."""
     ctx = mp.get_context("spawn")  # a fresh interpreter per case: no inherited GL state
+    threads = threads_per_worker(workers)
     running: dict[int, tuple[Any, float, int]] = {}
     attempts: dict[int, int] = {}
     queue = list(todo)
@@ -273,9 +317,10 @@ def _run_local(job: _Job, todo: list[int], workers: int, done: Callable[[int], A
         while queue and len(running) < workers:
             i = queue.pop(0)
             attempts[i] = attempts.get(i, 0) + 1
-            p = ctx.Process(target=_case_worker,
-                            args=(job.base_data, job.campaign_seed, job.runs, i, str(job.cases_dir), job.retention))
-            p.start()
+            p = ctx.Process(target=_case_worker, args=(job.base_data, job.campaign_seed, job.runs, i,
+                                                       str(job.cases_dir), job.retention, threads))
+            with _thread_env(threads):
+                p.start()
             running[i] = (p, time.perf_counter(), attempts[i])
         time.sleep(POLL_S)
         for i, (p, t_start, attempt) in list(running.items()):

@@ -246,7 +246,8 @@ def campaign_table(rows: Sequence[Mapping[str, Any]], criteria: Mapping[str, Any
         Lines joined with ``\\n`` (no trailing newline): number of cases,
         outcome counts, success rate with its Wilson 95 % interval, mean /
         p95 / max of the touchdown speeds, tilt and miss distance over the
-        cases that landed or touched down, mean wall time per case, and the
+        cases that landed or touched down, mean wall time per case, the
+        workers' peak memory (``case_peak_rss_mb``) where recorded, and the
         failed cases (outcome, then the first line of their error,
         truncated; at most ``FAILED_LIST_MAX``).
 
@@ -284,6 +285,10 @@ def campaign_table(rows: Sequence[Mapping[str, Any]], criteria: Mapping[str, Any
     walls = walls[np.isfinite(walls)]
     lines.append(f"wall time per case: mean {_fmt(float(walls.mean()) if walls.size else math.nan, '.2f', 's')}"
                  f" ({walls.size} timed)")
+    rss = _column(rows, "case_peak_rss_mb")
+    rss = rss[np.isfinite(rss)]
+    if rss.size:  # rows of older campaigns, and killed cases, have none
+        lines.append(f"peak memory per worker: max {rss.max():.0f} MB, mean {rss.mean():.0f} MB")
 
     failed = [r for r in rows if not _landed(r)]
     if failed:

@@ -5,7 +5,10 @@ Reported, all on the scenario's terrain:
     * render time per frame at 256^2 and 512^2 [ms] (median and mean over the
       timed frames, the camera sweeping down a descent so caching cannot
       flatter it), with and without the detector noise model;
-    * physics steps per second in free flight and at rest on the ground.
+    * physics steps per second in free flight and at rest on the ground;
+    * with ``--campaign N``, instead: Monte Carlo throughput [cases/h] of the
+      same N cases at 1 and 2 workers (or ``--campaign-workers``), the
+      speed-up over the first count, and each worker's peak memory [MB].
 
 These are figures for the README, not pass/fail tests: CI machines are noisy.
 """
@@ -112,4 +115,64 @@ def format_perf(r: dict) -> str:
         f"physics: {p['free_flight']:,.0f} steps/s in flight, {p['on_ground_contacts']:,.0f} steps/s on the ground "
         f"(dt = {r['physics_dt_ns'] / 1e6:g} ms)"
     )
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------ campaign speed
+def run_campaign_perf(scenario: Scenario, runs: int, workers: tuple[int, ...] = (1, 2), campaign_seed: int = 1,
+                      backend: str = "local") -> dict:
+    """Throughput of the same campaign at several worker counts (``landbench perf --campaign N``).
+
+    The same ``runs`` cases (same campaign seed) are flown once per worker
+    count, one after the other in this process, so the ratio compares like
+    with like on the same machine at the same time.
+
+    Args:
+        scenario: Base scenario (its dispersions are drawn per case).
+        runs: Cases per campaign.
+        workers: Worker counts to time; the first is the baseline of the speed-ups.
+        campaign_seed: Campaign seed.
+        backend: ``local`` or ``ray``.
+
+    Returns:
+        ``{"runs", "backend", "results": {k: {wall_s, cases_per_hour, speedup,
+        landed, peak_rss_mb_max, identical_to_baseline}}}``.
+    """
+    import tempfile
+    from pathlib import Path
+
+    from bench.mc import landing_values, run_campaign
+
+    if runs < 1:
+        raise ValueError(f"--campaign {runs}: must be >= 1 case")
+    if not workers or min(workers) < 1:
+        raise ValueError(f"--campaign-workers {list(workers)}: give worker counts >= 1, e.g. 1,2")
+    results: dict[int, dict] = {}
+    baseline = None
+    with tempfile.TemporaryDirectory(prefix="landbench-perf-") as tmp:
+        for k in workers:
+            t0 = time.perf_counter()
+            rows = run_campaign(scenario, runs, Path(tmp) / f"w{k}", campaign_seed, workers=k, backend=backend,
+                                progress=False)
+            wall_s = time.perf_counter() - t0
+            values = [landing_values(r) for r in rows]
+            baseline = baseline if baseline is not None else (values, wall_s)
+            results[k] = {
+                "wall_s": wall_s,
+                "cases_per_hour": runs * 3600.0 / wall_s,
+                "speedup": baseline[1] / wall_s,
+                "landed": sum(r["outcome"] == "landed" for r in rows),
+                "peak_rss_mb_max": max(float(r.get("case_peak_rss_mb", float("nan"))) for r in rows),
+                "identical_to_baseline": values == baseline[0],
+            }
+    return {"runs": runs, "backend": backend, "campaign_seed": campaign_seed, "results": results}
+
+
+def format_campaign_perf(r: dict) -> str:
+    lines = [f"campaign of {r['runs']} cases (seed {r['campaign_seed']}, backend {r['backend']}):"]
+    for k, v in r["results"].items():
+        lines.append(
+            f"  {k} worker{'s' if k > 1 else ' '}: {v['wall_s']:7.1f} s, {v['cases_per_hour']:6.0f} cases/h "
+            f"({v['speedup']:.2f}x), {v['landed']}/{r['runs']} landed, peak memory per worker "
+            f"{v['peak_rss_mb_max']:.0f} MB, cases identical to the first: {'yes' if v['identical_to_baseline'] else 'NO'}")
     return "\n".join(lines)

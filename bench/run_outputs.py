@@ -17,7 +17,7 @@ from pathlib import Path
 
 from bench.io import atomic_write_text, json_safe
 from bench.report import CameraVideo, frame_caption, summary_table, write_plots, write_telemetry_parquet
-from bench.run import run
+from bench.run import RunResult, run
 from bench.scenario import NS_PER_S, Scenario, scenario_to_toml
 
 SUMMARY = "summary.json"
@@ -46,23 +46,37 @@ def run_and_write(scenario: Scenario, out: Path, video: bool = True, progress: b
 
     try:
         result = run(scenario, frame_sink=sink if writer is not None else None, progress=progress)
-        summary = json_safe(result.summary)
-        outputs = {"scenario": out / SCENARIO, "summary": out / SUMMARY, "telemetry": out / TELEMETRY, "plots": out / PLOTS}
-        atomic_write_text(outputs["scenario"], scenario_to_toml(scenario))
-        write_telemetry_parquet(result.telemetry, outputs["telemetry"])
-        touchdown = summary["touchdown"] if summary["touchdown"]["t_s"] is not None else None
-        write_plots(result.telemetry, result.terrain, outputs["plots"],
-                    title=f"{scenario.name}: seed {scenario.seed}, {scenario.guidance.law} guidance -> {summary['outcome']}",
-                    criteria=summary["criteria"], touchdown=touchdown,
-                    sun_elevation_deg=scenario.sun.elevation_deg, sun_azimuth_deg=scenario.sun.azimuth_deg)
-        if writer is not None:
-            path = writer.close()
-            if path is not None:
-                outputs["video"] = path
-        # Last: a summary.json present means the run's files are complete.
-        atomic_write_text(outputs["summary"], json.dumps(summary, indent=2) + "\n")
+        summary, outputs = write_run_outputs(scenario, result, out, writer)
     except BaseException:
         if writer is not None:
             writer.abort()  # no half-written video left behind, whatever failed
         raise
     return summary, summary_table(summary, {k: str(v) for k, v in outputs.items()})
+
+
+def write_run_outputs(scenario: Scenario, result: RunResult, out: Path,
+                      video: CameraVideo | None = None) -> tuple[dict, dict[str, Path]]:
+    """Write the files of a finished run (``video``: its open writer, closed here).
+
+    Also used by a campaign worker that decides only after the run whether a
+    case's files are kept (``--retention failed``).
+
+    Returns:
+        (summary dict as written to summary.json, {name: path} of the files written).
+    """
+    summary = json_safe(result.summary)
+    outputs = {"scenario": out / SCENARIO, "summary": out / SUMMARY, "telemetry": out / TELEMETRY, "plots": out / PLOTS}
+    atomic_write_text(outputs["scenario"], scenario_to_toml(scenario))
+    write_telemetry_parquet(result.telemetry, outputs["telemetry"])
+    touchdown = summary["touchdown"] if summary["touchdown"]["t_s"] is not None else None
+    write_plots(result.telemetry, result.terrain, outputs["plots"],
+                title=f"{scenario.name}: seed {scenario.seed}, {scenario.guidance.law} guidance -> {summary['outcome']}",
+                criteria=summary["criteria"], touchdown=touchdown,
+                sun_elevation_deg=scenario.sun.elevation_deg, sun_azimuth_deg=scenario.sun.azimuth_deg)
+    if video is not None:
+        path = video.close()
+        if path is not None:
+            outputs["video"] = path
+    # Last: a summary.json present means the run's files are complete.
+    atomic_write_text(outputs["summary"], json.dumps(summary, indent=2) + "\n")
+    return summary, outputs

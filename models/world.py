@@ -61,6 +61,7 @@ PATCH_BASE_M = 0.01
 # Light: MuJoCo clamps lit colour at 1, so the sun's diffuse intensity is set
 # to map flat ground at the sun's elevation to this fraction of the albedo.
 FLAT_GROUND_EXPOSURE = 0.9
+SHADOW_MAP_PX = 2048  # side of the shadow depth map when shadows are on [px]
 AMBIENT_LIGHT = 0.04  # earthshine/scatter floor, keeps shadows from going fully black
 MAX_SUN_DIFFUSE = 4.0
 
@@ -125,6 +126,8 @@ def world_mjcf(terrain: Terrain, lander: LanderConfig, camera: CameraConfig, sun
     sun_dir = sun.direction_L()
     diffuse = min(FLAT_GROUND_EXPOSURE / sun_dir[2], MAX_SUN_DIFFUSE)
     shadow = "true" if sun.shadows else "false"
+    # Without shadows, no shadow map: MuJoCo would still allocate it in every GL context.
+    shadow_px = SHADOW_MAP_PX if sun.shadows else 0
     patch_assets = patch_geom = ""
     if terrain.patch is not None:
         pt = terrain.patch
@@ -149,7 +152,7 @@ def world_mjcf(terrain: Terrain, lander: LanderConfig, camera: CameraConfig, sun
   <visual>
     <global offwidth="{offw}" offheight="{offh}"/>
     <headlight active="0" ambient="0 0 0" diffuse="0 0 0" specular="0 0 0"/>
-    <quality shadowsize="2048"/>
+    <quality shadowsize="{shadow_px}"/>
   </visual>
   <asset>
     <hfield name="terrain" nrow="{n_rows}" ncol="{n_cols}" size="{half} {half} {z_range} {HFIELD_BASE_M}"/>

@@ -143,3 +143,11 @@ def test_bad_campaign_arguments(tmp_path, capsys):
     assert "--runs" in capsys.readouterr().err
     assert main(["mc", "--resume", str(tmp_path / "nothing"), "--runs", "2", *_sets()]) == 2
     assert "campaign" in capsys.readouterr().err
+
+
+def test_perf_campaign_reports_throughput_per_worker_count(capsys):
+    assert main(["perf", "--campaign", "2", "--campaign-workers", "1,2", *_sets()]) == 0
+    out = capsys.readouterr().out
+    assert "1 worker" in out and "2 workers" in out and "cases/h" in out and "identical to the first: yes" in out
+    assert main(["perf", "--campaign", "2", "--campaign-workers", "one", *_sets()]) == 2
+    assert "--campaign-workers" in capsys.readouterr().err

@@ -341,3 +341,10 @@ def test_statistics_only_over_touchdowns():
     assert _stat_row(text, "tilt")[-2:] == ["0", "over"]
     axd = _axes(campaign_figure(rows, CRITERIA))
     assert _hist_total(axd["v_vertical"]) == 2
+
+
+def test_campaign_table_peak_memory():
+    rows = [{"case": i, "outcome": "landed", "landed": True, "case_peak_rss_mb": m}
+            for i, m in enumerate([500.0, 520.0, None])]
+    assert "peak memory per worker: max 520 MB, mean 510 MB" in campaign_table(rows)
+    assert "peak memory" not in campaign_table([{"case": 0, "outcome": "landed", "landed": True}])

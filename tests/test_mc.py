@@ -151,3 +151,18 @@ def test_perf_campaign_reports_throughput_per_worker_count(capsys):
     assert "1 worker" in out and "2 workers" in out and "cases/h" in out and "identical to the first: yes" in out
     assert main(["perf", "--campaign", "2", "--campaign-workers", "one", *_sets()]) == 2
     assert "--campaign-workers" in capsys.readouterr().err
+
+
+def test_retention_keeps_the_files_of_failed_cases_only(tmp_path):
+    # Case 1's limits are impossible to meet, so it touches down but does not land.
+    strict = [*QUICK, 'dispersions."landing.v_vertical_max_mps"={dist="choice", values=[5.0, 0.01]}']
+    base = load_scenario(None, strict)
+    rows = mc.run_campaign(base, 4, tmp_path / "f", campaign_seed=8, retention="failed", workers=2, progress=False)
+    for r in rows:
+        kept = tmp_path / "f" / mc.CASES / f"{r['case']:05d}"
+        assert (kept / "telemetry.parquet").is_file() == (not r["landed"]), r
+        if not r["landed"]:
+            assert json.loads((kept / "summary.json").read_text())["outcome"] == r["outcome"]
+    assert {r["landed"] for r in rows} == {True, False}, "the draw should give both kinds of case"
+    rows = mc.run_campaign(base, 4, tmp_path / "s", campaign_seed=8, retention="summary", workers=2, progress=False)
+    assert not [p for p in (tmp_path / "s" / mc.CASES).iterdir() if p.is_dir()]

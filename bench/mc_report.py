@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from bench.io import save_figure
-from bench.report import check_criteria
+from bench.report import check_criteria, draw_hillshade
 
 if TYPE_CHECKING:  # typing only
     from matplotlib.figure import Figure
@@ -316,21 +316,6 @@ def _map_bounds(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float, floa
     return cx - half, cx + half, cy - half, cy + half
 
 
-def _draw_hillshade(ax, terrain: Terrain, bounds: tuple[float, float, float, float],
-                    sun_elevation_deg: float, sun_azimuth_deg: float) -> None:
-    """The terrain hillshade under ``bounds`` (south-up grid, origin='lower'); only that window is shaded."""
-    x0, x1, y0, y1 = bounds
-    n = terrain.height_m.shape[0]
-    half, s = terrain.size_m / 2, terrain.spacing_m
-    j0, j1 = (int(np.clip(np.floor((v + half) / s), 0, n - 1)) for v in (x0, x1))
-    i0, i1 = (int(np.clip(np.floor((v + half) / s), 0, n - 1)) for v in (y0, y1))
-    j1, i1 = min(j1 + 1, n - 1), min(i1 + 1, n - 1)
-    shade = terrain.hillshade(sun_elevation_deg, sun_azimuth_deg)[i0:i1 + 1, j0:j1 + 1]
-    if shade.size:
-        extent = (-half + (j0 - 0.5) * s, -half + (j1 + 0.5) * s, -half + (i0 - 0.5) * s, -half + (i1 + 0.5) * s)
-        ax.imshow(shade, cmap="gray", origin="lower", extent=extent, vmin=0.0, vmax=1.0, interpolation="bilinear")
-
-
 def _draw_map(ax, rows, terrain, sun_elevation_deg: float, sun_azimuth_deg: float) -> None:
     from matplotlib.patches import Ellipse
 
@@ -345,7 +330,7 @@ def _draw_map(ax, rows, terrain, sun_elevation_deg: float, sun_azimuth_deg: floa
         bx, by = np.concatenate((bx, [cx - ex, cx + ex])), np.concatenate((by, [cy - ey, cy + ey]))
     bounds = _map_bounds(bx, by)
     if terrain is not None:
-        _draw_hillshade(ax, terrain, bounds, sun_elevation_deg, sun_azimuth_deg)
+        draw_hillshade(ax, terrain, bounds, sun_elevation_deg, sun_azimuth_deg)
     else:
         ax.grid(alpha=0.3)
     outcomes = np.array([_outcome(r) for r in rows], dtype=object)

@@ -326,13 +326,15 @@ def _top_view_bounds(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float,
     return cx - half, cx + half, cy - half, cy + half
 
 
-def _draw_top_view(ax, terrain: Terrain, x: np.ndarray, y: np.ndarray, i_td: int | None,
+def draw_hillshade(ax, terrain: Terrain, bounds: tuple[float, float, float, float],
                    sun_elevation_deg: float, sun_azimuth_deg: float) -> None:
-    """Ground track over the terrain hillshade, cropped to the flown area (south-up grid, origin='lower')."""
-    x0, x1, y0, y1 = _top_view_bounds(x, y)
+    """The terrain hillshade under ``bounds`` (x0, x1, y0, y1) [m] (south-up grid, origin='lower').
+
+    Only that window is shaded: the vertex index ranges covering it, clamped to the tile.
+    """
+    x0, x1, y0, y1 = bounds
     n = terrain.height_m.shape[0]
     half, s = terrain.size_m / 2, terrain.spacing_m
-    # Vertex index ranges covering the crop (clamped to the tile); hillshade only that window.
     j0, j1 = (int(np.clip(np.floor((v + half) / s), 0, n - 1)) for v in (x0, x1))
     i0, i1 = (int(np.clip(np.floor((v + half) / s), 0, n - 1)) for v in (y0, y1))
     j1, i1 = min(j1 + 1, n - 1), min(i1 + 1, n - 1)
@@ -340,6 +342,13 @@ def _draw_top_view(ax, terrain: Terrain, x: np.ndarray, y: np.ndarray, i_td: int
     if shade.size:
         extent = (-half + (j0 - 0.5) * s, -half + (j1 + 0.5) * s, -half + (i0 - 0.5) * s, -half + (i1 + 0.5) * s)
         ax.imshow(shade, cmap="gray", origin="lower", extent=extent, vmin=0.0, vmax=1.0, interpolation="bilinear")
+
+
+def _draw_top_view(ax, terrain: Terrain, x: np.ndarray, y: np.ndarray, i_td: int | None,
+                   sun_elevation_deg: float, sun_azimuth_deg: float) -> None:
+    """Ground track over the terrain hillshade, cropped to the flown area (south-up grid, origin='lower')."""
+    x0, x1, y0, y1 = bounds = _top_view_bounds(x, y)
+    draw_hillshade(ax, terrain, bounds, sun_elevation_deg, sun_azimuth_deg)
     ax.plot(x, y, color="tab:orange", lw=1.5, label="ground track")
     ax.plot(x[0], y[0], marker="^", color="cyan", ms=8, mec="k", ls="none", label="start")
     ax.plot(0, 0, marker="+", color="red", ms=14, mew=2, ls="none", label="target")

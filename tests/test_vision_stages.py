@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -13,6 +14,7 @@ from vision import (
     detect_features,
     detect_in_subimages,
     eigen_threshold_test,
+    fixation_areas,
     forward_backward,
     gradients,
     laplacian8,
@@ -25,6 +27,7 @@ from vision import (
     structure_tensor,
     variance_map,
 )
+from vision.lk import OPENCV_MIN_EIG_SCALE
 
 
 def smooth_periodic_texture(n: int, sigma: float, seed: int = 0) -> np.ndarray:
@@ -308,6 +311,59 @@ def test_numpy_lk_equals_opencv_lk_on_same_inputs():
     assert ok.mean() > 0.95
     d = np.linalg.norm(ours.xy[ok] - cv.xy[ok], axis=1)
     assert np.median(d) < 0.01 and d.max() < 0.05
+
+
+def _numpy_lk_gate_value(img: np.ndarray, xy: np.ndarray, window: int) -> np.ndarray:
+    """What :func:`lucas_kanade` compares with ``min_eig``: lambda_1 of G built
+    from central differences (eqs. 3.1-3.3, 4.5) over the window, / window^2."""
+    ix, iy = gradients(img)
+    a, b, c = structure_tensor(ix, iy, window)
+    col, row = xy[:, 0].astype(int), xy[:, 1].astype(int)
+    f64 = np.float64
+    return min_eigenvalue(a[row, col].astype(f64), b[row, col].astype(f64), c[row, col].astype(f64)) / window**2
+
+
+def _opencv_lk_min_eig(img: np.ndarray, xy: np.ndarray, window: int) -> np.ndarray:
+    """The minimum eigenvalue OpenCV's LK reports (OPTFLOW_LK_GET_MIN_EIGENVALS)
+    and compares with minEigThreshold."""
+    pts = xy.astype(np.float32).reshape(-1, 1, 2)
+    _, _, err = cv2.calcOpticalFlowPyrLK(
+        img, img, pts, None, winSize=(window, window), maxLevel=0,
+        flags=cv2.OPTFLOW_LK_GET_MIN_EIGENVALS, minEigThreshold=0.0,
+    )
+    return err.ravel().astype(np.float64)
+
+
+def test_opencv_min_eig_scale_matches_what_opencv_reports():
+    window = 9
+    rng = np.random.default_rng(21)
+    # I(x, y) = f(x) + g(y): OpenCV's Scharr derivative is then exactly 32 x the
+    # central difference (its 3-10-3 cross smoothing acts on a constant), so the
+    # two minimum eigenvalues differ only by the normalisation under test.
+    f, g = rng.integers(0, 128, 64), rng.integers(0, 128, 64)
+    sep = (f[None, :] + g[:, None]).astype(np.uint8)
+    xy = rng.integers(8, 56, (100, 2)).astype(np.float64)
+    ours = _numpy_lk_gate_value(sep, xy, window)
+    assert ours.min() > 0
+    np.testing.assert_allclose(_opencv_lk_min_eig(sep, xy, window) / OPENCV_MIN_EIG_SCALE, ours, rtol=1e-4)
+    # Real textured windows: equal up to the difference between Scharr and
+    # central differences, a few per cent on smooth texture.
+    tex = np.clip(np.rint(smooth_periodic_texture(128, 3.0, seed=12)), 0, 255).astype(np.uint8)
+    xy = rng.integers(12, 116, (300, 2)).astype(np.float64)
+    ours = _numpy_lk_gate_value(tex, xy, window)
+    ratio = _opencv_lk_min_eig(tex, xy, window) / OPENCV_MIN_EIG_SCALE / ours
+    assert abs(np.median(ratio) - 1.0) < 0.04, np.median(ratio)
+    assert np.abs(ratio - 1.0).max() < 0.1, (ratio.min(), ratio.max())
+    # Hence one min_eig gates both backends alike: with the threshold at the
+    # median window, they accept and reject the same points (bar those within
+    # 10 % of the threshold, where the derivative filters may disagree).
+    thr = float(np.median(ours))
+    st_np = lucas_kanade(tex, tex, xy, window=window, min_eig=thr).status
+    st_cv = lucas_kanade_opencv(tex, tex, xy, window=window, min_eig=thr).status
+    clear = np.abs(ours / thr - 1.0) > 0.1
+    assert clear.sum() > 200
+    np.testing.assert_array_equal(st_cv[clear], st_np[clear])
+    np.testing.assert_array_equal(st_np[clear], ours[clear] >= thr)
 
 
 def test_forward_backward_rejects_inconsistent_points():

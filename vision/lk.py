@@ -40,8 +40,22 @@ DEFAULT_EPS = 0.01
 DEFAULT_MIN_EIG = 1e-2
 """Default lower bound on the smallest eigenvalue of G per window pixel
 [DN^2/px^2 per px]: below it the window is too flat to track (aperture)."""
-OPENCV_MIN_EIG_SCALE = 1.0 / (255.0 * 255.0)
-"""OpenCV normalises its minimum-eigenvalue test by the 8-bit range squared."""
+OPENCV_DERIV_SCALE = 32
+"""OpenCV's LK derivative (3-10-3 Scharr, kept as int16) over the central
+difference of eqs. (3.1)-(3.2): 2 x (3 + 10 + 3) / 2 = 32 on a smooth image."""
+OPENCV_G_SHIFT_BITS = 20
+"""OpenCV's LK sums its integer gradient products and scales the sums by
+2^-20 (FLT_SCALE in lkpyramid.cpp) before taking the eigenvalue."""
+OPENCV_MIN_EIG_SCALE = OPENCV_DERIV_SCALE**2 / 2.0**OPENCV_G_SHIFT_BITS
+"""``min_eig`` [DN^2/px^2 per px] -> OpenCV's ``minEigThreshold``: = 1/1024.
+
+OpenCV's LK (``calcOpticalFlowPyrLK``, also its ``err`` with
+``OPTFLOW_LK_GET_MIN_EIGENVALS``) tests ``lambda_1(G_cv) / (w h)`` where G_cv
+sums products of the Scharr derivatives (32 x ours) scaled by 2^-20, i.e.
+``G_cv = G * 32^2 / 2^20 = G / 1024`` with G of eq. (4.5). Both divide by the
+window area, so the NumPy gate ``lambda_1(G) / w^2 >= min_eig`` is OpenCV's
+``minEig >= min_eig / 1024`` (exact where Scharr's cross smoothing is
+neutral, within a few per cent on smooth texture; tested)."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -285,6 +285,30 @@ def test_lucas_kanade_recovers_subpixel_shift(shift):
     assert np.abs((res.xy - xy).mean(axis=0) - shift).max() < 0.02
 
 
+def test_lucas_kanade_reports_unconverged_points_invalid():
+    tex = smooth_periodic_texture(128, 2.0, seed=9)
+    a = tex.astype(np.float32)
+    shift = (1.7, -1.2)
+    b = fourier_shift(tex, *shift).astype(np.float32)
+    rng = np.random.default_rng(22)
+    xy = rng.integers(24, 104, (40, 2)).astype(np.float64)
+    # From 2 px away, one Newton step moves by ~2 px >> eps: no point can have
+    # converged when the iteration cap is 1, so none may be reported valid.
+    capped = lucas_kanade(a, b, xy, window=15, max_iter=1, eps=1e-3)
+    assert (capped.iterations == 1).all()
+    assert not capped.status.any()
+    # Two steps do not reach 1e-3 either (each one still moves the point).
+    assert not lucas_kanade(a, b, xy, window=15, max_iter=2, eps=1e-3).status.any()
+    # With room to iterate, the same points converge and are valid and accurate.
+    free = lucas_kanade(a, b, xy, window=15, max_iter=30, eps=1e-3)
+    assert free.status.all()
+    assert (free.iterations < 30).all()
+    assert np.linalg.norm(free.xy - xy - shift, axis=1).max() < 0.06
+    # A point that is pushed off the image is invalid too.
+    edge = lucas_kanade(a, b, np.array([[64.0, 64.0]]), init_xy=np.array([[2.0, 64.0]]), window=15)
+    assert not edge.status[0]
+
+
 def test_lucas_kanade_needs_the_seed_for_large_motion():
     tex = smooth_periodic_texture(128, 1.5, seed=11)
     a = tex.astype(np.float32)

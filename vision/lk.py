@@ -65,7 +65,8 @@ class LKResult:
     Attributes:
         xy: Tracked positions in the new frame, (P, 2) float64 [px].
         status: True where the solve is valid (inside the image, G well
-            conditioned), (P,) bool.
+            conditioned and, for :func:`lucas_kanade`, converged: an update
+            below ``eps`` within ``max_iter`` iterations), (P,) bool.
         iterations: Iterations used per point, (P,) int64 (-1 if unknown).
     """
 
@@ -140,7 +141,8 @@ def lucas_kanade(
             when the guess is within about half the window of the truth.
         window: Odd window side [px].
         max_iter: Iteration cap, >= 1.
-        eps: Stop when the update is below this [px].
+        eps: Stop when the update is below this [px]; a point whose update
+            is still >= eps after ``max_iter`` iterations is invalid.
         min_eig: Smallest eigenvalue of G / window^2 needed [DN^2/px^2].
 
     Returns:
@@ -192,6 +194,9 @@ def lucas_kanade(
         iterations[idx] += 1
         status[idx] &= ok
         active[idx] = ok & (dx * dx + dy * dy >= eps * eps)
+    # Still active after max_iter updates: the last update was >= eps, so the
+    # solve did not converge and its position is not a result.
+    status &= ~active
     height, width = image.shape
     on_image = (pos[:, 0] >= half) & (pos[:, 1] >= half) & (pos[:, 0] <= width - 1 - half) & (pos[:, 1] <= height - 1 - half)
     return LKResult(xy=pos, status=status & on_image, iterations=iterations)
@@ -220,6 +225,12 @@ def lucas_kanade_opencv(
     block matching replaces it), with Scharr derivatives and fixed-point
     bilinear weights. Frames are converted to uint8 (rounded) when float32,
     since OpenCV's LK accepts only 8-bit images.
+
+    OpenCV keeps ``status`` 1 when it stops at the iteration cap, and reports
+    neither the iteration count nor the last update, so unlike
+    :func:`lucas_kanade` this status does not include convergence; the
+    forward-backward check (:func:`forward_backward`) is what rejects such
+    points here.
 
     Returns:
         :class:`LKResult` (``iterations`` are -1: OpenCV does not report them).

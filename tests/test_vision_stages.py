@@ -219,6 +219,35 @@ def test_detect_features_exhaustive_finds_corners_with_nms():
     assert len(detect_features(np.full((30, 30), 9, np.uint8), lambda_t=1.0).xy) == 0
 
 
+def test_nms_keeps_one_point_of_a_tie():
+    img = np.full((40, 48), 40.0, np.float32)
+    img[10, 12:14] = 200.0  # horizontal domino: lambda_1 ties at (12, 10) and (13, 10)
+    img[25:27, 30] = 200.0  # vertical domino: ties at (30, 25) and (30, 26)
+    img[12:14, 34:36] = 200.0  # 2 x 2 square: four-way tie
+    ix, iy = gradients(img)
+    lam = min_eigenvalue(*structure_tensor(ix, iy, 3))
+    assert lam[10, 12] == lam[10, 13] == lam[10].max()
+    assert lam[25, 30] == lam[26, 30] == lam[:, 30].max()
+    assert lam[12, 34] == lam[12, 35] == lam[13, 34] == lam[13, 35] == lam.max()
+    for r in (1, 2):
+        f = detect_features(img, window=3, lambda_t=1000.0, max_features=50, nms_radius=r)
+        # Exactly one point per plateau: the first in raster order.
+        assert f.xy.tolist() == [[34.0, 12.0], [12.0, 10.0], [30.0, 25.0]], r
+        np.testing.assert_array_equal(f.score, [lam[12, 34], lam[10, 12], lam[25, 30]])
+    # Same rule in a stack of sub-images.
+    g = detect_in_subimages(img, np.array([[6, 4], [26, 6]]), (16, 16), lambda_t=1000.0, nms_radius=1)
+    assert sorted(g.xy.tolist()) == [[12.0, 10.0], [34.0, 12.0]]
+    # Many ties (a two-level image): no two kept points within the radius.
+    rng = np.random.default_rng(23)
+    blocks = (rng.random((16, 16)) < 0.5).astype(np.float32) * 120
+    two_level = np.kron(blocks, np.ones((3, 3), np.float32))
+    for r in (1, 2, 3):
+        f = detect_features(two_level, window=3, lambda_t=100.0, max_features=10_000, nms_radius=r)
+        assert len(f.xy) > 20
+        pair = np.abs(f.xy[:, None, :] - f.xy[None, :, :]).max(axis=2) + np.eye(len(f.xy)) * 99
+        assert pair.min() > r, r
+
+
 def test_detect_in_subimages_limits_and_regions():
     img, corners = corner_image()
     tl = np.array([[8, 6], [32, 34]])

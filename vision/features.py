@@ -194,7 +194,8 @@ def detect_in_subimages(
         lambda_t: Threshold on the smallest eigenvalue of G [DN^2], eq. (3.4).
         max_features: Most points kept per sub-image (strongest lambda_1 first).
         nms_radius: Non-maximum suppression radius [px]: a kept point is the
-            largest lambda_1 in its (2 r + 1)^2 neighbourhood (exhaustive), or is
+            largest lambda_1 in its (2 r + 1)^2 neighbourhood, ties going to
+            the first pixel in raster order (exhaustive), or is
             more than r pixels (Chebyshev) from earlier accepted points (random).
         strategy: ``"exhaustive"`` (default, paper) or ``"random"``.
         rng: Generator for ``"random"``; never the global NumPy state.
@@ -246,20 +247,35 @@ def _nms_top_k(
     keep: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray, nms_radius: int, max_features: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Non-maximum suppression on lambda_1 over retained pixels, then the
-    ``max_features`` strongest per sub-image. Arrays are (T, h, w)."""
+    ``max_features`` strongest per sub-image. Arrays are (T, h, w).
+
+    A pixel survives when its lambda_1 is the largest in its (2r + 1)^2
+    neighbourhood, ties going to the first pixel in raster order: it must be
+    >= every neighbour and > every neighbour before it (the rows above, and
+    the columns to its left in its row). So exactly one pixel of a plateau of
+    equal maxima survives, and no two kept points are within r of each other.
+    """
     lam = np.zeros(keep.shape, np.float32)
     # The square root is taken only at pixels that passed eq. (3.4).
     lam[keep] = min_eigenvalue(a[keep], b[keep], c[keep])
     if nms_radius > 0:
         n_t, h, w = keep.shape
         r = nms_radius
+        side = 2 * r + 1
         # Zero padding of r on every side keeps sub-images from seeing each
         # other when the stack is dilated as one 2-D image.
         padded = np.zeros((n_t, h + 2 * r, w + 2 * r), np.float32)
         padded[:, r : r + h, r : r + w] = lam
-        dil = cv2.dilate(padded.reshape(n_t * (h + 2 * r), w + 2 * r), np.ones((2 * r + 1, 2 * r + 1), np.uint8))
-        dil = dil.reshape(n_t, h + 2 * r, w + 2 * r)[:, r : r + h, r : r + w]
-        keep = keep & (lam >= dil)
+        flat = padded.reshape(n_t * (h + 2 * r), w + 2 * r)
+        earlier = np.zeros((side, side), np.uint8)  # anchor at the centre
+        earlier[:r, :] = 1
+        earlier[r, :r] = 1
+
+        def neighbourhood_max(kernel: np.ndarray) -> np.ndarray:
+            out = cv2.dilate(flat, kernel)
+            return out.reshape(n_t, h + 2 * r, w + 2 * r)[:, r : r + h, r : r + w]
+
+        keep = keep & (lam >= neighbourhood_max(np.ones((side, side), np.uint8))) & (lam > neighbourhood_max(earlier))
     t_idx, r_idx, c_idx = np.nonzero(keep)
     score = lam[t_idx, r_idx, c_idx].astype(np.float64)
     # Sort by (sub-image, -score) and keep the first max_features of each group.

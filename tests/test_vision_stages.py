@@ -125,6 +125,33 @@ def test_select_templates_rules():
     assert select_templates(np.zeros((40, 40)), 5, s, s, (20, 20), (220, 220), 10, 40.0).shape == (0, 2)
 
 
+def test_select_templates_takes_high_variance_blocks_that_are_not_local_maxima():
+    # One broad high-variance area whose peak, at map row 1 (y = 5 px), lies
+    # inside the 20 px border: no block inside the border is a 3 x 3 local
+    # maximum, yet the highest-variance blocks there must become templates
+    # (paper §2.3: "the high-local-variance points are selected").
+    s = 5
+    r, c = np.mgrid[0:40, 0:40]
+    var = 1000.0 - ((r - 1.0) ** 2 + (c - 20.3) ** 2)
+    tl = select_templates(var, 3, s, s, (20, 20), (220, 220), border_px=20, min_separation_px=40.0)
+    # Greedy by variance inside the border (rows >= 4): (4, 20) first, then
+    # the best blocks 40 px (8 blocks) away from the chosen ones: (4, 28) with
+    # 1000 - 68.29, then (4, 12) with 1000 - 77.89.
+    assert tl.tolist() == [[100, 20], [140, 20], [60, 20]]
+    # A ridge of equal variance (a plateau along a row): templates along it,
+    # spread by the separation.
+    ridge = np.zeros((40, 40))
+    ridge[20, 5:36] = 50.0
+    ridge[19, 5:36] = ridge[21, 5:36] = 10.0
+    tl = select_templates(ridge, 4, s, s, (20, 20), (220, 220), border_px=10, min_separation_px=50.0)
+    assert tl.tolist() == [[25, 100], [75, 100], [125, 100], [175, 100]]
+    # An occupied peak: the next-best free blocks on its flank are used.
+    hill = 1000.0 - ((r - 20.0) ** 2 + (c - 20.0) ** 2)
+    occ = np.array([[109.5, 109.5]])  # centre of the template at the peak (100, 100)
+    tl = select_templates(hill, 1, s, s, (20, 20), (220, 220), 10, 40.0, occupied_xy=occ)
+    assert tl.tolist() == [[100, 60]]  # 8 blocks up (the first of the four ties in raster order)
+
+
 @pytest.mark.parametrize("shift", [(3, -2), (-7, 5), (0, 0)])
 @pytest.mark.parametrize("dtype", [np.uint8, np.float32])
 def test_match_templates_finds_integer_shift_exactly(shift, dtype):

@@ -139,8 +139,12 @@ def select_templates(
     the image border; (c) spread out -- no template centre closer than
     ``min_separation_px`` to another one (nor to ``occupied_xy``), which also
     rules out clusters; (d) a fixed number ``n`` (fewer when the image does not
-    hold enough distinct textured areas, none on a blank image). Candidates are
-    the local maxima (3 x 3) of the variance map.
+    hold enough distinct textured areas, none on a blank image). Every block
+    of the variance map inside the border is a candidate, not only its local
+    maxima: the best free block may lie on the flank of a peak that is inside
+    the border or already taken. Candidates are taken greedily in decreasing
+    variance (ties in raster order), each ruling out the candidates closer
+    than ``min_separation_px``.
 
     Args:
         variance: V from :func:`variance_map`, (hv, wv) [DN^2], computed on an
@@ -164,40 +168,50 @@ def select_templates(
     height, width = image_shape
     if n == 0 or variance.size == 0:
         return np.zeros((0, 2), np.int64)
-    v32 = variance.astype(np.float32)
-    local_max = (v32 >= cv2.dilate(v32, np.ones((3, 3), np.uint8))) & (variance > min_variance)
-    rows, cols = np.nonzero(local_max)
-    x0 = cols * sx
-    y0 = rows * sy
-    inside = (
-        (x0 >= border_px)
-        & (y0 >= border_px)
-        & (x0 + wx_full <= width - border_px)
-        & (y0 + wy_full <= height - border_px)
+    # Map elements whose template lies inside the border: v (rows) in
+    # [v_lo, v_hi], u (columns) in [u_lo, u_hi]; top-left (x, y) = (Sx u, Sy v).
+    hv, wv = variance.shape
+    u_lo, v_lo = -(-border_px // sx), -(-border_px // sy)
+    u_hi = min((width - border_px - wx_full) // sx, wv - 1)
+    v_hi = min((height - border_px - wy_full) // sy, hv - 1)
+    if u_hi < u_lo or v_hi < v_lo:
+        return np.zeros((0, 2), np.int64)
+    score = np.where(
+        variance[v_lo : v_hi + 1, u_lo : u_hi + 1] > min_variance,
+        variance[v_lo : v_hi + 1, u_lo : u_hi + 1].astype(np.float64),
+        -np.inf,
     )
-    x0, y0, score = x0[inside], y0[inside], variance[rows[inside], cols[inside]]
-    order = np.argsort(-score, kind="stable")
-    x0, y0 = x0[order], y0[order]
-    centres = np.stack([x0 + 0.5 * (wx_full - 1), y0 + 0.5 * (wy_full - 1)], axis=1)
-    min_sep2 = float(min_separation_px) ** 2
-    free = np.ones(order.size, bool)
+    # Template centres of the candidates [px], per column and per row.
+    cx = np.arange(u_lo, u_hi + 1) * sx + 0.5 * (wx_full - 1)
+    cy = np.arange(v_lo, v_hi + 1) * sy + 0.5 * (wy_full - 1)
+    min_sep = float(min_separation_px)
+    min_sep2 = min_sep * min_sep
+
+    def rule_out_near(x: float, y: float) -> None:
+        """Drop the candidates whose centre is closer than the separation to (x, y)."""
+        c0, c1 = np.searchsorted(cx, x - min_sep, "right"), np.searchsorted(cx, x + min_sep, "left")
+        r0, r1 = np.searchsorted(cy, y - min_sep, "right"), np.searchsorted(cy, y + min_sep, "left")
+        if c1 <= c0 or r1 <= r0:
+            return
+        d2 = (cy[r0:r1, None] - y) ** 2 + (cx[None, c0:c1] - x) ** 2
+        score[r0:r1, c0:c1][d2 < min_sep2] = -np.inf
+
     if occupied_xy is not None and len(occupied_xy):
-        occ = np.asarray(occupied_xy, dtype=np.float64).reshape(-1, 2)
-        d2 = ((centres[:, None, :] - occ[None, :, :]) ** 2).sum(axis=2)
-        free &= (d2 >= min_sep2).all(axis=1)
-    chosen: list[int] = []
-    # Greedy in decreasing variance: take the best free candidate, then rule
-    # out every candidate within the separation of it.
+        for x, y in np.asarray(occupied_xy, dtype=np.float64).reshape(-1, 2).tolist():
+            rule_out_near(x, y)
+    chosen: list[tuple[int, int]] = []
+    # Greedy in decreasing variance (np.argmax: first in raster order on ties):
+    # take the best free candidate, then rule out every candidate within the
+    # separation of it (itself included).
     while len(chosen) < n:
-        idx = np.flatnonzero(free)
-        if idx.size == 0:
+        k = int(np.argmax(score))
+        r, c = divmod(k, score.shape[1])
+        if score[r, c] == -np.inf:
             break
-        k = int(idx[0])
-        chosen.append(k)
-        free[idx] &= ((centres[idx] - centres[k]) ** 2).sum(axis=1) >= min_sep2
-        free[k] = False
-    sel = np.asarray(chosen, dtype=np.intp)
-    return np.stack([x0[sel], y0[sel]], axis=1).astype(np.int64).reshape(-1, 2)
+        chosen.append(((u_lo + c) * sx, (v_lo + r) * sy))
+        score[r, c] = -np.inf
+        rule_out_near(cx[c], cy[r])
+    return np.array(chosen, dtype=np.int64).reshape(-1, 2)
 
 
 @dataclass(frozen=True, slots=True)

@@ -152,6 +152,19 @@ def test_select_templates_takes_high_variance_blocks_that_are_not_local_maxima()
     assert tl.tolist() == [[100, 60]]  # 8 blocks up (the first of the four ties in raster order)
 
 
+def test_fixation_areas_refuses_a_template_size_the_block_size_does_not_divide():
+    img = np.clip(smooth_periodic_texture(120, 1.5, seed=24), 0, 255).astype(np.uint8)
+    # 20 = 4 x 5: the variance window of eq. (2.2) is 4 x 4 blocks.
+    ok = fixation_areas(img, 3, 5, 5, 20, 10, 30.0)
+    assert ok.variance.shape == (120 // 5 - 4 + 1,) * 2 and len(ok.top_left) == 3
+    # 22 / 5 is not whole: refused, not rounded down to a 4 x 4 (20 px) window.
+    for sx, sy, size in ((5, 5, 22), (5, 3, 20), (3, 5, 20)):
+        with pytest.raises(ValueError, match=rf"template_size \({size}\) must be a multiple of sx \({sx}\) and sy \({sy}\)"):
+            fixation_areas(img, 3, sx, sy, size, 10, 30.0)
+    with pytest.raises(ValueError, match="sx must be a positive integer"):
+        fixation_areas(img, 3, 0, 5, 20, 10, 30.0)
+
+
 @pytest.mark.parametrize("shift", [(3, -2), (-7, 5), (0, 0)])
 @pytest.mark.parametrize("dtype", [np.uint8, np.float32])
 def test_match_templates_finds_integer_shift_exactly(shift, dtype):

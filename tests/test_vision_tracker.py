@@ -245,6 +245,16 @@ def test_config_validation():
         assert field.description and "[" in field.description, f"{name} lacks a description with units"
 
 
+def test_config_refuses_template_size_not_a_multiple_of_block_size():
+    # The variance window of eq. (2.2) is template_size / S blocks: refused at
+    # configuration time with a one-line message naming field, value and rule.
+    for kw, size in (({"template_size": 22}, 22), ({"subsample_x": 3}, 20), ({"subsample_y": 8}, 20)):
+        with pytest.raises(ValidationError, match=rf"template_size \({size}\) must be a multiple of subsample_x") as exc:
+            TrackerConfig(**kw)
+        assert len(exc.value.errors()) == 1 and "\n" not in exc.value.errors()[0]["msg"]
+    TrackerConfig(template_size=24, subsample_x=4, subsample_y=6)
+
+
 # --------------------------------------------------------------- flight rule
 def test_vision_never_imports_simulator_or_bench():
     for path in VISION_DIR.glob("*.py"):

@@ -254,7 +254,19 @@ def fixation_areas(
 
     Returns:
         The intermediate images and the selected templates.
+
+    Raises:
+        ValueError: If ``template_size`` is not a multiple of ``sx`` and
+            ``sy`` (the variance window ``template_size / S`` must be whole,
+            eq. 2.2; it is not rounded).
     """
+    sx, sy = _positive_int(sx, "sx"), _positive_int(sy, "sy")
+    template_size = _positive_int(template_size, "template_size")
+    if template_size % sx or template_size % sy:
+        raise ValueError(
+            f"template_size ({template_size}) must be a multiple of sx ({sx}) and sy ({sy}) "
+            "so the variance window of eq. (2.2) is whole"
+        )
     averaged = block_average(image, sx, sy)
     lap = laplacian8(averaged)
     var = variance_map(lap, template_size // sx, template_size // sy)

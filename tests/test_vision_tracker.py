@@ -255,6 +255,32 @@ def test_config_refuses_template_size_not_a_multiple_of_block_size():
     TrackerConfig(template_size=24, subsample_x=4, subsample_y=6)
 
 
+def test_config_refuses_a_border_too_small_for_the_lk_tiles():
+    # LK runs on tiles of template_size + 2 (ceil(template_size / 4) +
+    # lk_window // 2 + 2) px around each template; a frame that holds a
+    # template border_px from its edges must hold such a tile. This config was
+    # accepted and Tracker.step then failed an internal assert on 64 x 64
+    # frames (a 40 px template 10 px from the edges, a 72 px tile).
+    with pytest.raises(ValidationError, match=r"border_px \(6\) must be >= 16 .*template_size=40, lk_window=9") as exc:
+        TrackerConfig(template_size=40, border_px=6)
+    assert len(exc.value.errors()) == 1 and "\n" not in exc.value.errors()[0]["msg"]
+    with pytest.raises(ValidationError, match=r"border_px \(13\) must be >= 14 .*lk_window=15"):
+        TrackerConfig(lk_window=15, edge_margin_px=9, border_px=13)
+    # At the smallest allowed border, frames just large enough to hold a
+    # template track without error.
+    for kw in ({"template_size": 40, "border_px": 16}, {"border_px": 11}, {"lk_window": 15, "edge_margin_px": 9, "border_px": 14}):
+        cfg = TrackerConfig(**kw)
+        smallest = cfg.template_size + 2 * cfg.border_px
+        held = 0
+        for size in range(smallest, smallest + 8):
+            for seed in (0, 1):
+                tr = Tracker(cfg)
+                for img in translated_frames(3, (1.0, 0.5), size=size, seed=seed):
+                    out = tr.step(img)
+                held += len(tr.templates) > 0
+        assert held > 0, kw  # templates were placed, so the LK path ran
+
+
 # --------------------------------------------------------------- flight rule
 def test_vision_never_imports_simulator_or_bench():
     for path in VISION_DIR.glob("*.py"):

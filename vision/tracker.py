@@ -68,6 +68,13 @@ template size outside its template (it no longer belongs to the sub-image, and
 its template's displacement no longer predicts its own)."""
 
 
+def lk_tile_margin(template_size: int, lk_window: int) -> int:
+    """Rows/columns [px] an LK tile adds on each side of its template: the
+    drift slack, half the LK window and the guard. A tile is
+    ``template_size + 2 * margin`` px square."""
+    return int(np.ceil(FP_BOX_SLACK_FRAC * template_size)) + lk_window // 2 + TILE_GUARD_PX
+
+
 class TrackerConfig(BaseModel):
     """Parameters of :class:`Tracker` (pixel units refer to the full frame).
 
@@ -111,7 +118,12 @@ class TrackerConfig(BaseModel):
     template_separation_frac: float = Field(
         0.2, ge=0.0, le=1.0, description="minimum distance between template centres / shorter image side [-]"
     )
-    border_px: int = Field(16, ge=0, description="new templates keep at least this distance to the image edge [px]")
+    border_px: int = Field(
+        16,
+        ge=0,
+        description="new templates keep at least this distance to the image edge [px]; >= edge_margin_px and "
+        ">= ceil(template_size / 4) + lk_window // 2 + 2 (the LK tile margin)",
+    )
     edge_margin_px: int = Field(
         6, ge=0, description="a template closer than this to the image edge is leaving the image and replaced [px]"
     )
@@ -186,6 +198,15 @@ class TrackerConfig(BaseModel):
             )
         if self.border_px < self.edge_margin_px:
             raise ValueError(f"border_px ({self.border_px}) must be >= edge_margin_px ({self.edge_margin_px})")
+        # Templates are placed only in frames of at least template_size +
+        # 2 border_px; the LK tile around one must fit in such a frame.
+        tile_margin = lk_tile_margin(self.template_size, self.lk_window)
+        if self.border_px < tile_margin:
+            raise ValueError(
+                f"border_px ({self.border_px}) must be >= {tile_margin} = ceil({FP_BOX_SLACK_FRAC} x template_size) "
+                f"+ lk_window // 2 + {TILE_GUARD_PX}, so the LK tile around a template fits in every frame that "
+                f"holds one (template_size={self.template_size}, lk_window={self.lk_window})"
+            )
         return self
 
     @property
@@ -385,12 +406,13 @@ class Tracker:
         size = cfg.template_size
         half = cfg.lk_window // 2
         slack = int(np.ceil(FP_BOX_SLACK_FRAC * size))
-        margin = slack + half + TILE_GUARD_PX
+        margin = lk_tile_margin(size, cfg.lk_window)
         tile = size + 2 * margin
         height, width = img.shape
         n_t = new_tl.shape[0]
-        # Tiles are shifted to stay inside the frame (it is larger than a tile
-        # whenever it holds a template away from its border).
+        # Tiles are shifted to stay inside the frame. Invariant: templates are
+        # placed only in frames of >= size + 2 border_px, and the config
+        # ensures border_px >= margin, so the frame holds a tile.
         assert tile <= min(height, width)
         lim = np.array([width - tile, height - tile])
         # np.minimum/np.maximum: np.clip's dispatch costs ~10 us on arrays this small.

@@ -5,15 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import bench.tracking_eval as tracking_eval
 from bench.tracking_eval import (
     BaselineConfig,
     OpenCVBaseline,
     compare,
     evaluate,
     synthetic_descent,
+    track_metrics,
     truth_flow,
 )
-from vision import Tracker, TrackerConfig
+from vision import Tracker, TrackerConfig, Tracks
 
 
 @pytest.fixture(scope="module")
@@ -114,7 +116,9 @@ def test_tracker_and_baseline_score_well_on_descent(descent):
         assert m["within_1px_frac"] >= 0.99, name
         assert m["tracks_per_frame_mean"] > 40, name
         assert m["mean_lifetime_frames"] > 5, name
-        assert 0 < m["ms_per_frame_min_of_repeats_mean"] <= m["ms_per_frame_mean"]
+        # The timing statistics themselves are checked against a fake clock in
+        # test_compare_timing_matches_an_explicit_computation.
+        assert m["ms_per_frame_min_of_repeats_mean"] > 0
         assert m["ms_per_frame_median"] > 0
 
 
@@ -138,3 +142,97 @@ def test_evaluate_detects_a_bad_tracker(descent):
     assert m["epe_median_px"] > 0.5
     with pytest.raises(ValueError, match="equal lengths"):
         evaluate(Tracker, d.frames, d.depths[:-1], d.K, d.poses)
+
+
+def test_track_metrics_match_an_explicit_loop_on_known_tracks(descent):
+    """Tracks built from the plane homographies with known injected errors:
+    every metric of track_metrics must equal what an explicit loop gives."""
+    d = descent
+    rng = np.random.default_rng(4)
+    magnitudes = np.arange(0.05, 2.0, 0.1)  # none near the 1 px limit
+    next_id = 0
+    xy = {}  # id -> position in the current frame
+    tracks, injected = [], []
+    seen = {}  # id -> number of frames reported
+    for k in range(len(d.frames)):
+        if k > 0:
+            to_k = d.homographies[k] @ np.linalg.inv(d.homographies[k - 1])
+            moved = {}
+            for i, p in xy.items():
+                if rng.random() < 0.15:
+                    continue  # track dies
+                q = to_k @ np.array([p[0], p[1], 1.0])
+                q = q[:2] / q[2]
+                if not ((40 < q) & (q < 215)).all():
+                    continue  # leaves the well-inside area: dropped
+                e = rng.choice(magnitudes)
+                phi = rng.uniform(0, 2 * np.pi)
+                moved[i] = q + e * np.array([np.cos(phi), np.sin(phi)])
+                injected.append(e)
+            xy = moved
+        for _ in range(5 if k else 30):
+            xy[next_id] = rng.uniform(60, 196, 2)
+            next_id += 1
+        ids = np.array(list(xy), np.int64)
+        order = rng.permutation(len(ids))  # matching must go by id, not by index
+        ids = ids[order]
+        pos = np.array([xy[i] for i in ids]).reshape(-1, 2)
+        tracks.append(Tracks(ids=ids, xy=pos, prev_xy=np.full_like(pos, np.nan), age=np.zeros(len(ids), np.int64)))
+        for i in ids.tolist():
+            seen[i] = seen.get(i, 0) + 1
+    err = np.array(injected)
+    assert err.size > 200 and (err > 1.0).any() and (err <= 1.0).any()
+    m = track_metrics(tracks, d.depths, d.K, d.poses)
+    assert m["n_errors"] == err.size
+    # truth_flow agrees with the homographies to < 1e-3 px.
+    assert m["epe_median_px"] == pytest.approx(np.median(err), abs=2e-3)
+    assert m["epe_p95_px"] == pytest.approx(np.percentile(err, 95), abs=2e-3)
+    assert m["epe_max_px"] == pytest.approx(err.max(), abs=2e-3)
+    assert m["within_1px_frac"] == (err <= 1.0).mean()
+    counts = [len(t) for t in tracks]
+    assert m["tracks_per_frame_mean"] == pytest.approx(np.mean(counts))
+    assert m["tracks_per_frame_median"] == np.median(counts)
+    assert m["mean_lifetime_frames"] == pytest.approx(sum(seen.values()) / len(seen))
+
+
+def test_compare_timing_matches_an_explicit_computation(monkeypatch):
+    """ms_per_frame_* from a fake clock whose steps cost known times."""
+    n_frames, repeats = 6, 3
+    clock = [0.0]
+    monkeypatch.setattr(tracking_eval, "time", type("FakeTime", (), {"perf_counter": staticmethod(lambda: clock[0])}))
+
+    def cost_ms(name: str, rep: int, k: int) -> float:
+        base = 1.0 if name == "a" else 5.0
+        return base + 0.25 * k + (7.0 if (k + 2 * rep) % 4 == 0 else 0.0) + 0.5 * rep
+
+    def factory(name: str):
+        made = []  # instance 0 is the untimed warm-up, then one per repeat
+
+        def make():
+            rep = len(made) - 1
+            made.append(None)
+
+            class Fake:
+                k = 0
+
+                def step(self, image):
+                    clock[0] += 1e-3 * cost_ms(name, rep, self.k)
+                    self.k += 1
+                    return Tracks.empty()
+
+            return Fake()
+
+        return make
+
+    frames = [np.zeros((8, 8), np.uint8)] * n_frames
+    poses = [(np.eye(3), np.zeros(3))] * n_frames
+    res = compare({"a": factory("a"), "b": factory("b")}, frames, frames, np.eye(3), poses, repeats=repeats)
+    for name in ("a", "b"):
+        t = np.array([[cost_ms(name, rep, k) for k in range(n_frames)] for rep in range(repeats)])
+        assert res[name]["ms_per_frame_mean"] == pytest.approx(t.mean())
+        assert res[name]["ms_per_frame_median"] == pytest.approx(np.median(t))
+        assert res[name]["ms_per_frame_min_of_repeats_mean"] == pytest.approx(t.min(axis=0).mean())
+        assert res[name]["tracks_per_frame_mean"] == 0 and res[name]["n_errors"] == 0
+    # The three statistics differ here, so a mix-up between them would show.
+    t = np.array([[cost_ms("a", rep, k) for k in range(n_frames)] for rep in range(repeats)])
+    assert len({round(t.mean(), 6), round(float(np.median(t)), 6), round(t.min(axis=0).mean(), 6)}) == 3

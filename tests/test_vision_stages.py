@@ -159,7 +159,8 @@ def test_fixation_areas_refuses_a_template_size_the_block_size_does_not_divide()
     assert ok.variance.shape == (120 // 5 - 4 + 1,) * 2 and len(ok.top_left) == 3
     # 22 / 5 is not whole: refused, not rounded down to a 4 x 4 (20 px) window.
     for sx, sy, size in ((5, 5, 22), (5, 3, 20), (3, 5, 20)):
-        with pytest.raises(ValueError, match=rf"template_size \({size}\) must be a multiple of sx \({sx}\) and sy \({sy}\)"):
+        msg = rf"template_size \({size}\) must be a multiple of sx \({sx}\) and sy \({sy}\)"
+        with pytest.raises(ValueError, match=msg):
             fixation_areas(img, 3, sx, sy, size, 10, 30.0)
     with pytest.raises(ValueError, match="sx must be a positive integer"):
         fixation_areas(img, 3, 0, 5, 20, 10, 30.0)

@@ -249,7 +249,8 @@ def test_config_refuses_template_size_not_a_multiple_of_block_size():
     # The variance window of eq. (2.2) is template_size / S blocks: refused at
     # configuration time with a one-line message naming field, value and rule.
     for kw, size in (({"template_size": 22}, 22), ({"subsample_x": 3}, 20), ({"subsample_y": 8}, 20)):
-        with pytest.raises(ValidationError, match=rf"template_size \({size}\) must be a multiple of subsample_x") as exc:
+        msg = rf"template_size \({size}\) must be a multiple of subsample_x"
+        with pytest.raises(ValidationError, match=msg) as exc:
             TrackerConfig(**kw)
         assert len(exc.value.errors()) == 1 and "\n" not in exc.value.errors()[0]["msg"]
     TrackerConfig(template_size=24, subsample_x=4, subsample_y=6)
@@ -268,7 +269,12 @@ def test_config_refuses_a_border_too_small_for_the_lk_tiles():
         TrackerConfig(lk_window=15, edge_margin_px=9, border_px=13)
     # At the smallest allowed border, frames just large enough to hold a
     # template track without error.
-    for kw in ({"template_size": 40, "border_px": 16}, {"border_px": 11}, {"lk_window": 15, "edge_margin_px": 9, "border_px": 14}):
+    smallest_borders = (
+        {"template_size": 40, "border_px": 16},
+        {"border_px": 11},
+        {"lk_window": 15, "edge_margin_px": 9, "border_px": 14},
+    )
+    for kw in smallest_borders:
         cfg = TrackerConfig(**kw)
         smallest = cfg.template_size + 2 * cfg.border_px
         held = 0

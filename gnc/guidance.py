@@ -18,7 +18,11 @@ non-gravitational acceleration) the engine must produce.
 Phases:
     ``approach``: a polynomial law takes the vehicle from hand-over to the gate,
         ``gate_altitude_m`` above the target, arriving with the gate velocity
-        (straight down at ``terminal_descent_rate_mps``). Two laws:
+        (straight down at ``terminal_descent_rate_mps``). The law is a feedback
+        until ``open_loop_t_go_s`` before the gate; from there its feedback gains
+        (growing as ``1/t_go^2``) are too high to use, so the rest of its path
+        is flown open loop: the polynomial (:meth:`GuidanceLaw.coeffs`) evaluated
+        once from the state at that moment. Two laws:
 
         * ``apollo``: Apollo lunar-descent (E-guidance) quadratic-acceleration
           polynomial (Klumpp 1974) that meets the gate position, velocity and
@@ -34,12 +38,14 @@ Phases:
               ZEM = r_f - (r + v t_go + g t_go^2 / 2),  ZEV = v_f - (v + g t_go)
               a - g = 6 ZEM / t_go^2 - 2 ZEV / t_go
 
-    ``terminal``: constant-rate vertical descent at ``terminal_descent_rate_mps``
-        until touchdown (the controller cuts the engine on leg contact), while a
-        PD law nulls the horizontal velocity and holds over the target. If the
-        gate was missed by more than ``terminal_hold_radius_m`` the descent
-        rate blends to a hover (zero at twice that distance) while the vehicle
-        translates back over the target at up to ``terminal_speed_max_mps``.
+    ``terminal``: starts at the gate (``t_go`` reaches zero), or earlier if the
+        vehicle sinks ``GATE_FLOOR_M`` below the gate altitude. Constant-rate
+        vertical descent at ``terminal_descent_rate_mps`` until touchdown (the
+        controller cuts the engine on leg contact), while a PD law nulls the
+        horizontal velocity and holds over the target. If the gate was missed
+        by more than ``terminal_hold_radius_m`` the descent rate blends to a
+        hover (zero at twice that distance) while the vehicle translates back
+        over the target at up to ``terminal_speed_max_mps``.
 
 Time to go (both laws): a fixed final time, planned and re-planned only when
 needed. At the first call (and after a target change) the law scans candidate
@@ -58,16 +64,24 @@ both laws the remaining path from a point on the planned path is the rest of
 the same path, so a tracked plan stays valid; if disturbances make the
 remaining path violate the hard limits (margins dropped: a hysteresis), a new
 plan is searched at most once per ``REPLAN_MIN_INTERVAL_NS`` while more than
-``REPLAN_MIN_T_GO_S`` remain, and adopted if it violates less. The phase
-switches to terminal at ``t_go <= terminal_switch_t_go_s`` (the feedback gains
-grow as ``1/t_go^2``) or ``GATE_FLOOR_M`` below the gate altitude.
+``REPLAN_MIN_T_GO_S`` remain, and adopted if it violates less. The open-loop
+end of the approach flies the same polynomial, so the planner's checks cover
+the whole path that is flown; the phase switches to terminal when ``t_go``
+reaches zero, i.e. at the gate, or ``GATE_FLOOR_M`` below the gate altitude.
 
-ZEM/ZEV leaves the acceleration at the gate free, so it typically brakes hard
-into the gate and hands over a few metres above it, a little faster than the
-gate rate; Apollo targets zero total acceleration there and hands over
-smoothly. With the default tilt schedule, ZEM/ZEV has no feasible path for a
-few per cent of extreme hand-overs (moving away from the target at ~10 m/s
-while sinking at ~20 m/s) and flies the least-violating one.
+ZEM/ZEV leaves the acceleration at the gate free: its path may still be
+braking hard when it reaches the gate (default scenario: 1.2 m/s^2 upward,
+thrust 1.75 times the lunar weight), where Apollo's ends at zero total
+acceleration. Both reach the gate at the gate velocity, so the terminal phase
+starts at the gate rate (to within the navigation and attitude-tracking
+errors); for ZEM/ZEV the thrust then steps down to the terminal law's command
+(about hover). Switching to terminal at ``t_go = 2 s`` while still on the
+feedback, as this module used to, handed ZEM/ZEV over up to 4 m above the gate
+at up to 4 times the gate rate (default scenario: 3.1 m/s at 34 m; its last
+2 s of path would have taken off the other 2.3 m/s). With the default tilt
+schedule, ZEM/ZEV has no feasible path for a few per cent of extreme
+hand-overs (moving away from the target at ~10 m/s while sinking at ~20 m/s)
+and flies the least-violating one.
 
 Limits: whatever the law asks, the output is capped to what the engine can
 deliver: the vertical specific force is kept within ``[thrust_min_N,
@@ -169,8 +183,10 @@ class GuidanceConfig(BaseModel):
     gravity_mps2: float = Field(LUNAR_GRAVITY_MPS2, gt=0.0, description="surface gravity magnitude [m/s^2]")
     t_go_min_s: float = Field(5.0, gt=0.0, description="shortest approach time considered by the planner [s]")
     t_go_max_s: float = Field(300.0, gt=0.0, description="longest approach time considered by the planner [s]")
-    terminal_switch_t_go_s: float = Field(
-        2.0, gt=0.0, description="switch to the terminal phase when the time to the gate falls to this [s]"
+    open_loop_t_go_s: float = Field(
+        2.0,
+        gt=0.0,
+        description="fly the rest of the approach path open loop once the time to the gate falls to this [s]",
     )
     plan_thrust_max_frac: float = Field(
         0.8, gt=0.0, le=1.0, description="fraction of the maximum thrust a planned path may use [-]"
@@ -195,10 +211,10 @@ class GuidanceConfig(BaseModel):
 
     @model_validator(mode="after")
     def _t_go_bounds(self) -> "GuidanceConfig":
-        if not self.terminal_switch_t_go_s < self.t_go_min_s < self.t_go_max_s:
+        if not self.open_loop_t_go_s < self.t_go_min_s < self.t_go_max_s:
             raise ValueError(
-                f"terminal_switch_t_go_s = {self.terminal_switch_t_go_s}, t_go_min_s = {self.t_go_min_s}, "
-                f"t_go_max_s = {self.t_go_max_s}; allowed: terminal_switch_t_go_s < t_go_min_s < t_go_max_s"
+                f"open_loop_t_go_s = {self.open_loop_t_go_s}, t_go_min_s = {self.t_go_min_s}, "
+                f"t_go_max_s = {self.t_go_max_s}; allowed: open_loop_t_go_s < t_go_min_s < t_go_max_s"
             )
         return self
 
@@ -400,7 +416,8 @@ class GuidanceLaw(ABC):
             landing target.
         Output: :class:`GuidanceCommand` (total acceleration in L, phase, t_go).
         Rate: control rate (default 50 Hz). Stateful: the phase latches from
-            approach to terminal, and the planned gate time persists.
+            approach to terminal, the planned gate time persists, and so does
+            the open-loop end of the path once it has started.
 
     Subclasses provide the approach-phase formula (:meth:`accel_L`) and its
     open-loop polynomial (:meth:`coeffs`), which the planner evaluates.
@@ -422,6 +439,8 @@ class GuidanceLaw(ABC):
         self.plan_feasible = False
         self._t_plan_ns = 0
         self._target_L: np.ndarray | None = None
+        # Open-loop end of the approach: (start time [ns], (c0, c1, c2)), once started.
+        self._open_loop: tuple[int, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
 
     # -- the law
     @abstractmethod
@@ -560,8 +579,10 @@ class GuidanceLaw(ABC):
             if self.t_final_ns is None:
                 self._plan(t_ns, r, v, m, r_f, v_f)
             t_go = (self.t_final_ns - t_ns) / NS_PER_S
-            if t_go <= self.cfg.terminal_switch_t_go_s or r[2] <= r_f[2] - GATE_FLOOR_M:
+            if t_go <= 0.0 or r[2] <= r_f[2] - GATE_FLOOR_M:
                 self.phase = PHASE_TERMINAL
+            elif t_go <= self.cfg.open_loop_t_go_s:
+                a = self._open_loop_accel_L(t_ns, r, v, r_f, v_f, t_go)
             else:
                 if t_go > REPLAN_MIN_T_GO_S and t_ns - self._t_plan_ns >= REPLAN_MIN_INTERVAL_NS:
                     t_go = self._maybe_replan(t_ns, r, v, m, r_f, v_f, t_go)
@@ -572,6 +593,16 @@ class GuidanceLaw(ABC):
         a_capped, saturated = cap_acceleration_L(a, self.g_L, m, self.limits, r[2] - target_L[2])
         return GuidanceCommand(t_ns, a_capped, self.phase, float(t_go), saturated=saturated, valid=True)
 
+    def _open_loop_accel_L(
+        self, t_ns: int, r: np.ndarray, v: np.ndarray, r_f: np.ndarray, v_f: np.ndarray, t_go: float
+    ) -> np.ndarray:
+        """End of the approach: the law's path from the state where it started, flown open loop."""
+        if self._open_loop is None:
+            self._open_loop = (t_ns, self.coeffs(r, v, r_f, v_f, t_go))
+        t0_ns, (c0, c1, c2) = self._open_loop
+        s = (t_ns - t0_ns) / NS_PER_S
+        return c0 + c1 * s + c2 * s * s
+
     def _plan(self, t_ns: int, r: np.ndarray, v: np.ndarray, m: float, r_f: np.ndarray, v_f: np.ndarray) -> None:
         t_go, viol = self.plan_t_go(r, v, m, r_f, v_f)
         self._adopt(t_ns, t_go, viol)
@@ -579,6 +610,7 @@ class GuidanceLaw(ABC):
     def _adopt(self, t_ns: int, t_go: float, viol: float) -> None:
         self.t_final_ns = t_ns + int(round(t_go * NS_PER_S))
         self._t_plan_ns = t_ns
+        self._open_loop = None
         self.plan_feasible = viol <= 0.0
         self.n_plans += 1
 

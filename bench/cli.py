@@ -163,6 +163,7 @@ def cmd_mc(args: argparse.Namespace) -> int:
     if args.dry_run:
         print(f"dry run: {args.runs} dispersed scenarios in {directory / mc.CASES}/NNNNN/scenario.toml")
         return 0
+    from bench.consistency import CONSISTENCY_FILE, consistency_table
     from bench.mc_report import campaign_table, write_campaign_report
 
     crit = base.landing.model_dump()
@@ -175,7 +176,9 @@ def cmd_mc(args: argparse.Namespace) -> int:
                           title=f"{base.name}: {len(rows)} cases, campaign seed {seed}",
                           sun_elevation_deg=base.sun.elevation_deg, sun_azimuth_deg=base.sun.azimuth_deg)
     print(campaign_table(rows, crit))
-    print(f"cases: {directory / mc.CASES_PARQUET}, report: {directory / mc.REPORT}")
+    print(consistency_table(json.loads((directory / CONSISTENCY_FILE).read_text())))
+    print(f"cases: {directory / mc.CASES_PARQUET}, consistency: {directory / CONSISTENCY_FILE}, "
+          f"report: {directory / mc.REPORT}")
     return 0
 
 

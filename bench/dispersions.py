@@ -3,9 +3,13 @@
 A scenario's ``[dispersions]`` table maps a dotted field path to a
 distribution. A single ``landbench run`` flies the nominal scenario; a
 campaign draws each case's values and applies them **to the scenario object
-itself** (then re-validates it), so everything downstream (world, sensors,
-flight software) sees the dispersed values and a case is reproduced by its
-own resolved ``scenario.toml``.
+itself** (then re-validates it), so the truth (world, sensors) sees the
+dispersed values and a case is reproduced by its own resolved
+``scenario.toml``. The flight software does not: before drawing, the nominal
+lander and camera are pinned into ``knowledge.lander`` and
+``knowledge.camera``, which the flight software is built from; the filter's
+noise model is the sensors' specification (``estimator``), never the drawn
+sensor values.
 
 Distributions (``dist``):
     * ``normal``: nominal + N(0, sigma); ``sigma`` scalar or per component.
@@ -25,6 +29,8 @@ number of workers or the order in which cases run.
 
 from __future__ import annotations
 
+import copy
+
 from typing import Annotated, Any, Literal, Union
 
 import numpy as np
@@ -34,6 +40,8 @@ from scipy.stats import truncnorm
 from bench.seeding import component_rng
 
 SEED_BITS = 63  # case seeds fit TOML's signed 64-bit integers
+# Truth sections whose nominal values the flight software keeps (scenario.knowledge.<part>).
+PINNED_KNOWLEDGE = ("lander", "camera")
 
 
 class _Dist(BaseModel):
@@ -187,6 +195,11 @@ def apply_dispersions(scenario, rng: np.random.Generator | None = None):
 
     rng = component_rng(scenario.seed, "dispersions") if rng is None else rng
     data = scenario.model_dump(mode="json")
+    # The flight software keeps the nominal vehicle and camera: pin them before the truth is drawn.
+    knowledge = data["knowledge"]
+    for part in PINNED_KNOWLEDGE:
+        if knowledge[part] is None:
+            knowledge[part] = copy.deepcopy(data[part])  # a copy: the draws below change data[part] in place
     drawn: dict[str, Any] = {}
     for path in sorted(scenario.dispersions):  # sorted: the draws do not depend on the table's order
         spec = scenario.dispersions[path]

@@ -42,6 +42,7 @@ from pathlib import Path
 from typing import Any
 
 from bench.dispersions import apply_dispersions, case_seeds
+from bench.consistency import CONSISTENCY_FILE, campaign_consistency
 from bench.io import atomic_write_bytes, atomic_write_text, json_safe
 from bench.scenario import Scenario, load_scenario, scenario_from_dict, scenario_to_toml
 
@@ -286,6 +287,7 @@ def run_campaign(base: Scenario, runs: int, out: Path, campaign_seed: int, worke
             bar.close()
     rows = read_rows(out, runs)
     write_cases_parquet(rows, out / CASES_PARQUET)
+    atomic_write_text(out / CONSISTENCY_FILE, json.dumps(json_safe(campaign_consistency(rows)), indent=1) + "\n")
     return rows
 
 

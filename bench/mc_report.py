@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from bench.consistency import campaign_consistency
 from bench.io import save_figure
 from bench.report import check_criteria, draw_hillshade
 
@@ -47,7 +48,7 @@ OTHER_COLOR = "tab:gray"  # outcomes not in OUTCOMES
 CONFIDENCE = 0.95
 ELLIPSE_SIGMA = 3.0
 ELLIPSE_MIN_POINTS = 3  # fewer touchdowns: no ellipse is drawn
-FIGURE_SIZE_IN = (14.0, 9.0)
+FIGURE_SIZE_IN = (14.0, 11.5)
 FIGURE_DPI = 100
 SUN_ELEVATION_DEG = 30.0
 SUN_AZIMUTH_DEG = 120.0
@@ -415,6 +416,30 @@ def _draw_rate(ax, rows) -> None:
     ax.grid(alpha=0.3, axis="x")
 
 
+def _draw_consistency(ax, doc: Mapping[str, Any]) -> None:
+    """ANEES / dof per error block at each altitude, with each block's 95 % band (bars) and 1 (dotted)."""
+    levels = [str(a) for a in doc["altitudes_m"]]
+    x = np.arange(len(levels), dtype=float)
+    blocks = list(doc["blocks"].items())
+    width = 0.8 / max(len(blocks), 1)
+    for i, (block, b) in enumerate(blocks):
+        dof = b["dof"]
+        xi = x - 0.4 + (i + 0.5) * width
+        a = np.array([np.nan if v is None else v for v in b["anees"]], float) / dof
+        lo = np.array([np.nan if bd is None else bd[0] for bd in b["band"]], float) / dof
+        hi = np.array([np.nan if bd is None else bd[1] for bd in b["band"]], float) / dof
+        ax.vlines(xi, lo, hi, color=f"C{i}", alpha=0.35, linewidth=6)
+        ax.plot(xi, a, "o", color=f"C{i}", label=f"{block} ({dof} dof)")
+    ax.axhline(1.0, color="k", linestyle=":", linewidth=1)
+    ax.set_xticks(x, [lv if lv == "touchdown" else f"{lv} m" for lv in levels])
+    ax.set_yscale("log")
+    ax.set_ylabel("ANEES / dof")
+    nis = doc["nis"]
+    text = ", ".join(f"NIS {k} {v['mean'] / v['dof']:.2f}/dof" for k, v in nis.items() if v["n"])
+    ax.set_title(f"filter consistency over {doc['n_cases']} cases (bars: 95 % band)" + (f"; {text}" if text else ""))
+    ax.legend(loc="upper left", ncol=len(blocks), fontsize="small")
+
+
 def campaign_figure(
     rows: Sequence[Mapping[str, Any]],
     criteria: Mapping[str, Any] | None = None,
@@ -426,7 +451,7 @@ def campaign_figure(
     """The campaign report as a matplotlib ``Figure`` (no pyplot); see :func:`write_campaign_report`.
 
     The axes carry labels (``ax.get_label()``): ``map``, ``v_vertical``,
-    ``v_horizontal``, ``tilt``, ``outcomes``, ``rate``; the 3σ ellipse patch
+    ``v_horizontal``, ``tilt``, ``outcomes``, ``rate``, ``consistency``; the 3σ ellipse patch
     has the gid ``error_ellipse``.
     """
     rows = _check_rows(rows)
@@ -435,8 +460,9 @@ def campaign_figure(
 
     fig = Figure(figsize=FIGURE_SIZE_IN, layout="constrained")
     axd = fig.subplot_mosaic(
-        [["map", "v_vertical", "v_horizontal"], ["map", "tilt", "outcomes"], ["map", "rate", "rate"]],
-        width_ratios=[1.25, 1.0, 1.0], height_ratios=[1.0, 1.0, 0.45],
+        [["map", "v_vertical", "v_horizontal"], ["map", "tilt", "outcomes"], ["map", "rate", "rate"],
+         ["consistency", "consistency", "consistency"]],
+        width_ratios=[1.25, 1.0, 1.0], height_ratios=[1.0, 1.0, 0.45, 0.9],
     )
     for name, ax in axd.items():
         ax.set_label(name)
@@ -448,6 +474,7 @@ def campaign_figure(
         _draw_hist(axd[panel], _column(rows, key)[td], label, unit, limits.get(crit_key))
     _draw_outcomes(axd["outcomes"], rows)
     _draw_rate(axd["rate"], rows)
+    _draw_consistency(axd["consistency"], campaign_consistency(rows))
     n = len(rows)
     fig.suptitle(title or f"Monte Carlo campaign: {n} case{'s' if n != 1 else ''}")
     return fig

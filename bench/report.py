@@ -916,9 +916,12 @@ def summary_table(summary: Mapping[str, Any], outputs: Mapping[str, str | Path] 
     if nav.get("vel_err_touchdown_mps") is not None:
         lines.append(
             f"navigation: velocity error at touchdown {_fmt(nav['vel_err_touchdown_mps'], '.3f', 'm/s')}, "
-            f"position {_fmt(nav['pos_err_touchdown_m'], '.1f', 'm')}, NEES in 95 % band "
-            f"{_fmt(nav.get('nees_in_bounds_frac'), '.0%')}"
+            f"position {_fmt(nav['pos_err_touchdown_m'], '.1f', 'm')}"
         )
+        per_dof = nav.get("nees_per_dof_mean") or {}
+        if per_dof:
+            lines.append("  mean (e/sigma)^2 per block: " + ", ".join(f"{k} {_fmt(v, '.2f')}" for k, v in per_dof.items())
+                         + "  (one run shows little; a campaign's consistency.json is the test)")
     if vis.get("frames"):
         lines.append(
             f"vision: {vis['frames']} frames, median {_fmt(vis.get('tracks_median'), '.0f')} tracks, "

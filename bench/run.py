@@ -7,10 +7,16 @@ Loop (integer-nanosecond scheduler):
   fires on its own period, all whole multiples of the physics step (checked
   at scenario load). Time advances from one event to the next in whole
   physics steps; between events every output is held (zero-order hold).
-* Flight software (``gnc/``) receives messages only. Here navigation is
-  "perfect": the truth state is handed over in the same :class:`NavState`
-  the estimator will produce later. Footpad contact switches are a sensor
+* Flight software (``gnc/``, ``vision/``) receives messages only, and is
+  built from the scenario's onboard knowledge (:func:`onboard_knowledge`):
+  the nominal vehicle and camera plus explicit knowledge errors, never a
+  campaign case's drawn values. With ``nav = "estimator"`` (the default)
+  guidance flies on the filter's estimate; ``nav = "truth"`` hands it the
+  true kinematic state instead (an oracle for studies; the mass is still the
+  flight software's own gauge). Footpad contact switches are a sensor
   message, and the controller cuts the engine on them.
+* Sensors are sampled after ``mj_forward``, so each sample describes the
+  state at its time tag.
 * Touchdown is the first footpad contact. Its velocity and tilt are those of
   the last instant before contact forces acted (the previous event), its
   miss distance the horizontal distance from the target. The run goes on for
@@ -35,20 +41,22 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from bench.consistency import NEES_BLOCKS, block_nees, run_consistency
 from bench.scenario import NS_PER_S, Scenario
 from bench.seeding import component_rng
 from bench.truth_tracker import TruthTracker
 from bench.world_builder import SensorSuite, build_sensors, build_terrain, build_world
 from gnc.control import Controller, VehicleParams
 from gnc.estimator import make_estimator
-from gnc.flight import FlightSoftware
+from gnc.flight import FlightSoftware, OnboardKnowledge
 from gnc.guidance import make_guidance
 from gnc.messages import ContactMessage, ImageMessage
 from gnc.navstate import NavState
 from models.camera import R_BC
 from vision.tracker import Tracker
 from vision.tracks import Tracks
-from models.lander import LanderConfig, footpad_positions_B
+from models.camera import intrinsics
+from models.lander import LanderConfig, altimeter_position_B, camera_position_B, footpad_positions_B
 from models.terrain import Terrain
 from models.world import PhysicsDivergedError, TruthState, World
 
@@ -58,7 +66,6 @@ PHASE_TOUCHDOWN = "touchdown"
 FrameSink = Callable[[int, np.ndarray, TruthState, "Tracks | None"], None]
 """Called with (t_ns, frame (H, W) uint8, truth, tracks or None) for every camera frame."""
 TRUTH_TRACK_POINTS = 80  # points the truth tracker keeps in view (about the paper tracker's count)
-NAV_DOF = 6  # position + velocity in the NEES
 VEL_RMS_BELOW_M = 100.0  # vel_err_rms_mps is taken below this altitude
 
 
@@ -77,16 +84,33 @@ class RunResult:
     terrain: Terrain = field(repr=False)
 
 
-def vehicle_params(scenario: Scenario) -> VehicleParams:
-    """The flight software's knowledge of the vehicle, from the lander configuration."""
-    lander = scenario.lander
-    return VehicleParams(
+def onboard_knowledge(scenario: Scenario) -> OnboardKnowledge:
+    """The flight software's knowledge of its vehicle: the nominal lander and camera plus the knowledge errors.
+
+    Never the truth of a campaign case: the nominal lander and camera are
+    ``scenario.knowledge.lander`` / ``.camera`` (pinned by the campaign before
+    it draws), else the scenario's own. The mounts come from the same geometry
+    functions the world's MJCF is built with (one calibration source).
+    """
+    k = scenario.knowledge
+    lander = scenario.nominal_lander()
+    vehicle = VehicleParams(
         thrust_min_N=lander.engine.thrust_min_N,
         thrust_max_N=lander.engine.thrust_max_N,
         rcs_torque_max_Nm=lander.rcs_torque_max_Nm,
-        dry_mass_kg=lander.dry_mass_kg,
-        dry_inertia_B_kgm2=tuple(float(x) for x in lander.body_inertia_kgm2()),
+        dry_mass_kg=lander.dry_mass_kg + k.dry_mass_error_kg,
+        dry_inertia_B_kgm2=tuple(float(x) * (1.0 + k.inertia_error_frac) for x in lander.body_inertia_kgm2()),
         tank_radius_m=lander.tank_radius_m,
+        thrust_scale=1.0 + k.thrust_calibration_error_frac,
+    )
+    return OnboardKnowledge(
+        vehicle=vehicle,
+        wet_mass_kg=lander.wet_mass_kg + k.dry_mass_error_kg + k.propellant_error_kg,
+        isp_s=lander.engine.isp_s,
+        K=intrinsics(scenario.nominal_camera()),
+        R_BC=R_BC,
+        r_cam_B_m=camera_position_B(lander),
+        r_alt_B_m=altimeter_position_B(lander),
     )
 
 
@@ -116,7 +140,9 @@ class _Telemetry:
         "nav_r_x_m", "nav_r_y_m", "nav_r_z_m", "nav_v_x_mps", "nav_v_y_mps", "nav_v_z_mps",
         "nav_err_r_x_m", "nav_err_r_y_m", "nav_err_r_z_m", "nav_err_v_x_mps", "nav_err_v_y_mps", "nav_err_v_z_mps",
         "nav_sigma_r_x_m", "nav_sigma_r_y_m", "nav_sigma_r_z_m",
-        "nav_sigma_v_x_mps", "nav_sigma_v_y_mps", "nav_sigma_v_z_mps", "nav_nees", "fsw_mass_kg",
+        "nav_sigma_v_x_mps", "nav_sigma_v_y_mps", "nav_sigma_v_z_mps",
+        "nav_err_ba_x_mps2", "nav_err_ba_y_mps2", "nav_err_ba_z_mps2",
+        *(f"nees_{block}" for block in NEES_BLOCKS), "fsw_mass_kg",
         "vision_tracks", "vision_measurements", "vision_rejected",
         "vision_v_x_mps", "vision_v_y_mps",
     )
@@ -164,29 +190,34 @@ def run(scenario: Scenario, frame_sink: FrameSink | None = None, progress: bool 
         world.close()
 
 
-def build_flight_software(scenario: Scenario, world: World) -> FlightSoftware:
-    """The flight computer of the run, with its initial navigation knowledge.
+def handover_estimate(scenario: Scenario, truth: TruthState) -> tuple[np.ndarray, np.ndarray]:
+    """The navigation state handed over at t = 0: the truth plus a draw of the hand-over error.
 
-    The initial estimate is the truth plus a draw from the hand-over
-    uncertainty (``estimator.init_*_sigma``), from the run's own
-    "estimator" stream.
+    The error is drawn with ``estimator.init_*_sigma`` (the filter's own initial
+    covariance, so the hand-over is consistent) from the run's "estimator" stream.
+
+    Returns:
+        (r_BL_L estimate (3,) [m], v_BL_L estimate (3,) [m/s]).
     """
-    vehicle = vehicle_params(scenario)
-    controller = Controller(scenario.control, vehicle)
-    guidance = make_guidance(scenario.guidance, controller.guidance_limits())
-    truth = world.truth()
     est = scenario.estimator
     rng = component_rng(scenario.seed, "estimator")
     r0 = truth.r_BL_L + rng.normal(0.0, est.init_pos_sigma_m, 3)
     v0 = truth.v_BL_L + rng.normal(0.0, est.init_vel_sigma_mps, 3)
-    nav_filter = make_estimator(est, r0, v0, 0)
+    return r0, v0
+
+
+def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.ndarray) -> FlightSoftware:
+    """The flight computer of the run: onboard knowledge, configuration and the hand-over estimate.
+
+    Nothing of the truth reaches it but the hand-over estimate passed in.
+    """
+    knowledge = onboard_knowledge(scenario)
+    controller = Controller(scenario.control, knowledge.vehicle)
+    guidance = make_guidance(scenario.guidance, controller.guidance_limits())
+    nav_filter = make_estimator(scenario.estimator, x0_r_L, x0_v_L, 0, altimeter_mount_B_m=knowledge.r_alt_B_m)
     tracker = Tracker(scenario.tracker) if scenario.tracks == "vision" and scenario.vision == "on" else None
-    return FlightSoftware(
-        guidance, controller, nav_filter, tracker, scenario.vision_nav, scenario.vision == "on",
-        K=world.K, R_BC=R_BC, r_cam_B=world.camera_position_B, r_alt_B=world.altimeter_position_B,
-        wet_mass_kg=scenario.lander.wet_mass_kg,
-        isp_s=scenario.lander.engine.isp_s,
-    )
+    return FlightSoftware(guidance, controller, nav_filter, tracker, scenario.vision_nav, scenario.vision == "on",
+                          knowledge)
 
 
 def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuite,
@@ -206,7 +237,7 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
     steps_per_tick = tick_ns // dt_ns
     assert tick_ns % dt_ns == 0
 
-    fsw = build_flight_software(scenario, world)
+    fsw = build_flight_software(scenario, *handover_estimate(scenario, world.truth()))
     tracker_truth = (TruthTracker(terrain, world.K, (cam.width_px, cam.height_px), TRUTH_TRACK_POINTS,
                                   component_rng(scenario.seed, "vision")) if truth_tracks else None)
     thrust_max = scenario.lander.engine.thrust_max_N
@@ -268,13 +299,12 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
             if t_ns % periods["control"] == 0:
                 truth_nav = None
                 if scenario.nav == "truth":
-                    truth_nav = NavState(t_ns, truth.r_BL_L, truth.v_BL_L, truth.q_LB, truth.omega_B, truth.mass_kg)
+                    truth_nav = NavState(t_ns, truth.r_BL_L, truth.v_BL_L, truth.q_LB, truth.omega_B, fsw.mass_kg)
                 act = fsw.control(t_ns, ContactMessage(t_ns, legs), truth_nav)
-                est = fsw.filter.nav_state(fsw.mass_kg)
                 tel.rows.append(_row(t_ns, truth, act, fsw.last_guidance, legs, imu_msg, alt_msg, st_msg, thrust_max,
                                      world.propulsion.clamp_thrust(act.thrust_N) * thrust_gain,
                                      PHASE_TOUCHDOWN if touchdown is not None else fsw.last_guidance.phase,
-                                     est, fsw))
+                                     fsw, sensors.imu.accel_bias))
             # End conditions.
             if touchdown_ns is not None and t_ns - touchdown_ns >= settle_ns:
                 break
@@ -318,36 +348,77 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
         "camera_enabled": cam.enabled,
         "criteria": scenario.landing.model_dump(),
         "nav": _nav_summary(telemetry, touchdown),
+        "guidance": _guidance_summary(telemetry, scenario),
         "vision": _vision_summary(fsw),
+        "consistency": run_consistency(telemetry, touchdown, fsw.filter.log),
         "time_split_s": timing,
+        "platform": _platform(world),
         "error": error,
     }
     return RunResult(summary=summary, telemetry=telemetry, terrain=terrain)
 
 
-def _nav_summary(tel: dict[str, np.ndarray], touchdown: dict | None) -> dict[str, float | None]:
-    """Navigation-error figures from the telemetry (estimate vs truth)."""
+def _nav_summary(tel: dict[str, np.ndarray], touchdown: dict | None) -> dict[str, Any]:
+    """Navigation-error figures from the telemetry (estimate vs truth).
+
+    Consistency is reported per block as the mean of ``NEES / dof`` over the
+    flight (the per-block mean ``(e / sigma)^2``); the ensemble statistics that
+    can show consistency are a campaign's (``consistency.json``).
+    """
     if not tel:
         return {"pos_err_touchdown_m": None, "vel_err_touchdown_mps": None, "vel_err_rms_mps": None,
-                "nees_in_bounds_frac": None}
-    from scipy.stats import chi2
-
+                "vel_err_horizontal_touchdown_mps": None, "nees_per_dof_mean": None}
     t = tel["t_s"]
     flying = t < touchdown["t_s"] if touchdown is not None else np.ones(t.size, bool)
     k = int(np.flatnonzero(flying)[-1]) if flying.any() else 0  # last tick before touchdown
     e_r = np.column_stack([tel[f"nav_err_r_{a}_m"] for a in "xyz"])
     e_v = np.column_stack([tel[f"nav_err_v_{a}_mps"] for a in "xyz"])
     low = flying & (tel["r_z_m"] < VEL_RMS_BELOW_M)
-    lo, hi = chi2.ppf(0.025, NAV_DOF), chi2.ppf(0.975, NAV_DOF)
-    nees = tel["nav_nees"][flying]
     return {
         "pos_err_touchdown_m": float(np.linalg.norm(e_r[k])),
         "vel_err_touchdown_mps": float(np.linalg.norm(e_v[k])),
         "vel_err_horizontal_touchdown_mps": float(np.hypot(e_v[k, 0], e_v[k, 1])),
         "vel_err_rms_mps": float(np.sqrt(np.mean(np.sum(e_v[low] ** 2, axis=1)))) if low.any() else None,
-        "nees_in_bounds_frac": float(np.mean((nees >= lo) & (nees <= hi))) if nees.size else None,
-        "nees_mean": float(np.mean(nees)) if nees.size else None,
+        "nees_per_dof_mean": ({block: float(np.mean(tel[f"nees_{block}"][flying])) / dof
+                               for block, dof in NEES_BLOCKS.items()} if flying.any() else None),
     }
+
+
+def _guidance_summary(tel: dict[str, np.ndarray], scenario: Scenario) -> dict[str, Any]:
+    """The hand-over to the terminal phase: truth altitude and vertical speed at its first tick."""
+    out: dict[str, Any] = {"handover_t_s": None, "handover_altitude_m": None, "handover_v_z_mps": None,
+                           "handover_v_z_error_mps": None}
+    if not tel:
+        return out
+    terminal = np.flatnonzero(tel["phase"] == "terminal")
+    if terminal.size:
+        k = int(terminal[0])
+        v_z = float(tel["v_z_mps"][k])
+        out.update(handover_t_s=float(tel["t_s"][k]), handover_altitude_m=float(tel["r_z_m"][k]),
+                   handover_v_z_mps=v_z,
+                   handover_v_z_error_mps=abs(v_z) - scenario.guidance.terminal_descent_rate_mps)
+    return out
+
+
+def _cpu_model() -> str:
+    """The CPU's model name (Linux ``/proc/cpuinfo``), else what ``platform`` knows."""
+    import platform
+
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            for line in f:
+                if line.lower().startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _platform(world: World) -> dict[str, Any]:
+    """Where the run ran: results are bit-identical on one machine and one GL build, not across them."""
+    import mujoco
+
+    return {"cpu": _cpu_model(), "gl": world.gl_info(), "mujoco": mujoco.__version__}
 
 
 def _vision_summary(fsw: FlightSoftware) -> dict[str, float | int | None]:
@@ -389,12 +460,11 @@ def _classify(touchdown: dict | None, exhausted_ns: int | None, touchdown_ns: in
     return "landed"
 
 
-def _row(t_ns, truth, act, cmd, legs, imu, alt, st, thrust_max, thrust_delivered, phase, est, fsw) -> tuple:
+def _row(t_ns, truth, act, cmd, legs, imu, alt, st, thrust_max, thrust_delivered, phase, fsw, accel_bias_B) -> tuple:
     nan3 = (math.nan,) * 3
-    e = np.concatenate([est.r_BL_L - truth.r_BL_L, est.v_BL_L - truth.v_BL_L])
-    P = est.P
-    nees = float(e @ np.linalg.solve(P, e)) if P is not None else math.nan
-    sig = np.sqrt(np.diag(P)) if P is not None else np.full(6, math.nan)
+    x, P = fsw.filter.ekf.x, fsw.filter.ekf.P
+    e = np.concatenate([x[0:6] - np.concatenate([truth.r_BL_L, truth.v_BL_L]), x[6:9] - accel_bias_B])
+    sig = np.sqrt(np.diag(P)[:6])
     vm = fsw.vision.last
     return (
         t_ns / NS_PER_S, *truth.r_BL_L, *truth.v_BL_L, *truth.q_LB, *truth.omega_B,
@@ -404,7 +474,7 @@ def _row(t_ns, truth, act, cmd, legs, imu, alt, st, thrust_max, thrust_delivered
         *(imu.f_B if imu is not None else nan3), *(imu.omega_B if imu is not None else nan3),
         alt.range_m if alt is not None else math.nan, bool(alt.valid) if alt is not None else False,
         *(st.q_LB if st is not None else (math.nan,) * 4),
-        *est.r_BL_L, *est.v_BL_L, *e, *sig, nees, fsw.mass_kg,
+        *x[0:6], *e[:6], *sig, *e[6:9], *block_nees(e, P), fsw.mass_kg,
         len(fsw.vision.last_tracks) if fsw.vision.last_tracks is not None else 0,
         fsw.vision.measurements, fsw.vision.rejected,
         *(vm.v_L if vm is not None else (math.nan,) * 2),

@@ -90,6 +90,39 @@ class LandingCriteria(BaseModel):
     settle_s: float = Field(5.0, ge=0, description="time after touchdown the lander must stay upright [s]")
 
 
+class KnowledgeConfig(BaseModel):
+    """What the flight software knows of its vehicle, and how wrong that knowledge is.
+
+    The flight software is built from the **nominal** vehicle and camera, never
+    from a campaign case's drawn values: a campaign pins ``lander`` and
+    ``camera`` here to the nominal ones before it disperses the truth. A single
+    run leaves them unset, and the flight software then knows the scenario's own
+    (nominal) lander and camera. The error fields model what a real team gets
+    wrong on top (mass properties measured on the ground, engine calibration);
+    they can be dispersed like any other field.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    lander: LanderConfig | None = Field(
+        None, description="the vehicle the flight software was built for; unset: the scenario's lander"
+    )
+    camera: CameraConfig | None = Field(
+        None, description="the camera calibration the flight software holds; unset: the scenario's camera"
+    )
+    dry_mass_error_kg: float = Field(0.0, description="flight software's dry-mass estimate minus the nominal [kg]")
+    propellant_error_kg: float = Field(
+        0.0, description="flight software's loaded-propellant estimate minus the nominal [kg]"
+    )
+    inertia_error_frac: float = Field(
+        0.0, gt=-0.5, lt=0.5, description="fractional error of the flight software's dry inertia [-]"
+    )
+    thrust_calibration_error_frac: float = Field(
+        0.0, gt=-0.5, lt=0.5,
+        description="the flight software believes the engine delivers command * (1 + this) [-]",
+    )
+
+
 class Scenario(BaseModel):
     """A complete landing scenario. ``run(scenario) -> result`` is a pure function of it."""
 
@@ -117,6 +150,7 @@ class Scenario(BaseModel):
     estimator: EstimatorConfig = EstimatorConfig()
     tracker: TrackerConfig = TrackerConfig()
     vision_nav: VisionNavConfig = VisionNavConfig()
+    knowledge: KnowledgeConfig = KnowledgeConfig()
     dispersions: dict[str, Dispersion] = Field(
         default_factory=dict,
         description="field path -> distribution, drawn per case in Monte Carlo campaigns (a single run flies nominal)",
@@ -177,6 +211,14 @@ class Scenario(BaseModel):
             "sensors.star_tracker.period_ns": self.sensors.star_tracker.period_ns,
             "camera.period_ns": self.camera.period_ns,
         }
+
+    def nominal_lander(self) -> LanderConfig:
+        """The lander the flight software was built for (``knowledge.lander``, else ``lander``)."""
+        return self.knowledge.lander if self.knowledge.lander is not None else self.lander
+
+    def nominal_camera(self) -> CameraConfig:
+        """The camera calibration the flight software holds (``knowledge.camera``, else ``camera``)."""
+        return self.knowledge.camera if self.knowledge.camera is not None else self.camera
 
     def terrain_seed(self) -> int:
         """The terrain's seed: its own when set, else derived from the master seed."""

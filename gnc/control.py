@@ -94,6 +94,8 @@ class VehicleParams:
         dry_mass_kg: Dry mass [kg]; propellant = nav mass - dry mass.
         dry_inertia_B_kgm2: Principal inertia of the dry vehicle, (3,) [kg m^2].
         tank_radius_m: Radius of the spherical propellant tank at the centre of mass [m].
+        thrust_scale: Delivered thrust per unit of command, as the flight software
+            believes it (its engine calibration; 1 + the calibration error) [-].
     """
 
     thrust_min_N: float = 1500.0
@@ -102,6 +104,7 @@ class VehicleParams:
     dry_mass_kg: float = 1500.0
     dry_inertia_B_kgm2: tuple[float, float, float] = (781.25, 781.25, 1000.0)
     tank_radius_m: float = 0.6
+    thrust_scale: float = 1.0
 
     def __post_init__(self) -> None:
         positive = {
@@ -109,6 +112,7 @@ class VehicleParams:
             "rcs_torque_max_Nm": self.rcs_torque_max_Nm,
             "dry_mass_kg": self.dry_mass_kg,
             "tank_radius_m": self.tank_radius_m,
+            "thrust_scale": self.thrust_scale,
         }
         for name, value in positive.items():
             if not (np.isfinite(value) and value > 0.0):
@@ -173,8 +177,9 @@ def thrust_vector_command(
         tilt: Tilt-limit schedule.
 
     Returns:
-        ``(thrust_N, z_cmd_L)``: thrust in ``[thrust_min_N, thrust_max_N]``
-        [N] and the unit thrust direction in L, (3,), within the tilt limit.
+        ``(thrust_N, z_cmd_L)``: the thrust command ``m |f| / thrust_scale``
+        clamped to ``[thrust_min_N, thrust_max_N]`` [N] and the unit thrust
+        direction in L, (3,), within the tilt limit.
     """
     f = np.asarray(a_cmd_L, float) - g_L
     if not f[2] > _F_Z_MIN_MPS2:
@@ -186,7 +191,7 @@ def thrust_vector_command(
     if uh_norm > tan_max * u[2]:
         u[:2] *= tan_max * u[2] / uh_norm
     u_norm = float(np.linalg.norm(u))
-    thrust = float(np.clip(mass_kg * scale * u_norm, vehicle.thrust_min_N, vehicle.thrust_max_N))
+    thrust = float(np.clip(mass_kg * scale * u_norm / vehicle.thrust_scale, vehicle.thrust_min_N, vehicle.thrust_max_N))
     return thrust, u / u_norm
 
 

@@ -1,30 +1,43 @@
-"""Navigation filter: an extended Kalman filter on IMU, altimeter, star tracker and vision velocity.
+"""Navigation filter: an extended Kalman filter on IMU, altimeter, star tracker and vision, with stochastic cloning.
 
 Ports (Drake-style block ``NavFilter``)::
 
-                    +---------------------------------+
-    ImuMessage ---->| propagate_imu     (100 Hz)      |   (alias predict_imu)
-    AttitudeMsg --->| set_attitude      (10 Hz)       |   (alias update_attitude)
-    AltimeterMsg -->| update_altimeter  (20 Hz)       |----> NavState (nav_state, at the control rate)
-    velocity z,R -->| update_velocity   (camera rate) |----> UpdateRecord (return value, and .log)
-                    +---------------------------------+
+                      +-----------------------------------+
+    ImuMessage ------>| propagate_imu       (100 Hz)      |   (alias predict_imu)
+    AttitudeMsg ----->| set_attitude        (10 Hz)       |   (alias update_attitude)
+    AltimeterMsg ---->| update_altimeter    (20 Hz)       |----> NavState (nav_state, at the control rate)
+    frame time ------>| clone_position      (camera rate) |----> UpdateRecord (return value, and .log)
+    relative z,H,R -->| update_relative     (camera rate) |
+    velocity z,R ---->| update_velocity     (any rate)    |
+                      +-----------------------------------+
 
     Inputs: :class:`gnc.messages.ImuMessage`, :class:`gnc.messages.AttitudeMessage`,
         :class:`gnc.messages.AltimeterMessage` (all through :meth:`NavFilter.process`
-        or their own methods), and a ground-relative velocity in L with its
-        covariance from vision (``update_velocity``). Messages must arrive in
-        time order (integer ns); an IMU sample not after the last propagation is
-        ignored.
+        or their own methods); at each camera frame a position clone
+        (``clone_position``) and a measurement relating the current position to
+        the clone (``update_relative``, from :mod:`gnc.vision_nav`); optionally a
+        ground-relative velocity with its covariance (``update_velocity``).
+        Messages must arrive in time order (integer ns); an IMU sample not after
+        the last propagation is ignored.
     Outputs: :class:`gnc.navstate.NavState` (``nav_state``) with ``P`` the 6x6
-        position/velocity covariance; one :class:`UpdateRecord` per measurement
-        update (returned and appended to ``NavFilter.log``); counters per input
-        (``NavFilter.counters``).
+        position/velocity covariance (the full covariance is ``NavFilter.P``);
+        one :class:`UpdateRecord` per measurement update (returned and appended
+        to ``NavFilter.log``); counters per input (``NavFilter.counters``).
 
-State (10), in this order: ``r_BL_L`` (3) [m], ``v_BL_L`` (3) [m/s], accelerometer
-bias ``b_a_B`` (3) [m/s^2], and ``h_terrain`` (1) [m], the height of the ground under
-the altimeter footprint above the target's elevation (see the altimeter below; with
-the default white relief it is a nuisance state that carries nothing from one
-altimeter sample to the next). L is the landing frame (origin at the target on the
+State (17), in this order: ``r_BL_L`` (3) [m], ``v_BL_L`` (3) [m/s], accelerometer
+bias ``b_a_B`` (3) [m/s^2], ``h_terrain`` (1) [m], the height of the ground under
+the altimeter footprint above the target's elevation (see the altimeter below),
+``r_clone_L`` (3) [m], a stochastic clone of ``r_BL_L`` taken at the last camera frame
+(Roumeliotis & Burdick 2002; the MSCKF and OpenVINS clone poses the same way), and
+two image offsets ``d_clone`` (2) and ``d_new`` (2) [-]: the mean error of the
+tracked image positions in the clone's frame and in the current frame (see the
+relative update below), ``b_flow`` (2) [-], a slowly varying bias of the measured
+flow (the tracker's sub-pixel bias, which follows the slowly changing image motion), a
+Gauss-Markov process of 1-sigma ``vision_bias_sigma`` and time constant
+``vision_bias_time_s``, and ``h_view`` (1) [m], the mean height of the ground the camera
+tracks above the target's elevation: the scale of the vision measurement, a
+Gauss-Markov process of 1-sigma ``view_ground_sigma_m`` that decorrelates over
+``view_ground_correlation_length_m`` of travel. L is the landing frame (origin at the target on the
 surface, x east, y north, z up, gravity ``g_L = [0, 0, -g]``); B is the body frame.
 
 Model:
@@ -66,8 +79,30 @@ Model:
       length (tens of metres for crater-scale relief) when the terrain is known
       to be correlated. The Jacobian of ``phi`` with respect to the state is
       neglected.
+    * Stochastic cloning (``clone_position``): at a camera frame the position is
+      copied into the clone slot, with its covariance and every cross-covariance
+      (``x_c = r``, ``P_cc = P_rr``, ``P_c* = P_r*``). The clone does not move in
+      prediction (identity in ``F``, no process noise) but is corrected by every
+      update through its correlations. A measurement between two frames
+      (``update_relative``, ``h(x) = H_1 r(t) + H_0 r_clone``) therefore accounts
+      exactly for the estimate at the first frame being the same one that the
+      previous frame pair used: no vertical displacement is differenced out of
+      two filter outputs.
+    * Shared-frame image noise: a frame's pixel noise moves the tracked positions
+      of that frame, and it enters the pair that ends at the frame and the pair
+      that starts there with opposite signs (consecutive measurements' errors
+      are correlated, -1/2 for pure per-frame noise). The filter carries it
+      exactly, as a state: each pair's measurement is
+      ``z = h(r, r_clone) + d_new - d_clone + w``, where ``d_new`` (the current
+      frame's offset) enters with its prior covariance ``R_frame`` at the update
+      and becomes ``d_clone`` (with its posterior and correlations) when the
+      frame is cloned. ``w`` (covariance ``R``) is the part that is white.
     * Velocity (``update_velocity``): a ground-relative velocity in L with its
-      covariance (``H = [0 I 0]``), e.g. from the DIMES-style vision measurement.
+      covariance (``H = [0 I 0]``), all three components or a subset (``axes``).
+    * Gyro attitude (``gyro_attitude``): besides the star-tracker-reset attitude,
+      the filter integrates the gyro alone from the first fix, never reset. Its
+      relative rotation between two frames is what vision uses: two independent
+      star-tracker fixes would rotate every ray of one frame against the other.
     * Measurement time: a measurement stamped ``dt_m = t_meas - t_filter`` away from
       the filter time (at most ``max_update_lag_s``) is predicted to first order:
       ``r_z + v_z dt_m`` for the altimeter, ``v + a dt_m`` for the velocity.
@@ -77,10 +112,12 @@ Model:
     * Messages with a non-finite value (or a malformed array) are rejected and
       counted, never propagated into the state.
 
-The sensor defaults below are the datasheet values of the default sensors
-(``models/sensors.py``: IMU, altimeter, star tracker) and the default lander's
-altimeter mounting; flight software may know its sensors' datasheets, not the
-truth.
+The sensor defaults below are the **specification** of the default sensors: the
+top of each range that a campaign disperses the real units over
+(``models/sensors.py``: IMU, altimeter, star tracker). Flight software knows its
+sensors' datasheets, never the drawn values. The altimeter's mounting is the
+vehicle's calibration, passed to :func:`make_estimator` by whoever builds the
+flight software from the same source as the world.
 """
 
 from __future__ import annotations
@@ -104,21 +141,28 @@ NS_PER_S = 1_000_000_000
 ARCSEC_TO_RAD = math.pi / (180.0 * 3600.0)
 
 # State layout.
-DIM_X = 10
+DIM_X = 20
 IDX_R = slice(0, 3)
 IDX_V = slice(3, 6)
 IDX_BA = slice(6, 9)
 IDX_RZ = 2
 IDX_VZ = 5
 IDX_H = 9  # terrain height under the altimeter footprint, relative to the target's elevation
+IDX_C = slice(10, 13)  # position clone at the last camera frame
+IDX_DC = slice(13, 15)  # image offset of the last camera frame (the clone's frame)
+IDX_DN = slice(15, 17)  # image offset of the current camera frame
+IDX_BF = slice(17, 19)  # slowly varying bias of the vision flow measurement
+IDX_G = 19  # mean height of the ground the camera tracks, relative to the target's elevation
 
 KIND_ALTIMETER = "altimeter"
 KIND_VELOCITY = "velocity"
+KIND_VISION = "vision"
 # Why an update was not applied (UpdateRecord.reason); "" when accepted.
 REASON_GATE = "gate"
 REASON_NONFINITE = "nonfinite"
 REASON_STALE = "stale"
 REASON_INVALID_R = "invalid_covariance"
+REASON_NO_CLONE = "no_clone"
 
 # Small-angle threshold below which the rotation-vector exponential uses its series [rad].
 _SMALL_ANGLE_RAD = 1e-9
@@ -128,37 +172,45 @@ _QUAT_NORM_TOL = 1e-3
 
 # --------------------------------------------------------------------------- configuration
 class EstimatorConfig(BaseModel):
-    """Navigation-filter tuning: sensor datasheet values, initial uncertainty, gating.
+    """Navigation-filter tuning: sensor specifications, initial uncertainty, gating.
 
-    Defaults match the default IMU, altimeter and star tracker of
-    ``models/sensors.py`` and the default lander's altimeter mounting.
+    Defaults are the specification of the default IMU, altimeter and star
+    tracker of ``models/sensors.py``: the top of the ranges the default
+    campaign disperses them over.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     gravity_mps2: float = Field(LUNAR_GRAVITY_MPS2, gt=0.0, description="surface gravity magnitude [m/s^2]")
-    # IMU datasheet.
+    # IMU specification (the datasheet's bounds, not the unit's drawn values).
     accel_noise_density: float = Field(
-        1e-3, ge=0.0, description="accelerometer white noise density [m/s^2/sqrt(Hz)]"
+        1.4e-3, ge=0.0, description="accelerometer white noise density, specification [m/s^2/sqrt(Hz)]"
     )
     accel_bias_walk: float = Field(1e-4, ge=0.0, description="accelerometer bias random walk [m/s^2/sqrt(s)]")
     init_accel_bias_sigma_mps2: float = Field(
-        5e-3, gt=0.0, description="initial accelerometer bias 1-sigma per axis (IMU turn-on bias) [m/s^2]"
+        7e-3, gt=0.0, description="initial accelerometer bias 1-sigma per axis (IMU turn-on bias, specification) [m/s^2]"
     )
-    # Star tracker datasheet.
-    attitude_sigma_arcsec: float = Field(10.0, ge=0.0, description="star-tracker attitude noise, 1-sigma per axis [arcsec]")
+    gyro_noise_density: float = Field(
+        1e-5, ge=0.0, description="gyro white noise density, specification [rad/s/sqrt(Hz)]"
+    )
+    gyro_bias_sigma_radps: float = Field(
+        1e-5, ge=0.0, description="gyro turn-on bias 1-sigma per axis, specification [rad/s]"
+    )
+    # Star tracker specification.
+    attitude_sigma_arcsec: float = Field(
+        14.0, ge=0.0, description="star-tracker attitude noise, 1-sigma per axis, specification [arcsec]"
+    )
     attitude_period_s: float = Field(
         0.1, gt=0.0, description="star-tracker period: how long one attitude error is held [s]"
     )
     attitude_propagation: Literal["gyro", "hold"] = Field(
         "gyro", description="between star-tracker fixes: integrate the gyro, or hold the last fix"
     )
-    # Altimeter datasheet and mounting.
-    altimeter_noise_sigma_m: float = Field(0.05, ge=0.0, description="altimeter range noise floor, 1-sigma [m]")
-    altimeter_noise_frac: float = Field(1e-3, ge=0.0, description="altimeter range noise per metre of range [-]")
-    altimeter_lever_arm_B_m: tuple[float, float, float] = Field(
-        (0.3, 0.0, -0.77), description="altimeter position relative to the body origin, in B [m]"
+    # Altimeter specification (its mounting is the vehicle's calibration, given to make_estimator).
+    altimeter_noise_sigma_m: float = Field(
+        0.08, ge=0.0, description="altimeter range noise floor, 1-sigma, specification [m]"
     )
+    altimeter_noise_frac: float = Field(1e-3, ge=0.0, description="altimeter range noise per metre of range [-]")
     altimeter_max_incidence_deg: float = Field(
         60.0, gt=0.0, lt=90.0, description="largest boresight angle from nadir used for updates [deg]"
     )
@@ -166,9 +218,19 @@ class EstimatorConfig(BaseModel):
         3.0, ge=0.0, description="1-sigma height of the ground under the lander about the target's elevation [m]"
     )
     terrain_correlation_length_m: float = Field(
-        30.0, ge=0.0,
+        100.0, ge=0.0,
         description="correlation length of that relief along the altimeter footprint track [m]; 0: white",
     )
+    view_ground_sigma_m: float = Field(
+        4.0, ge=0.0, description="1-sigma mean height of the ground the camera tracks, about the target's elevation [m]"
+    )
+    view_ground_correlation_length_m: float = Field(
+        50.0, gt=0.0, description="travel over which that mean height decorrelates [m]"
+    )
+    vision_bias_sigma: float = Field(
+        2.5e-5, ge=0.0, description="1-sigma of the slowly varying bias of the vision flow (ray angle) [rad]"
+    )
+    vision_bias_time_s: float = Field(5.0, gt=0.0, description="time constant of that bias [s]")
     # Initial uncertainty (the bench draws the initial estimate with these).
     init_pos_sigma_m: float = Field(20.0, gt=0.0, description="initial position 1-sigma per axis [m]")
     init_vel_sigma_mps: float = Field(1.0, gt=0.0, description="initial velocity 1-sigma per axis [m/s]")
@@ -188,7 +250,7 @@ class UpdateRecord:
 
     Attributes:
         t_ns: Measurement time of validity [ns].
-        kind: ``"altimeter"`` or ``"velocity"``.
+        kind: ``"altimeter"``, ``"velocity"`` or ``"vision"``.
         z: Measurement, (m,) [m] or [m/s].
         y: Innovation ``z - h(x_prior)``, (m,); NaN when not computed.
         S: Innovation covariance, (m, m); NaN when not computed.
@@ -196,11 +258,11 @@ class UpdateRecord:
         accepted: Whether the update was applied.
         reason: Why it was not applied (``"gate"``, ``"nonfinite"``, ``"stale"``,
             ``"invalid_covariance"``); ``""`` when accepted.
-        x_prior: State before the update, (10,) (for the altimeter, before the terrain
+        x_prior: State before the update, (20,) (for the altimeter, before the terrain
             state is carried to the new footprint).
-        P_prior: Covariance before the update, (10, 10).
-        x_post: State after the update (``x_prior`` when rejected), (10,).
-        P_post: Covariance after the update (``P_prior`` when rejected), (10, 10).
+        P_prior: Covariance before the update, (20, 20).
+        x_post: State after the update (``x_prior`` when rejected), (20,).
+        P_post: Covariance after the update (``P_prior`` when rejected), (20, 20).
     """
 
     t_ns: int
@@ -230,6 +292,7 @@ def _new_counters() -> dict[str, dict[str, int]]:
         "attitude": {"used": 0, "invalid": 0},
         KIND_ALTIMETER: {"accepted": 0, "rejected": 0, "invalid": 0, "skipped": 0},
         KIND_VELOCITY: {"accepted": 0, "rejected": 0, "invalid": 0},
+        KIND_VISION: {"accepted": 0, "rejected": 0, "invalid": 0},
     }
 
 
@@ -301,14 +364,14 @@ def _vec3(a: Any, name: str) -> np.ndarray:
 
 # --------------------------------------------------------------------------- the filter
 class NavFilter:
-    """Extended Kalman filter (filterpy) on position, velocity, accelerometer bias and terrain height.
+    """Extended Kalman filter (filterpy) on position, velocity, accelerometer bias, terrain height and a position clone.
 
     Build it with :func:`make_estimator`. See the module docstring for the model.
 
     Attributes:
         cfg: The validated configuration.
         ekf: The filterpy :class:`~filterpy.kalman.ExtendedKalmanFilter` holding
-            ``x`` (10,) and ``P`` (10, 10).
+            ``x`` (20,) and ``P`` (20, 20).
         log: One :class:`UpdateRecord` per measurement update, in call order.
         counters: Per input (``imu``, ``attitude``, ``altimeter``, ``velocity``),
             counts of used / accepted / rejected / invalid / skipped / stale messages.
@@ -317,7 +380,7 @@ class NavFilter:
     """
 
     def __init__(self, cfg: EstimatorConfig, x0: np.ndarray, P0: np.ndarray, t0_ns: int,
-                 q0_LB: Quat | None) -> None:
+                 q0_LB: Quat | None, altimeter_mount_B_m: np.ndarray) -> None:
         """Use :func:`make_estimator`; this constructor does not validate its inputs."""
         self.cfg = cfg
         ekf = ExtendedKalmanFilter(dim_x=DIM_X, dim_z=1, dim_u=3)
@@ -326,15 +389,20 @@ class NavFilter:
         self.ekf = ekf
         self.log: list[UpdateRecord] = []
         self.counters = _new_counters()
-        self.consecutive_rejections = {KIND_ALTIMETER: 0, KIND_VELOCITY: 0}
+        self.consecutive_rejections = {KIND_ALTIMETER: 0, KIND_VELOCITY: 0, KIND_VISION: 0}
 
         self._t_ns = int(t0_ns)
         self._g_L = np.array([0.0, 0.0, -cfg.gravity_mps2])
         self._q_LB: Quat | None = q0_LB  # attitude at the filter time
+        self._q_gyro: Quat | None = q0_LB  # gyro-only attitude, never reset by a fix (relative rotations)
+        self._clone_t_ns: int | None = None  # time of the position clone; None: no clone held
+        self._offset_clone_known = False  # d_clone holds the clone frame's offset (it was introduced by an update)
+        self._offset_new_known = False  # d_new holds the current frame's offset
         self._omega_B = (0.0, 0.0, 0.0)  # latest gyro sample [rad/s]
+        self._have_rate = False  # a gyro sample has been received
         self._a_L = np.zeros(3)  # latest estimated total acceleration [m/s^2] (for measurement-time shifts)
         self._gyro = cfg.attitude_propagation == "gyro"
-        self._lever_B = np.array(cfg.altimeter_lever_arm_B_m, dtype=float)
+        self._lever_B = np.array(altimeter_mount_B_m, dtype=float)
         self._footprint_L: np.ndarray | None = None  # (2,) horizontal footprint of the last applied range [m]
         self._cos_max_incidence = math.cos(math.radians(cfg.altimeter_max_incidence_deg))
         self._accel_psd = cfg.accel_noise_density**2  # [(m/s^2)^2 / Hz]
@@ -358,13 +426,28 @@ class NavFilter:
 
     @property
     def x(self) -> np.ndarray:
-        """State copy, (10,): r_BL_L [m], v_BL_L [m/s], b_a_B [m/s^2], h_terrain [m]."""
+        """State copy, (20,): r_BL_L [m], v_BL_L [m/s], b_a_B [m/s^2], h_terrain [m], r_clone_L [m]."""
         return self.ekf.x.copy()
 
     @property
     def P(self) -> np.ndarray:
-        """Covariance copy, (10, 10)."""
+        """Covariance copy, (20, 20)."""
         return self.ekf.P.copy()
+
+    @property
+    def clone_time_ns(self) -> int | None:
+        """Time of the position clone [ns]; None when no clone is held."""
+        return self._clone_t_ns
+
+    def gyro_attitude(self) -> np.ndarray | None:
+        """The gyro-only attitude at the filter time, (4,) scalar-first; None before the first fix.
+
+        It starts at the first star-tracker fix and is then integrated from the
+        gyro alone, never reset. Its absolute value drifts; the rotation between
+        two of its values is the gyro's relative rotation, accurate to the gyro
+        noise, which is what vision needs between two frames.
+        """
+        return None if self._q_gyro is None else np.array(self._q_gyro)
 
     @property
     def q_LB(self) -> np.ndarray | None:
@@ -414,6 +497,8 @@ class NavFilter:
             dt = (self._t_ns - msg.t_ns) / NS_PER_S
             q = _quat_normalized(_quat_mul(q, _quat_exp(*self._omega_B, dt)))
         self._q_LB = q
+        if self._q_gyro is None:
+            self._q_gyro = q
         self.counters["attitude"]["used"] += 1
         return True
 
@@ -463,7 +548,12 @@ class NavFilter:
         if not math.isfinite(fx + fy + fz + wx + wy + wz):
             counts["invalid"] += 1
             return False
+        # The gyro samples the rate at t_k; over (t_{k-1}, t_k] the rate is integrated with the trapezoid
+        # of the last two samples (exact for a rate that changes linearly, as under a held RCS torque;
+        # holding the end sample would rotate by alpha dt^2 / 2 too much per step during a slew).
+        w0x, w0y, w0z = self._omega_B if self._have_rate else (wx, wy, wz)
         self._omega_B = (wx, wy, wz)
+        self._have_rate = True
         if self._q_LB is None:
             counts["no_attitude"] += 1
             return False
@@ -472,12 +562,13 @@ class NavFilter:
         if dt_ns != self._dt_ns:
             self._set_step_matrices(dt_ns)
         dt = dt_ns / NS_PER_S
+        half = _quat_exp(0.5 * (w0x + wx), 0.5 * (w0y + wy), 0.5 * (w0z + wz), 0.5 * dt)
         if self._gyro:
-            half = _quat_exp(wx, wy, wz, 0.5 * dt)
             q_mid = _quat_mul(self._q_LB, half)
             self._q_LB = _quat_normalized(_quat_mul(q_mid, half))
         else:
             q_mid = self._q_LB
+        self._q_gyro = _quat_normalized(_quat_mul(self._q_gyro, _quat_mul(half, half)))
         R_LB = quat_to_matrix(q_mid)  # mid-interval attitude
 
         ekf = self.ekf
@@ -661,6 +752,151 @@ class NavFilter:
         hx = (self.ekf.x[IDX_V] + self._a_L * (lag_ns / NS_PER_S))[idx]
         return self._gated_update(int(t_ns), KIND_VELOCITY, z, hx, self._H_vel[idx], R)
 
+    def clone_frame(self, t_ns: int) -> bool:
+        """Clone the state of a camera frame at ``t_ns``: its position and its image offset.
+
+        The position clone is ``r + v (t_ns - t_filter)`` (first order, for a frame
+        stamped off the filter time), with its covariance and every
+        cross-covariance: the augmentation ``x_c = T x``, ``P_cc = T P T^T``,
+        ``P_c* = T P``. The frame's image offset ``d_new`` (introduced by this
+        frame's :meth:`update_relative`, if any) moves to ``d_clone`` the same way,
+        and ``d_new`` is cleared for the next frame.
+
+        Args:
+            t_ns: Time of the frame [ns].
+
+        Returns:
+            True when cloned; False when ``t_ns`` is further than ``max_update_lag_s``
+            from the filter time (no clone is then held).
+        """
+        lag_ns = self._lag_ns(t_ns)
+        if abs(lag_ns) > self._max_lag_ns:
+            self.drop_clone()
+            return False
+        ekf = self.ekf
+        x, P = ekf.x, ekf.P
+        cfg = self.cfg
+        if self._clone_t_ns is not None:
+            # The view moved: its mean ground height decorrelates with the travel, and the flow
+            # bias with time (Gauss-Markov).
+            phi_g = math.exp(-float(np.linalg.norm(x[IDX_R] - x[IDX_C])) / cfg.view_ground_correlation_length_m)
+            _decay(x, P, [IDX_G], phi_g, cfg.view_ground_sigma_m)
+            phi_b = math.exp(-(int(t_ns) - self._clone_t_ns) / NS_PER_S / cfg.vision_bias_time_s)
+            _decay(x, P, [17, 18], phi_b, cfg.vision_bias_sigma)
+        # The frame's offset: d_clone <- d_new, with its correlations.
+        row = P[IDX_DN, :].copy()
+        x[IDX_DC] = x[IDX_DN]
+        P[IDX_DC, :] = row
+        P[:, IDX_DC] = row.T
+        P[IDX_DC, IDX_DC] = row[:, IDX_DN]
+        self._offset_clone_known = self._offset_new_known
+        # The position: r_clone <- r + v lag, with its correlations (the offset's included).
+        T = np.zeros((3, DIM_X))
+        T[:, IDX_R] = np.eye(3)
+        T[:, IDX_V] = (lag_ns / NS_PER_S) * np.eye(3)
+        x[IDX_C] = T @ x
+        TP = T @ P
+        P[IDX_C, :] = TP
+        P[:, IDX_C] = TP.T
+        P[IDX_C, IDX_C] = TP @ T.T
+        self._clear_new_offset(x, P)
+        self._clone_t_ns = int(t_ns)
+        return True
+
+    def _clear_new_offset(self, x: np.ndarray, P: np.ndarray) -> None:
+        x[IDX_DN] = 0.0
+        P[IDX_DN, :] = 0.0
+        P[:, IDX_DN] = 0.0
+        self._offset_new_known = False
+
+    def drop_clone(self) -> None:
+        """Forget the clone (a break in the image sequence); the next frame starts anew."""
+        self._clone_t_ns = None
+        self._offset_clone_known = False
+        self._clear_new_offset(self.ekf.x, self.ekf.P)
+
+    def update_relative(self, t_ns: int, z: np.ndarray, hx: np.ndarray, H_r: np.ndarray, H_c: np.ndarray,
+                        R: np.ndarray, R_frame: np.ndarray | None = None, H_g: np.ndarray | None = None,
+                        kind: str = KIND_VISION) -> UpdateRecord:
+        """Update with a measurement of the current position relative to the clone.
+
+        The measurement model is linearised by the caller at the filter's prior:
+        ``z ~ hx + H_r (r(t_ns) - r_hat(t_ns)) + H_c (r_clone - r_clone_hat)
+        + H_g (h_view - h_view_hat) + b_flow + d_new - d_clone + w``, where ``r(t_ns) = r + v (t_ns - t_filter)``, ``w`` is
+        white with covariance ``R`` and ``d_new`` is the current frame's image
+        offset, entered here with covariance ``R_frame``. ``d_clone`` is the clone
+        frame's offset as this filter knows it; a clone frame that had no update of
+        its own gets a fresh offset with ``R_frame`` too. Only for ``m = 2``.
+
+        Args:
+            t_ns: Time of validity (the second frame) [ns].
+            z: Measurement, (m,).
+            hx: Its prediction at the prior, (m,).
+            H_r: Jacobian with respect to the position at ``t_ns``, (m, 3).
+            H_c: Jacobian with respect to the clone, (m, 3).
+            R: Covariance of the white part ``w``, (m, m), symmetric positive definite.
+            R_frame: Covariance of one frame's image offset, (2, 2), symmetric
+                positive semi-definite; None: no shared-frame noise (zero).
+            H_g: Jacobian with respect to the viewed ground's height ``h_view``, (2,);
+                None: the measurement does not depend on it.
+            kind: Record and counter name (default ``"vision"``).
+
+        Returns:
+            The update's record (``accepted`` False when gated, stale, non-finite,
+            with a non-positive-definite ``R``, or with no clone held).
+
+        Raises:
+            ValueError: Arrays of inconsistent shapes (a caller bug).
+        """
+        z = np.asarray(z, dtype=float)
+        m = z.shape[0] if z.ndim == 1 else -1
+        hx = np.asarray(hx, dtype=float)
+        H_r = np.asarray(H_r, dtype=float)
+        H_c = np.asarray(H_c, dtype=float)
+        R = np.asarray(R, dtype=float)
+        R_f = np.zeros((2, 2)) if R_frame is None else np.asarray(R_frame, dtype=float)
+        H_g = np.zeros(2) if H_g is None else np.asarray(H_g, dtype=float)
+        if not (m == 2 and hx.shape == (m,) and H_r.shape == (m, 3) and H_c.shape == (m, 3) and R.shape == (m, m)
+                and R_f.shape == (2, 2) and H_g.shape == (2,)):
+            raise ValueError(
+                f"update_relative: shapes z {z.shape}, hx {hx.shape}, H_r {H_r.shape}, H_c {H_c.shape}, R {R.shape}, "
+                f"R_frame {R_f.shape}; expected (2,), (2,), (2, 3), (2, 3), (2, 2), (2, 2)"
+            )
+        if not all(np.all(np.isfinite(a)) for a in (z, hx, H_r, H_c, R, R_f, H_g)):
+            return self._not_applied(t_ns, kind, z, REASON_NONFINITE, "invalid")
+        if self._clone_t_ns is None:
+            return self._not_applied(t_ns, kind, z, REASON_NO_CLONE, "invalid")
+        R = 0.5 * (R + R.T)
+        try:
+            np.linalg.cholesky(R)
+        except np.linalg.LinAlgError:
+            return self._not_applied(t_ns, kind, z, REASON_INVALID_R, "invalid")
+        lag_ns = self._lag_ns(t_ns)
+        if abs(lag_ns) > self._max_lag_ns:
+            return self._not_applied(t_ns, kind, z, REASON_STALE, "rejected")
+        H = np.zeros((m, DIM_X))
+        H[:, IDX_R] = H_r
+        H[:, IDX_V] = H_r * (lag_ns / NS_PER_S)
+        H[:, IDX_C] = H_c
+        H[:, IDX_BF] = np.eye(2)
+        H[:, IDX_G] = H_g
+        H[:, IDX_DN] = np.eye(2)
+        H[:, IDX_DC] = -np.eye(2)
+        # Enter this frame's offset (and the clone frame's, if no update introduced it) into the prior.
+        x, P = self.ekf.x.copy(), self.ekf.P.copy()
+        R_f = 0.5 * (R_f + R_f.T)
+        fresh = [IDX_DN] if self._offset_clone_known else [IDX_DN, IDX_DC]
+        for idx in fresh:
+            x[idx] = 0.0
+            P[idx, :] = 0.0
+            P[:, idx] = 0.0
+            P[idx, idx] = R_f
+        hx = hx + x[IDX_BF] + x[IDX_DN] - x[IDX_DC]
+        rec = self._gated_update(int(t_ns), kind, z, hx, H, R, prior=(x, P))
+        if rec.accepted:
+            self._offset_new_known = True
+        return rec
+
     def altimeter_sigma_m(self, range_m: float, cos_nadir: float = 1.0, include_relief: bool = True) -> float:
         """1-sigma of a slant range [m]: the altimeter spec, plus the relief by default.
 
@@ -712,14 +948,34 @@ class NavFilter:
         )
 
 
+def _decay(x: np.ndarray, P: np.ndarray, idx: list[int], phi: float, sigma: float) -> None:
+    """One step of a first-order Gauss-Markov process of stationary 1-sigma ``sigma`` on states ``idx``, in place."""
+    for i in idx:
+        x[i] *= phi
+        P[i, :] *= phi
+        P[:, i] *= phi
+        P[i, i] += sigma**2 * (1.0 - phi * phi)
+
+
 # --------------------------------------------------------------------------- factory
 def initial_covariance(cfg: EstimatorConfig) -> np.ndarray:
-    """Diagonal initial covariance (10, 10) from the config's 1-sigma values."""
+    """Initial covariance (20, 20) from the config's 1-sigma values.
+
+    Diagonal in position, velocity, bias and terrain; the position clone starts
+    as an exact copy of the position (fully correlated with it), as if cloned at
+    t0; the image offsets start at zero, unknown until an update enters them.
+    """
     sig = np.concatenate([
         np.repeat([cfg.init_pos_sigma_m, cfg.init_vel_sigma_mps, cfg.init_accel_bias_sigma_mps2], 3),
         [cfg.terrain_relief_sigma_m],
+        np.repeat(cfg.init_pos_sigma_m, 3),
+        np.zeros(4),
+        np.repeat(cfg.vision_bias_sigma, 2),
+        [cfg.view_ground_sigma_m],
     ])
-    return np.diag(sig**2)
+    P = np.diag(sig**2)
+    P[IDX_R, IDX_C] = P[IDX_C, IDX_R] = np.diag(np.repeat(cfg.init_pos_sigma_m**2, 3))
+    return P
 
 
 def make_estimator(
@@ -728,6 +984,8 @@ def make_estimator(
     x0_v_L: Any,
     t0_ns: int,
     q0_LB: Any = None,
+    *,
+    altimeter_mount_B_m: Any,
 ) -> NavFilter:
     """Validate the config and the initial state, and build the filter.
 
@@ -738,13 +996,15 @@ def make_estimator(
         t0_ns: Time of the initial estimate [ns] (integer).
         q0_LB: Optional initial attitude, (4,) scalar-first; without it, IMU samples
             are ignored until the first star-tracker fix.
+        altimeter_mount_B_m: Altimeter position relative to the body origin, in B,
+            (3,) [m]: the vehicle's calibration, from the same source as the world's.
 
     Returns:
         The filter, with zero bias and terrain estimates and the config's initial covariance.
 
     Raises:
         ValueError: One line naming the bad field (``estimator.<field>``, ``x0_r_L``,
-            ``x0_v_L``, ``t0_ns`` or ``q0_LB``) and what is allowed.
+            ``x0_v_L``, ``t0_ns``, ``q0_LB`` or ``altimeter_mount_B_m``) and what is allowed.
     """
     c: EstimatorConfig = validated_config(EstimatorConfig, cfg, "estimator")
     r0 = _vec3(x0_r_L, "x0_r_L")
@@ -760,5 +1020,6 @@ def make_estimator(
         if not (math.isfinite(norm) and abs(norm - 1.0) <= _QUAT_NORM_TOL):
             raise ValueError(f"q0_LB = {q.tolist()}: expected a finite unit quaternion")
         q0 = tuple(float(v) for v in q / norm)  # type: ignore[assignment]
-    x0 = np.concatenate([r0, v0, np.zeros(DIM_X - 6)])
-    return NavFilter(c, x0, initial_covariance(c), int(t0_ns), q0)
+    mount = _vec3(altimeter_mount_B_m, "altimeter_mount_B_m")
+    x0 = np.concatenate([r0, v0, np.zeros(4), r0, np.zeros(7)])
+    return NavFilter(c, x0, initial_covariance(c), int(t0_ns), q0, mount)

@@ -1,44 +1,56 @@
-"""Ground-relative velocity from feature tracks (DIMES-style), for the navigation filter.
+"""Vision measurement from feature tracks (DIMES-style), as a relative-position measurement for the filter.
 
 Ports:
     Inputs: the tracks of one frame pair (:class:`vision.Tracks`, with
-        ``prev_xy``), the attitude at both frames (star tracker, q_LB), the
-        camera calibration (K, R_BC, camera position in B), the camera's
-        height above the ground at the first frame (from the altimeter) and
-        the filter's velocity change over the frame interval (IMU-propagated).
-    Output: :class:`VelocityMeasurement`, a velocity in L with its covariance.
+        ``prev_xy``); the attitude at both frames, the second from the filter
+        and the first from it through the **gyro's relative rotation** (never
+        two independent star-tracker fixes); the camera calibration (K, R_BC,
+        camera position in B); and the filter's prior positions at both frames
+        (the stochastic clone at the first, the propagated state at the second).
+    Output: :class:`VisionMeasurement`: the measured mean ground flow ``z``,
+        its prediction ``hx``, the Jacobians on the current position and the
+        clone, and the covariance ``R``, for
+        :meth:`gnc.estimator.NavFilter.update_relative`.
     Rate: camera rate (one measurement per frame pair).
 
 Model and assumptions:
-    * The tracked features lie on a **locally planar, horizontal ground**
-      at height ``h0`` below the camera at the first frame (the altimeter
-      range times the boresight's vertical component, as DIMES used its
-      radar altitude). Relief under the view becomes scale error.
-    * With unit-height rays ``a = d0 / -d0_z`` and ``b = d1 / -d1_z`` (``d``
-      the pixel rays rotated into L), a static feature gives
-      ``r0 + h0 a = r1 + (h0 + dz) b``, i.e. two linear equations per track
-      in the camera displacement ``dr = r1 - r0``::
+    * The tracked features lie on a **locally planar, horizontal ground** at the
+      height ``h_view`` above the target's elevation, a filter state: relief
+      under the view is a slowly varying scale error.
+    * With unit-height rays ``a = d0 / -d0_z`` and ``b = d1 / -d1_z`` (``d`` the
+      pixel rays rotated into L), a static feature gives
+      ``c0 + h0 a = c1 + (h0 + dz) b`` for the camera positions ``c0``, ``c1``,
+      the camera height ``h0 = c0_z - h_view`` above the ground at the first frame and
+      ``dz = c1_z - c0_z``. Its horizontal part, per track ``i``::
 
-          dx + b_x dz = h0 (a_x - b_x)
-          dy + b_y dz = h0 (a_y - b_y)
+          g_i = (a_i - b_i)_xy = (dr_xy + dz b_i,xy) / h0
 
-      Vertical motion shows in the image only through its divergence, which
-      is weak and inherits every scale error (relief under the view) in
-      proportion to the descent rate; the altimeter measures it far better.
-      So, as DIMES did, vision measures the **horizontal** velocity: ``dz``
-      is taken from the filter (its IMU + altimeter vertical displacement
-      over the interval, with its uncertainty), and the two horizontal
-      unknowns are solved from all tracks by least squares, with iterative
-      rejection of tracks whose residual exceeds ``outlier_mad_k`` robust
-      sigmas (wrong tracks, moving shadows).
-    * ``dr / dt`` is the mean velocity over the interval. With the
-      acceleration nearly constant over a frame, the velocity at the second
-      frame is ``dr / dt + dv / 2``, with ``dv`` the filter's own
-      IMU-propagated velocity change over the interval.
-    * The camera's lever arm is removed exactly with both attitudes.
-    * Covariance: the least-squares covariance from the residual scatter
-      (floored by ``pixel_sigma_px`` projected to the ground) plus the scale
-      uncertainty from ``sigma_h0_m``.
+      Vision measures the mean flow ``z = mean_i g_i`` over the tracks kept
+      after iterative rejection of those whose residual exceeds
+      ``outlier_mad_k`` robust sigmas (wrong tracks, moving shadows). Its model
+      ``h(x) = (dr_xy + dz b_mean,xy) / h0`` depends on the state only through
+      the camera positions at the two frames, i.e. on the current position and
+      the clone (the lever arm is removed exactly with both attitudes). Its
+      Jacobians are kept for the horizontal components and ``h_view``: vision
+      corrects the horizontal position and velocity and the ground's height.
+      The camera's height and vertical displacement come from the filter's
+      prior, not from a difference of two filter outputs; vision does not
+      correct them (letting the flow's scale correct the vertical states made
+      them overconfident in campaigns).
+    * As DIMES did, only the horizontal flow is used: the vertical motion shows
+      in the image only through its divergence, weak and scaled by relief.
+    * Covariance: the covariance of the mean flow from the scatter of the kept
+      tracks about it, cluster-robust over image cells of ``cluster_px`` (the
+      features of one template err together, so they are not independent
+      samples), with each track's variance floored by ``pixel_sigma_px``, is the
+      pixel noise of the two frames. Its share ``frame_noise_share`` is per-frame noise (a frame's noise
+      moves its tracked positions in both pairs it belongs to), half from each
+      frame: ``R_frame``, one frame's offset, which the filter carries as a state.
+      The rest is white, ``R``, plus the gyro's relative-rotation error over the
+      interval (``sigma_rot_rad``) and a tracking error proportional to the
+      rotation between the frames (``rotation_error_frac``: under a slew the
+      image motion is mostly rotation, and the tracks share its error). Both
+      are multiplied by ``covariance_inflation``.
 """
 
 from __future__ import annotations
@@ -48,34 +60,41 @@ from dataclasses import dataclass
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.spatial.transform import Rotation
 
 from vision.tracks import Tracks
 
 NS_PER_S = 1_000_000_000
-UNKNOWNS = 2  # dx, dy (dz comes from the filter)
 MAD_TO_SIGMA = 1.4826  # sigma of a normal distribution per median absolute deviation
+MIN_CAMERA_HEIGHT_M = 1.0  # no measurement from a camera this close to the ground plane [m]
 
 
 class VisionNavConfig(BaseModel):
-    """Velocity-from-tracks settings."""
+    """Vision-measurement settings."""
 
     model_config = ConfigDict(extra="forbid")
 
     min_tracks: int = Field(8, ge=3, description="fewest consistent tracks for a measurement [-]")
     pixel_sigma_px: float = Field(
-        0.15, gt=0.0, description="floor on the per-track pixel noise used for the covariance [px]"
+        0.05, gt=0.0, description="floor on the per-track pixel noise used for the covariance [px]"
     )
     outlier_mad_k: float = Field(4.0, gt=1.0, description="reject tracks beyond this many robust sigmas [-]")
     outlier_iterations: int = Field(3, ge=0, le=20, description="rounds of outlier rejection [-]")
     max_off_nadir_deg: float = Field(
         60.0, gt=0.0, lt=90.0, description="rays further than this from straight down are not used [deg]"
     )
-    covariance_inflation: float = Field(
-        1.5, ge=1.0, description="factor on the measurement covariance for unmodelled errors (relief, timing) [-]"
+    cluster_px: float = Field(
+        64.0, gt=0.0, description="image cells whose tracks are taken to err together (cluster-robust covariance) [px]"
     )
-    vertical_rate_sigma_mps: float = Field(
-        0.1, gt=0.0, description="1-sigma of the filter's vertical velocity, for the dz it lends vision [m/s]"
+    rotation_error_frac: float = Field(
+        0.01, ge=0.0,
+        description="1-sigma error of the flow per radian of rotation between the frames (tracking under slews) [-]",
+    )
+    frame_noise_share: float = Field(
+        0.7, ge=0.0, le=1.0,
+        description="share of the tracks' scatter that is per-frame pixel noise, shared with the neighbouring pair [-]",
+    )
+    covariance_inflation: float = Field(
+        1.0, ge=1.0, description="factor on the measurement covariance for unmodelled errors [-]"
     )
     cutoff_altitude_m: float = Field(
         30.0, ge=0.0, description="vision is used only above this estimated altitude; below, IMU + altimeter [m]"
@@ -83,43 +102,60 @@ class VisionNavConfig(BaseModel):
 
 
 @dataclass(frozen=True, slots=True)
-class VelocityMeasurement:
-    """Ground-relative velocity of the body at ``t_ns``.
+class VisionMeasurement:
+    """The mean ground flow between two frames, linearised at the filter's prior.
 
     Attributes:
+        t0_ns: Time of the first frame (the clone's) [ns].
         t_ns: Time of validity (the second frame) [ns].
-        v_L: Horizontal velocity in L (east, north), (2,) [m/s].
-        R: Covariance, (2, 2) [m^2/s^2].
+        z: Mean horizontal difference of the unit-height rays, ``mean (a - b)_xy``, (2,) [-].
+        hx: Its prediction at the prior, (2,) [-].
+        H_r: Jacobian of ``h`` on the body position at ``t_ns``, (2, 3) [1/m].
+        H_c: Jacobian of ``h`` on the clone (body position at ``t0_ns``), (2, 3) [1/m].
+        H_g: Jacobian of ``h`` on the tracked ground's mean height, (2,) [1/m].
+        R: Covariance of the white part of the error of ``z``, (2, 2) [-].
+        R_frame: Covariance of one frame's image offset (the shared-frame part), (2, 2) [-].
+        b_mean: Mean horizontal unit-height ray of the kept tracks at the second frame, (2,) [-]
+            (the model's divergence term: ``h = (dr_xy + dz b_mean) / h0``).
+        v_L: Horizontal body velocity the flow implies with the prior's height and
+            vertical displacement (telemetry only), (2,) [m/s].
         n_tracks: Tracks offered.
         n_used: Tracks kept after outlier rejection.
         residual_px: Robust residual scatter of the kept tracks, in pixels.
     """
 
+    t0_ns: int
     t_ns: int
-    v_L: np.ndarray
+    z: np.ndarray
+    hx: np.ndarray
+    H_r: np.ndarray
+    H_c: np.ndarray
+    H_g: np.ndarray
     R: np.ndarray
+    R_frame: np.ndarray
+    b_mean: np.ndarray
+    v_L: np.ndarray
     n_tracks: int
     n_used: int
     residual_px: float
 
 
-def velocity_from_tracks(
+def vision_measurement(
     tracks: Tracks,
     t0_ns: int,
     t1_ns: int,
     K: np.ndarray,
     R_BC: np.ndarray,
     r_cam_B: np.ndarray,
-    q_LB0: np.ndarray,
-    q_LB1: np.ndarray,
-    h0_m: float,
-    sigma_h0_m: float,
-    dv_L: np.ndarray,
-    dz_m: float,
-    sigma_dz_m: float,
+    R_LB0: np.ndarray,
+    R_LB1: np.ndarray,
+    r0_L: np.ndarray,
+    r1_L: np.ndarray,
+    h_view_m: float,
+    sigma_rot_rad: float,
     cfg: VisionNavConfig,
-) -> VelocityMeasurement | None:
-    """Body velocity at the second frame from the tracks of a frame pair.
+) -> VisionMeasurement | None:
+    """The vision measurement of a frame pair, for :meth:`NavFilter.update_relative`.
 
     Args:
         tracks: Tracks of the second frame; those with a finite ``prev_xy``
@@ -128,85 +164,99 @@ def velocity_from_tracks(
         K: Intrinsics (3, 3) [px].
         R_BC: Camera-to-body rotation (3, 3).
         r_cam_B: Camera position in B (3,) [m].
-        q_LB0, q_LB1: Attitude at the two frames, scalar-first (4,).
-        h0_m: Camera height above the local ground plane at the first frame [m].
-        sigma_h0_m: 1-sigma uncertainty of ``h0_m`` [m].
-        dv_L: Velocity change over the interval from IMU propagation (3,) [m/s].
-        dz_m: Vertical displacement of the camera over the interval, from the
-            filter [m] (negative when descending).
-        sigma_dz_m: Its 1-sigma uncertainty [m].
+        R_LB0, R_LB1: Attitude (B to L) at the two frames, (3, 3); ``R_LB0`` should
+            be ``R_LB1`` carried back by the gyro's relative rotation.
+        r0_L: Prior body position at the first frame (the clone), (3,) [m].
+        r1_L: Prior body position at the second frame, (3,) [m].
+        h_view_m: Prior mean height of the tracked ground above the target's elevation [m].
+        sigma_rot_rad: 1-sigma per axis of the relative rotation between the frames [rad].
         cfg: Settings.
 
     Returns:
-        The measurement, or None when there are too few usable tracks or
-        the inputs are unusable (non-finite, non-positive height or interval).
+        The measurement, or None when there are too few usable tracks or the
+        inputs are unusable (non-finite, interval not positive, camera below
+        ``MIN_CAMERA_HEIGHT_M``).
     """
     dt_s = (t1_ns - t0_ns) / NS_PER_S
-    if not (dt_s > 0 and math.isfinite(h0_m) and h0_m > 0 and math.isfinite(sigma_h0_m)
-            and math.isfinite(dz_m) and math.isfinite(sigma_dz_m)):
-        return None
-    if not (np.all(np.isfinite(q_LB0)) and np.all(np.isfinite(q_LB1)) and np.all(np.isfinite(dv_L))):
+    arrays = (K, R_BC, r_cam_B, R_LB0, R_LB1, r0_L, r1_L)
+    if not (dt_s > 0 and math.isfinite(sigma_rot_rad) and all(np.all(np.isfinite(a)) for a in arrays)):
         return None
     have_prev = np.all(np.isfinite(tracks.prev_xy), axis=1) & np.all(np.isfinite(tracks.xy), axis=1)
     n_tracks = int(have_prev.sum())
     if n_tracks < cfg.min_tracks:
         return None
-    R_LB0 = Rotation.from_quat(q_LB0, scalar_first=True).as_matrix()
-    R_LB1 = Rotation.from_quat(q_LB1, scalar_first=True).as_matrix()
+    c0 = r0_L + R_LB0 @ r_cam_B  # camera positions [m]
+    c1 = r1_L + R_LB1 @ r_cam_B
+    h0 = float(c0[2]) - h_view_m
+    if h0 < MIN_CAMERA_HEIGHT_M:
+        return None
+    dz = float(c1[2] - c0[2])
     K_inv = np.linalg.inv(K)
     d0 = _rays_L(tracks.prev_xy[have_prev], K_inv, R_LB0 @ R_BC)
     d1 = _rays_L(tracks.xy[have_prev], K_inv, R_LB1 @ R_BC)
     cos_max = math.cos(math.radians(cfg.max_off_nadir_deg))
-    down = (-d0[:, 2] > cos_max) & (-d1[:, 2] > cos_max)
+    down = (-d0[:, 2] > cos_max * np.linalg.norm(d0, axis=1)) & (-d1[:, 2] > cos_max * np.linalg.norm(d1, axis=1))
     if int(down.sum()) < cfg.min_tracks:
         return None
     a = d0[down] / -d0[down, 2:3]
     b = d1[down] / -d1[down, 2:3]
-    n = a.shape[0]
-    # Two equations per track, dz known: dr_xy = h0 (a - b)_xy - dz b_xy.
-    A = np.zeros((2 * n, UNKNOWNS))
-    A[0::2, 0] = 1.0
-    A[1::2, 1] = 1.0
-    g = np.empty(2 * n)  # the right-hand side per unit height
-    g[0::2] = a[:, 0] - b[:, 0]
-    g[1::2] = a[:, 1] - b[:, 1]
-    b_xy = np.empty(2 * n)  # the right-hand side per metre of dz
-    b_xy[0::2] = -b[:, 0]
-    b_xy[1::2] = -b[:, 1]
-    y = h0_m * g + dz_m * b_xy
-    keep = np.ones(n, bool)
+    g = a[:, :2] - b[:, :2]  # per-track flow [-]
+    y = h0 * g - dz * b[:, :2]  # each track's estimate of the horizontal camera displacement [m]
     f_px = float(K[0, 0])
+    floor = cfg.pixel_sigma_px * h0 / f_px  # a pixel's footprint on the ground [m]
+    n = g.shape[0]
+    keep = np.ones(n, bool)
     for _ in range(cfg.outlier_iterations + 1):
-        rows = np.repeat(keep, 2)
         if int(keep.sum()) < cfg.min_tracks:
             return None
-        dr, *_ = np.linalg.lstsq(A[rows], y[rows], rcond=None)
-        res = (y - A @ dr).reshape(n, 2)
+        res = y - y[keep].mean(axis=0)
         res_norm = np.hypot(res[:, 0], res[:, 1])
         sigma = MAD_TO_SIGMA * float(np.median(res_norm[keep])) / math.sqrt(2.0)  # per axis [m]
-        floor = cfg.pixel_sigma_px * h0_m / f_px  # a pixel's footprint on the ground [m]
         new_keep = res_norm <= cfg.outlier_mad_k * max(sigma, floor) * math.sqrt(2.0)
         if np.array_equal(new_keep, keep):
             break
         keep = new_keep
-    rows = np.repeat(keep, 2)
-    A_k = A[rows]
     n_used = int(keep.sum())
-    dof = max(2 * n_used - UNKNOWNS, 1)
-    s2 = max(float(np.sum((y[rows] - A_k @ dr) ** 2)) / dof, floor**2)
-    AtA_inv = np.linalg.inv(A_k.T @ A_k)
-    cov_dr = s2 * AtA_inv
-    # Scale and vertical displacement: dr is linear in h0 and in dz.
-    J_h = AtA_inv @ A_k.T @ g[rows]
-    J_z = AtA_inv @ A_k.T @ b_xy[rows]
-    cov_dr = cov_dr + np.outer(J_h, J_h) * sigma_h0_m**2 + np.outer(J_z, J_z) * sigma_dz_m**2
-    # Camera displacement -> body displacement: remove the lever arm's rotation.
-    dr_B = dr - ((R_LB1 - R_LB0) @ r_cam_B)[:2]
-    v1 = dr_B / dt_s + 0.5 * np.asarray(dv_L, float)[:2]
-    R = cfg.covariance_inflation * cov_dr / dt_s**2
-    return VelocityMeasurement(
-        t_ns=int(t1_ns), v_L=v1, R=0.5 * (R + R.T), n_tracks=n_tracks, n_used=n_used,
-        residual_px=math.sqrt(s2) * f_px / h0_m,
+    if n_used < cfg.min_tracks:
+        return None
+    res = y[keep] - y[keep].mean(axis=0)
+    s2 = max(float(np.sum(res**2)) / max(2 * n_used - 2, 1), floor**2)  # per-axis track variance [m^2]
+    # The mean's covariance, cluster-robust: tracks close together in the image (one template's
+    # features) err together, so the tracks are not n independent samples.
+    xy_kept = tracks.prev_xy[have_prev][down][keep]
+    cell = np.floor(xy_kept / cfg.cluster_px).astype(np.int64)
+    _, cluster = np.unique(cell[:, 0] * 1_000_003 + cell[:, 1], return_inverse=True)
+    n_clusters = int(cluster.max()) + 1
+    sums = np.zeros((n_clusters, 2))
+    np.add.at(sums, cluster, res)
+    cov_mean = sums.T @ sums / (n_used * n_used) * (n_clusters / max(n_clusters - 1, 1))
+    cov_mean = np.maximum(cov_mean, 0.0) if n_clusters < 2 else cov_mean
+    cov_mean = cov_mean + np.eye(2) * max(floor**2 / n_used - float(np.min(np.diag(cov_mean))), 0.0)
+    z = g[keep].mean(axis=0)
+    b_mean = b[keep, :2].mean(axis=0)
+    dr_xy = (c1 - c0)[:2]
+    hx = (dr_xy + dz * b_mean) / h0
+    # Horizontal states only: the flow's weak dependence on the height and the vertical displacement
+    # (through h0 and dz) is evaluated at the prior and not used to correct them; its slowly varying
+    # error (a viewed ground off the target's elevation) is the filter's flow bias.
+    H_r = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]) / h0
+    H_c = -H_r
+    H_g = hx / h0  # a higher ground is a shorter range: a larger flow
+    # The tracks' scatter about their mean holds the pixel noise of both frames; the share
+    # frame_noise_share of it is per-frame (shared with the neighbouring pair), split evenly.
+    track_cov = cov_mean / (h0 * h0)  # covariance of the mean flow from the tracks' scatter [-]
+    R_frame = 0.5 * cfg.frame_noise_share * track_cov
+    # Under a slew most of the image motion is rotation; the tracker follows it to about
+    # rotation_error_frac of the rotation, an error the scatter does not show (all tracks share it).
+    cos_rot = float(np.clip((np.trace(R_LB1.T @ R_LB0) - 1.0) / 2.0, -1.0, 1.0))
+    sigma_slew = cfg.rotation_error_frac * math.acos(cos_rot)
+    R = (1.0 - cfg.frame_noise_share) * track_cov + (sigma_rot_rad**2 + sigma_slew**2) * np.eye(2)
+    R = cfg.covariance_inflation * R
+    R_frame = cfg.covariance_inflation * R_frame
+    v_xy = (h0 * z - dz * b_mean - ((R_LB1 - R_LB0) @ r_cam_B)[:2]) / dt_s
+    return VisionMeasurement(
+        t0_ns=int(t0_ns), t_ns=int(t1_ns), z=z, hx=hx, H_r=H_r, H_c=H_c, H_g=H_g, R=0.5 * (R + R.T), R_frame=R_frame, b_mean=b_mean, v_L=v_xy,
+        n_tracks=n_tracks, n_used=n_used, residual_px=math.sqrt(s2) * f_px / h0,
     )
 
 

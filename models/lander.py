@@ -107,6 +107,22 @@ def footpad_positions_B(cfg: LanderConfig) -> np.ndarray:
     return np.array([[r, r, z], [r, -r, z], [-r, r, z], [-r, -r, z]])
 
 
+# Sensor mounts: the altimeter sits this far forward of the axis; both sit this far below the body box
+# so that rays and the view clear it [m].
+ALTIMETER_OFFSET_X_M = 0.3
+SENSOR_STANDOFF_M = 0.02
+
+
+def altimeter_position_B(cfg: LanderConfig) -> np.ndarray:
+    """Altimeter mount in the body frame (3,) [m]: the one calibration source for the world and the flight software."""
+    return np.array([ALTIMETER_OFFSET_X_M, 0.0, -cfg.body_half_extents_m[2] - SENSOR_STANDOFF_M])
+
+
+def camera_position_B(cfg: LanderConfig) -> np.ndarray:
+    """Nadir-camera mount in the body frame (3,) [m]: the one calibration source for the world and the flight software."""
+    return np.array([0.0, 0.0, -cfg.body_half_extents_m[2] - SENSOR_STANDOFF_M])
+
+
 def lander_mjcf(cfg: LanderConfig, camera_fovy_deg: float) -> str:
     """MJCF ``<body>`` element of the lander, to be placed in ``<worldbody>``.
 
@@ -136,7 +152,8 @@ def lander_mjcf(cfg: LanderConfig, camera_fovy_deg: float) -> str:
             f'<geom name="{name}" type="sphere" size="{cfg.footpad_radius_m}" pos="{x} {y} {z}" '
             f'group="{g}" contype="1" conaffinity="0" mass="0" rgba="0.8 0.7 0.3 1" {contact}/>'
         )
-    bottom = -hz - 0.02  # sensors sit just below the body so rays and the view clear it
+    alt_x, alt_y, alt_z = altimeter_position_B(cfg)
+    cam_x, cam_y, cam_z = camera_position_B(cfg)
     return f"""
     <body name="lander" pos="0 0 0">
       <freejoint name="lander_free"/>
@@ -147,8 +164,8 @@ def lander_mjcf(cfg: LanderConfig, camera_fovy_deg: float) -> str:
       <site name="engine" pos="0 0 {-hz}" size="0.1"/>
       <site name="rcs" pos="0 0 0" size="0.05"/>
       <site name="imu" pos="0 0 0" size="0.05"/>
-      <site name="altimeter" pos="0.3 0 {bottom}" size="0.03"/>
-      <camera name="nadir" pos="0 0 {bottom}" xyaxes="1 0 0 0 1 0" fovy="{camera_fovy_deg}"/>
+      <site name="altimeter" pos="{alt_x} {alt_y} {alt_z}" size="0.03"/>
+      <camera name="nadir" pos="{cam_x} {cam_y} {cam_z}" xyaxes="1 0 0 0 1 0" fovy="{camera_fovy_deg}"/>
       <body name="tank" pos="0 0 0">
         <inertial pos="0 0 0" mass="{tank_mass}" diaginertia="{tank_inertia[0]} {tank_inertia[1]} {tank_inertia[2]}"/>
       </body>

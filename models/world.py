@@ -328,6 +328,9 @@ class World:
             self.data.ctrl[self._act_engine] = 0.0
             self._advance(n_steps - out.burn_steps)
         self._set_propellant(self.propulsion.propellant_kg)
+        # After mj_step, positions, sites, cameras, contacts and sensors still describe the state
+        # before the last step; mj_forward makes every truth signal match the time t_ns.
+        mujoco.mj_forward(self.model, self.data)
         return out
 
     def _advance(self, n: int) -> None:
@@ -426,6 +429,21 @@ class World:
         r = self._get_renderer(depth=True)
         r.update_scene(self.data, camera=self._cam)
         return r.render().astype(np.float32, copy=False)
+
+    def gl_info(self) -> dict[str, str] | None:
+        """The OpenGL vendor, renderer and version strings of the camera's context; None before any render.
+
+        Closed-loop results are bit-identical on one machine and one GL build, not across them:
+        the summary records these so that a difference can be traced to the renderer.
+        """
+        r = self._renderer if self._renderer is not None else self._depth_renderer
+        if r is None:
+            return None
+        from OpenGL import GL  # PyOpenGL, MuJoCo's own dependency for EGL and OSMesa
+
+        r._gl_context.make_current()
+        return {name: GL.glGetString(code).decode("utf-8", "replace")
+                for name, code in (("vendor", GL.GL_VENDOR), ("renderer", GL.GL_RENDERER), ("version", GL.GL_VERSION))}
 
     def close(self) -> None:
         """Free the GL contexts (also done by garbage collection)."""

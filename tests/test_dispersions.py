@@ -7,7 +7,10 @@ import math
 import numpy as np
 import pytest
 
+from pydantic import BaseModel
+
 from bench.dispersions import apply_dispersions, case_seeds
+from bench.run import build_flight_software, run
 from bench.scenario import ScenarioError, load_scenario
 from bench.world_builder import build_sensors, build_world
 from tests.conftest import SMALL_SET
@@ -77,7 +80,94 @@ def test_bad_dispersions_give_one_line_errors():
         assert needle in str(exc.value) and "\n" not in str(exc.value)
 
 
+SHORT = ["sim.t_max_ns=3_000_000_000", 'vision="off"', "camera.enabled=false"]  # 3 s of flight, no frames
+
+
 def test_a_single_run_flies_the_nominal_scenario():
-    # The bundled default declares dispersions, but `run(scenario)` uses the values as written.
-    sc = load_scenario()
+    # The bundled default declares dispersions, but `run(scenario)` flies the values as written.
+    sc = load_scenario(None, SHORT)
     assert sc.dispersions and sc.initial.r_BL_L_m == (-120.0, 80.0, 500.0)
+    tel = run(sc).telemetry
+    np.testing.assert_array_equal([tel[f"r_{a}_m"][0] for a in "xyz"], sc.initial.r_BL_L_m)
+    np.testing.assert_array_equal([tel[f"v_{a}_mps"][0] for a in "xyz"], sc.initial.v_BL_L_mps)
+    assert tel["mass_kg"][0] == sc.lander.wet_mass_kg == tel["fsw_mass_kg"][0]
+
+
+def _held_values(obj, path="fsw", seen=None, out=None) -> dict[str, object]:
+    """Every number, string and array an object graph holds, by attribute path (callables skipped)."""
+    seen = set() if seen is None else seen
+    out = {} if out is None else out
+    if isinstance(obj, (bool, int, float, str, type(None), np.generic)):
+        out[path] = obj
+        return out
+    if isinstance(obj, np.ndarray):
+        out[path] = obj.tolist()
+        return out
+    if id(obj) in seen or callable(obj) and not hasattr(obj, "__dict__"):
+        return out
+    seen.add(id(obj))
+    if isinstance(obj, BaseModel):
+        out[path] = obj.model_dump(mode="json")
+        return out
+    if isinstance(obj, dict):
+        items = obj.items()
+    elif isinstance(obj, (list, tuple)):
+        items = enumerate(obj)
+    else:
+        names = list(getattr(obj, "__dict__", {})) + [n for n in getattr(type(obj), "__slots__", ()) if hasattr(obj, n)]
+        items = ((n, getattr(obj, n)) for n in names)
+    for key, value in items:
+        if not callable(value) or hasattr(value, "__dict__") and not isinstance(value, type):
+            _held_values(value, f"{path}.{key}", seen, out)
+    return out
+
+
+def test_no_dispersed_truth_reaches_the_flight_software():
+    # A dispersed case and its nominal scenario give flight software holding identical parameters
+    # (same hand-over estimate given to both): the truth's draws stay in the world and the sensors.
+    nominal = load_scenario(None, ["seed=11"])
+    case, drawn = apply_dispersions(nominal)
+    assert case.lander.dry_mass_kg != nominal.lander.dry_mass_kg and case.sensors != nominal.sensors
+    r0, v0 = np.array([-100.0, 70.0, 490.0]), np.array([5.0, -4.0, -15.0])
+    held_case = _held_values(build_flight_software(case, r0, v0))
+    held_nominal = _held_values(build_flight_software(nominal, r0, v0))
+    assert len(held_case) > 100  # the walk reached into guidance, control, the filter and the tracker
+    assert held_case == held_nominal
+    # The walk would see a leak: flight software built from the dispersed lander differs.
+    leaky = case.model_copy(update={"knowledge": case.knowledge.model_copy(update={"lander": case.lander})})
+    assert _held_values(build_flight_software(leaky, r0, v0)) != held_nominal
+
+
+def test_mass_gauge_starts_from_the_nominal_and_drifts_with_the_thrust_error():
+    nominal = load_scenario(None, SHORT + ["seed=3"])
+    case, drawn = apply_dispersions(nominal)
+    err = drawn["lander.engine.thrust_error_frac"]
+    assert abs(err) > 1e-3
+    tel = run(case).telemetry
+    fsw, truth = tel["fsw_mass_kg"], tel["mass_kg"]
+    # At hand-over: the flight software's mass is the nominal one, off the truth by the drawn dispersions.
+    assert fsw[0] == pytest.approx(nominal.lander.wet_mass_kg, abs=1e-9)
+    assert fsw[0] - truth[0] == pytest.approx(-(drawn["lander.dry_mass_kg"] - nominal.lander.dry_mass_kg)
+                                               - (drawn["lander.propellant_kg"] - nominal.lander.propellant_kg),
+                                               abs=1e-9)
+    # Then the gauge burns the commanded thrust, the engine (1 + err) times it: the gap grows by
+    # err * thrust * dt / (Isp g0), summed over the control periods flown so far.
+    isp_g0 = nominal.lander.engine.isp_s * 9.80665
+    dt = np.diff(tel["t_s"])
+    expected = np.concatenate([[0.0], np.cumsum(err * tel["thrust_cmd_N"][:-1] * dt / isp_g0)])
+    np.testing.assert_allclose((fsw - truth) - (fsw[0] - truth[0]), expected, rtol=1e-6, atol=1e-9)
+    assert abs(expected[-1]) > 1e-3  # it did drift
+
+
+def test_filter_noise_model_is_the_specification_the_top_of_each_dispersed_range():
+    sc = load_scenario()
+    est = sc.estimator
+    spec = {
+        "sensors.imu.accel_noise_density": est.accel_noise_density,
+        "sensors.imu.accel_bias_sigma": est.init_accel_bias_sigma_mps2,
+        "sensors.altimeter.noise_sigma_m": est.altimeter_noise_sigma_m,
+        "sensors.star_tracker.noise_sigma_arcsec": est.attitude_sigma_arcsec,
+    }
+    for path, value in spec.items():
+        d = sc.dispersions[path]
+        assert d.dist == "uniform" and value == d.high, (path, value, d)

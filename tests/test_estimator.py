@@ -9,6 +9,7 @@ terrain relief and dropouts; a velocity measurement with a known covariance).
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -55,6 +56,19 @@ R_VEL = np.array([[0.010, 0.002, 0.0], [0.002, 0.008, 0.001], [0.0, 0.001, 0.02]
 
 N_SEEDS = 10
 NEES_BAND_PROB = 0.95
+# The filter's specification of the simulated sensors (the estimator's defaults are the default campaign's
+# specification, the top of its dispersed ranges; this simulator draws exactly these values).
+SIM_SPEC = {
+    "accel_noise_density": ACC_DENSITY,
+    "init_accel_bias_sigma_mps2": ACC_BIAS_SIGMA,
+    "attitude_sigma_arcsec": 10.0,
+    "altimeter_noise_sigma_m": ALT_FLOOR_M,
+}
+
+
+def make(cfg, r0, v0, t0, q0_LB=None, mount=LEVER_B) -> NavFilter:
+    """make_estimator with this file's altimeter mount."""
+    return make_estimator(cfg, r0, v0, t0, q0_LB, altimeter_mount_B_m=mount)
 
 
 # --------------------------------------------------------------------------- truth simulator
@@ -179,12 +193,12 @@ WHITE_RELIEF = {"terrain_correlation_length_m": 0.0}
 
 def start_filter(truth: Truth, seed: int, cfg=None) -> NavFilter:
     """Filter started the way the bench does it: estimate = truth + N(0, sigma)."""
-    cfg = {**WHITE_RELIEF, **(cfg or {})}
+    cfg = {**SIM_SPEC, **WHITE_RELIEF, **(cfg or {})}
     c = EstimatorConfig.model_validate(cfg)
     rng = np.random.default_rng(10_000 + seed)
     r0 = truth.r[0] + rng.normal(0.0, c.init_pos_sigma_m, 3)
     v0 = truth.v[0] + rng.normal(0.0, c.init_vel_sigma_mps, 3)
-    nav = make_estimator(cfg, r0, v0, 0)
+    nav = make(cfg, r0, v0, 0)
     nav.set_attitude(truth.star[0])
     return nav
 
@@ -319,12 +333,22 @@ def test_correlated_terrain_needs_the_terrain_state():
 
 # --------------------------------------------------------------------------- gating
 @pytest.fixture(scope="module")
-def converged() -> tuple[Truth, NavFilter]:
-    """A filter after 20 s of the descent, with every update."""
+def _converged_once() -> tuple[Truth, NavFilter]:
     truth = simulate(99, duration_s=20.0)
     nav = start_filter(truth, 99)
     run_filter(truth, nav, use_velocity=True)
     return truth, nav
+
+
+@pytest.fixture
+def converged(_converged_once) -> tuple[Truth, NavFilter]:
+    """A filter after 20 s of the descent, with every update: each test gets its own copy to change.
+
+    (The copy's arrays are writeable again: read the original, ``_converged_once``, for
+    checks of the filter's own read-only records.)
+    """
+    truth, nav = _converged_once
+    return truth, copy.deepcopy(nav)
 
 
 def _assert_unchanged(nav: NavFilter, x: np.ndarray, P: np.ndarray) -> None:
@@ -395,7 +419,7 @@ def test_prediction_matches_closed_form_constant_acceleration():
     f_B = np.array([0.3, -0.2, 2.5])
     a_L = q.apply(f_B) + G_L
     r0, v0 = np.array([-100.0, 50.0, 400.0]), np.array([5.0, -3.0, -20.0])
-    nav = make_estimator({"init_accel_bias_sigma_mps2": 1e-3}, r0, v0, 0, q0_LB=q.as_quat(scalar_first=True))
+    nav = make({"init_accel_bias_sigma_mps2": 1e-3}, r0, v0, 0, q0_LB=q.as_quat(scalar_first=True))
     n = 1000
     for k in range(1, n + 1):
         assert nav.propagate_imu(_imu(k, f_B))
@@ -411,27 +435,29 @@ def test_covariance_and_rotating_prediction_match_an_explicit_loop():
     w_B = np.array([0.02, -0.01, 0.05])  # [rad/s]
     f_B = np.array([0.1, 0.2, 2.0])
     r0, v0 = np.array([10.0, 20.0, 300.0]), np.array([1.0, 2.0, -10.0])
-    nav = make_estimator(cfg, r0, v0, 0, q0_LB=q0.as_quat(scalar_first=True))
+    nav = make(cfg, r0, v0, 0, q0_LB=q0.as_quat(scalar_first=True))
     n, dt = 300, IMU_DT_NS / NS
     # Independent recursion: mid-interval attitude by scipy, F and Q written out.
-    x = np.concatenate([r0, v0, np.zeros(4)])
+    # State: r, v, b_a, h_terrain, then the position clone (r0), two image offsets, the flow bias and the viewed ground's height.
+    x = np.concatenate([r0, v0, np.zeros(4), r0, np.zeros(7)])
     P = initial_covariance(cfg)
+    assert x.shape == (20,) and P.shape == (20, 20)
     att_psd = cfg.accel_noise_density**2 + (math.radians(cfg.attitude_sigma_arcsec / 3600)
                                              * np.linalg.norm(f_B)) ** 2 * cfg.attitude_period_s
     I3 = np.eye(3)
     for k in range(1, n + 1):
         R = (q0 * Rotation.from_rotvec(w_B * (k - 0.5) * dt)).as_matrix()
-        F = np.eye(10)
+        F = np.eye(20)  # the clone, the offsets and the ground heights do not move between updates
         F[0:3, 3:6] = dt * I3
         F[0:3, 6:9] = -0.5 * dt**2 * R
         F[3:6, 6:9] = -dt * R
-        Q = np.zeros((10, 10))  # the terrain state (index 9) does not move between altimeter samples
+        Q = np.zeros((20, 20))
         Q[0:3, 0:3] = att_psd * dt**3 / 4 * I3
         Q[0:3, 3:6] = Q[3:6, 0:3] = att_psd * dt**2 / 2 * I3
         Q[3:6, 3:6] = att_psd * dt * I3
         Q[6:9, 6:9] = cfg.accel_bias_walk**2 * dt * I3
         a = R @ (f_B - x[6:9]) + G_L
-        x = np.concatenate([x[0:3] + x[3:6] * dt + 0.5 * a * dt**2, x[3:6] + a * dt, x[6:10]])
+        x = np.concatenate([x[0:3] + x[3:6] * dt + 0.5 * a * dt**2, x[3:6] + a * dt, x[6:]])
         P = F @ P @ F.T + Q
         nav.propagate_imu(_imu(k, f_B, w_B))
     np.testing.assert_allclose(nav.x, x, rtol=1e-9, atol=1e-9)
@@ -439,6 +465,9 @@ def test_covariance_and_rotating_prediction_match_an_explicit_loop():
     q_end = q0 * Rotation.from_rotvec(w_B * n * dt)
     np.testing.assert_allclose(Rotation.from_quat(nav.q_LB, scalar_first=True).as_matrix(), q_end.as_matrix(),
                                atol=1e-12)
+    # With no fix after the first, the gyro-only attitude is the same integral.
+    np.testing.assert_allclose(Rotation.from_quat(nav.gyro_attitude(), scalar_first=True).as_matrix(),
+                               q_end.as_matrix(), atol=1e-12)
 
 
 def test_quat_to_matrix_matches_scipy():
@@ -450,7 +479,7 @@ def test_quat_to_matrix_matches_scipy():
 
 def test_hold_mode_keeps_the_last_fix():
     q0 = Rotation.from_euler("z", 30.0, degrees=True).as_quat(scalar_first=True)
-    nav = make_estimator({"attitude_propagation": "hold"}, [0, 0, 100.0], [0, 0, 0], 0, q0_LB=q0)
+    nav = make({"attitude_propagation": "hold"}, [0, 0, 100.0], [0, 0, 0], 0, q0_LB=q0)
     for k in range(1, 11):
         nav.propagate_imu(_imu(k, [0, 0, G], [0.0, 0.0, 0.5]))
     np.testing.assert_allclose(nav.q_LB, q0)
@@ -458,7 +487,7 @@ def test_hold_mode_keeps_the_last_fix():
 
 def test_measurement_time_offset_is_predicted_with_velocity():
     # An altimeter sample 10 ms ahead of the filter (it arrived before that tick's IMU sample).
-    nav = make_estimator(None, [0, 0, 100.0], [0, 0, -20.0], 0, q0_LB=[1, 0, 0, 0])
+    nav = make(None, [0, 0, 100.0], [0, 0, -20.0], 0, q0_LB=[1, 0, 0, 0])
     rho = 100.0 - 20.0 * 0.01 + LEVER_B[2]
     rec = nav.update_altimeter(AltimeterMessage(IMU_DT_NS, rho, True, BORESIGHT_B))
     assert rec.accepted and abs(rec.y[0]) < 1e-9
@@ -479,7 +508,7 @@ def test_measurement_time_offset_is_predicted_with_velocity():
 
 def test_oblique_boresight_is_skipped():
     tilt = Rotation.from_euler("x", 65.0, degrees=True).as_quat(scalar_first=True)
-    nav = make_estimator(None, [0, 0, 100.0], [0, 0, 0], 0, q0_LB=tilt)
+    nav = make(None, [0, 0, 100.0], [0, 0, 0], 0, q0_LB=tilt)
     assert nav.update_altimeter(AltimeterMessage(0, 240.0, True, BORESIGHT_B)) is None
     assert nav.counters["altimeter"]["skipped"] == 1 and not nav.log
 
@@ -491,14 +520,13 @@ def test_oblique_boresight_is_skipped():
         ({"init_pos_sigma_m": -1.0}, "estimator.init_pos_sigma_m"),
         ({"gate_prob": 1.5}, "estimator.gate_prob"),
         ({"accel_noise_density": float("nan")}, "estimator.accel_noise_density"),
-        ({"altimeter_lever_arm_B_m": (0.0, 0.0)}, "estimator.altimeter_lever_arm_B_m"),
         ({"attitude_propagation": "magic"}, "estimator.attitude_propagation"),
         ({"no_such_knob": 1}, "estimator.no_such_knob"),
     ],
 )
 def test_bad_config_is_a_one_line_error_naming_the_field(cfg, field):
     with pytest.raises(ValueError) as exc:
-        make_estimator(cfg, [0, 0, 100.0], [0, 0, 0], 0)
+        make(cfg, [0, 0, 100.0], [0, 0, 0], 0)
     msg = str(exc.value)
     assert field in msg and "\n" not in msg
 
@@ -514,11 +542,17 @@ def test_bad_config_is_a_one_line_error_naming_the_field(cfg, field):
 )
 def test_bad_initial_state_is_a_one_line_error_naming_it(r0, v0, t0, q0, field):
     with pytest.raises(ValueError, match=field):
-        make_estimator(None, r0, v0, t0, q0_LB=q0)
+        make(None, r0, v0, t0, q0_LB=q0)
+
+
+def test_bad_altimeter_mount_is_a_one_line_error_naming_it():
+    with pytest.raises(ValueError, match="altimeter_mount_B_m") as exc:
+        make(None, [0, 0, 100.0], [0, 0, 0], 0, mount=(0.0, 0.0))
+    assert "\n" not in str(exc.value)
 
 
 def test_nan_messages_are_rejected_and_counted():
-    nav = make_estimator(None, [0, 0, 100.0], [1, 0, -5.0], 0, q0_LB=[1, 0, 0, 0])
+    nav = make(None, [0, 0, 100.0], [1, 0, -5.0], 0, q0_LB=[1, 0, 0, 0])
     assert nav.propagate_imu(_imu(1, [0, 0, G]))
     x, P, t = nav.x, nav.P, nav.time_ns
     assert not nav.propagate_imu(_imu(2, [0, math.nan, G]))
@@ -542,7 +576,7 @@ def test_nan_messages_are_rejected_and_counted():
 
 
 def test_old_or_repeated_imu_samples_are_not_propagated_twice():
-    nav = make_estimator(None, [0, 0, 100.0], [1, 0, -5.0], 0, q0_LB=[1, 0, 0, 0])
+    nav = make(None, [0, 0, 100.0], [1, 0, -5.0], 0, q0_LB=[1, 0, 0, 0])
     assert nav.propagate_imu(_imu(2, [0, 0, G]))
     x = nav.x
     assert not nav.propagate_imu(_imu(2, [0, 0, G]))
@@ -552,7 +586,7 @@ def test_old_or_repeated_imu_samples_are_not_propagated_twice():
 
 
 def test_no_propagation_before_the_first_attitude():
-    nav = make_estimator(None, [0, 0, 100.0], [1, 0, -5.0], 0)
+    nav = make(None, [0, 0, 100.0], [1, 0, -5.0], 0)
     assert not nav.propagate_imu(_imu(1, [0, 0, G]))
     assert nav.time_ns == 0 and nav.counters["imu"]["no_attitude"] == 1
     assert not np.all(np.isfinite(nav.nav_state(2000.0).q_LB))
@@ -560,8 +594,8 @@ def test_no_propagation_before_the_first_attitude():
     assert nav.propagate_imu(_imu(2, [0, 0, G]))
 
 
-def test_nav_state_and_records(converged):
-    truth, nav = converged
+def test_nav_state_and_records(_converged_once):
+    truth, nav = _converged_once  # read only
     ns = nav.nav_state(1800.0)
     assert isinstance(ns, NavState) and ns.is_finite()
     assert ns.t_ns == nav.time_ns == truth.t_ns[-1]
@@ -571,32 +605,32 @@ def test_nav_state_and_records(converged):
     angle = (Rotation.from_quat(ns.q_LB, scalar_first=True).inv() * truth.rot[-1]).magnitude()
     assert angle < 10 * ST_SIGMA_RAD
     rec = next(r for r in nav.log if r.accepted and r.kind == "velocity")
-    assert rec.z.shape == rec.y.shape == (3,) and rec.S.shape == (3, 3) and rec.P_post.shape == (10, 10)
+    assert rec.z.shape == rec.y.shape == (3,) and rec.S.shape == (3, 3) and rec.P_post.shape == (20, 20)
     assert not rec.x_post.flags.writeable  # records are immutable
     assert np.all(np.diag(rec.P_post)[3:6] < np.diag(rec.P_prior)[3:6])
 
 
 def test_filter_is_a_filterpy_ekf():
-    nav = make_estimator(None, [0, 0, 100.0], [0, 0, 0], 0)
+    nav = make(None, [0, 0, 100.0], [0, 0, 0], 0)
     assert isinstance(nav.ekf, ExtendedKalmanFilter)
-    assert nav.ekf.x.shape == (10,) and nav.ekf.P.shape == (10, 10)
+    assert nav.ekf.x.shape == (20,) and nav.ekf.P.shape == (20, 20)
 
 
 def test_flight_computer_names_and_altimeter_sigma():
-    nav = make_estimator(None, [0, 0, 100.0], [0, 0, 0], 0)
+    nav = make(None, [0, 0, 100.0], [0, 0, 0], 0)
     assert nav.update_attitude(AttitudeMessage(0, np.array([1.0, 0, 0, 0])))
     assert nav.predict_imu(_imu(1, [0, 0, G])) and nav.time_ns == IMU_DT_NS
-    # Spec hypot(0.05, 1e-3 * range), plus the 3 m relief over the cosine.
-    assert nav.altimeter_sigma_m(400.0, include_relief=False) == pytest.approx(math.hypot(0.05, 0.4))
-    assert nav.altimeter_sigma_m(400.0, 0.5) == pytest.approx(math.sqrt(0.05**2 + 0.4**2 + 6.0**2))
+    # Spec hypot(0.08, 1e-3 * range), plus the 3 m relief over the cosine.
+    assert nav.altimeter_sigma_m(400.0, include_relief=False) == pytest.approx(math.hypot(0.08, 0.4))
+    assert nav.altimeter_sigma_m(400.0, 0.5) == pytest.approx(math.sqrt(0.08**2 + 0.4**2 + 6.0**2))
 
 
 def test_terrain_state_is_carried_between_footprints():
     # Two ranges whose footprints lie 10 m apart, with a 10 m correlation length: the
     # second update's innovation covariance uses phi = exp(-1) on the terrain state.
     length, sigma_t = 10.0, 3.0
-    cfg = {"terrain_correlation_length_m": length, "terrain_relief_sigma_m": sigma_t}
-    nav = make_estimator(cfg, [0, 0, 100.0], [0, 0, 0], 0, q0_LB=[1, 0, 0, 0])
+    cfg = {**SIM_SPEC, "terrain_correlation_length_m": length, "terrain_relief_sigma_m": sigma_t}
+    nav = make(cfg, [0, 0, 100.0], [0, 0, 0], 0, q0_LB=[1, 0, 0, 0])
     rho = 100.0 + LEVER_B[2]
     rec1 = nav.update_altimeter(AltimeterMessage(0, rho, True, BORESIGHT_B))
     assert rec1.accepted
@@ -606,18 +640,18 @@ def test_terrain_state_is_carried_between_footprints():
     rec2 = nav.update_altimeter(AltimeterMessage(0, rho, True, BORESIGHT_B))
     phi = math.exp(-1.0)
     P = rec1.P_post.copy()
-    T_h = np.eye(10)
+    T_h = np.eye(20)
     T_h[9, 9] = phi
     P = T_h @ P @ T_h.T
     P[9, 9] += sigma_t**2 * (1 - phi**2)
-    H = np.zeros(10)
+    H = np.zeros(20)
     H[2], H[9] = 1.0, -1.0
     rho_hat = x[2] + LEVER_B[2] - phi * rec1.x_post[9]
     spec_var = ALT_FLOOR_M**2 + (ALT_FRAC * rho_hat) ** 2
     assert rec2.S[0, 0] == pytest.approx(H @ P @ H + spec_var, rel=1e-12)
     assert rec2.y[0] == pytest.approx(rho - rho_hat, abs=1e-9)
     # White relief (length 0): the spec plus the relief variance, whatever came before.
-    white = make_estimator(WHITE_RELIEF, [0, 0, 100.0], [0, 0, 0], 0, q0_LB=[1, 0, 0, 0])
+    white = make({**SIM_SPEC, **WHITE_RELIEF}, [0, 0, 100.0], [0, 0, 0], 0, q0_LB=[1, 0, 0, 0])
     for _ in range(2):
         rec = white.update_altimeter(AltimeterMessage(0, rho, True, BORESIGHT_B))
         rho_hat = rec.x_prior[2] + LEVER_B[2]

@@ -44,12 +44,14 @@ def test_cases_are_identical_with_one_or_two_workers(tmp_path):
 
 
 def test_a_raising_case_and_a_timeout_are_recorded_and_the_campaign_goes_on(tmp_path):
-    # A mass dispersion wide enough to draw negative masses: those cases fail validation.
-    base = load_scenario(None, [*QUICK, 'dispersions."lander.dry_mass_kg"={dist="normal", sigma=3000.0}'])
+    # A sun-elevation dispersion wide enough to draw elevations past 90 deg: those cases fail validation.
+    # (Not a mass dispersion: the flight software flies the nominal mass, and a lander thousands of kg
+    # off its nominal mass rightly does not land.)
+    base = load_scenario(None, [*QUICK, 'dispersions."sun.elevation_deg"={dist="normal", sigma=60.0}'])
     rows = mc.run_campaign(base, 4, tmp_path / "c", campaign_seed=2, workers=2, progress=False)
     assert len(rows) == 4
     errors = [r for r in rows if r["outcome"] == "error"]
-    assert errors and all("dry_mass_kg" in r["error"] for r in errors)
+    assert errors and all("sun.elevation_deg" in r["error"] for r in errors)
     assert any(r["outcome"] == "landed" for r in rows)
     slow = mc.run_campaign(load_scenario(None, QUICK), 2, tmp_path / "t", campaign_seed=2, workers=2,
                            case_timeout_s=0.5, progress=False)

@@ -243,7 +243,7 @@ def test_report_degenerate_inputs(tmp_path, case, terrain):
     }[case]
     for ter in (terrain, None):
         path = write_campaign_report(rows, CRITERIA, tmp_path / f"{case}.png", terrain=ter)
-        assert cv2.imread(str(path)).shape[:2] == (900, 1400)
+        assert cv2.imread(str(path)).shape[:2] == (1150, 1400)  # 14 x 11.5 in at 100 dpi
         fig = campaign_figure(rows, CRITERIA, ter)
         axd = _axes(fig)
         assert not [p for p in axd["map"].patches if p.get_gid() == "error_ellipse"]  # < 3 points

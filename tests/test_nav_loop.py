@@ -32,15 +32,26 @@ def test_default_scenario_lands_on_vision_navigation(default_nav_run):
     s = default_nav_run.summary
     _meets_criteria(s)
     assert s["nav"]["vel_err_touchdown_mps"] <= 0.2, s["nav"]
-    assert s["nav"]["nees_in_bounds_frac"] >= 0.9, s["nav"]  # consistent, not just accurate
     v = s["vision"]
     assert v["frames"] > 300 and v["tracks_median"] >= 40 and v["measurements"] > 300
+    # Consistent innovations are rejected by the 99.9 % gate about once in a thousand; a clean run
+    # that rejects more than 1 % has an overconfident vision measurement (the old one rejected 2-5 %).
+    assert v["rejected_frac"] <= 0.01, v
 
 
 def test_nav_telemetry_errors_match_an_independent_recomputation(default_nav_run):
     tel = default_nav_run.telemetry
+    t = tel["t_s"]
+    flying = np.flatnonzero(t < default_nav_run.summary["touchdown"]["t_s"] - 0.1)[1:-1]
     for a in "xyz":
-        np.testing.assert_allclose(tel[f"nav_err_v_{a}_mps"], tel[f"nav_v_{a}_mps"] - tel[f"v_{a}_mps"], atol=1e-12)
+        # The truth velocity from the truth positions by central differences (not the column the error used).
+        r = tel[f"r_{a}_m"]
+        v_fd = (r[flying + 1] - r[flying - 1]) / (t[flying + 1] - t[flying - 1])
+        # Its error is bounded by the spread of the one-sided chords (large only where the thrust steps).
+        spread = np.abs((r[flying + 1] - r[flying]) / (t[flying + 1] - t[flying])
+                        - (r[flying] - r[flying - 1]) / (t[flying] - t[flying - 1]))
+        gap = np.abs(tel[f"nav_err_v_{a}_mps"][flying] - (tel[f"nav_v_{a}_mps"][flying] - v_fd))
+        assert np.all(gap <= 1e-3 + spread), float(np.max(gap - spread))
         assert np.all(tel[f"nav_sigma_v_{a}_mps"] > 0)
     # Below the vision cut-off no new vision measurements are made.
     below = tel["nav_r_z_m"] < 29.0
@@ -51,6 +62,7 @@ def _horizontal_error(sets: list[str]) -> float:
     return run(load_scenario(None, sets)).summary["nav"]["vel_err_horizontal_touchdown_mps"]
 
 
+@pytest.mark.slow
 def test_vision_cuts_the_horizontal_velocity_error_at_least_fivefold():
     with_vision = [_horizontal_error([f"seed={s}"]) for s in SEEDS]
     without = [_horizontal_error([f"seed={s}", 'vision="off"', "camera.enabled=false"]) for s in SEEDS]
@@ -80,12 +92,27 @@ class _FaultyTracker(Tracker):
         return tracks
 
 
-def test_gating_rejects_wrong_and_missing_vision_and_the_run_still_lands(monkeypatch):
+def _rejections_in_burst(tel) -> tuple[int, int]:
+    """Vision rejections during the burst's frames and outside them (frame k is at t = k * 0.1 s)."""
+    t, rejected = tel["t_s"], tel["vision_rejected"]
+    t0, t1 = _FaultyTracker.BURST.start * 0.1, _FaultyTracker.BURST.stop * 0.1
+    at = lambda time: int(rejected[np.searchsorted(t, time - 1e-9)])  # noqa: E731 (count just before `time`)
+    in_burst = at(t1 + 0.05) - at(t0 - 0.05)
+    return in_burst, int(rejected[-1]) - in_burst
+
+
+def test_gating_rejects_wrong_and_missing_vision_and_the_run_still_lands(monkeypatch, default_nav_run):
     monkeypatch.setattr(bench_run, "Tracker", _FaultyTracker)
-    s = run(load_scenario()).summary
+    result = run(load_scenario())
+    s = result.summary
     _meets_criteria(s)
-    assert s["vision"]["rejected_frac"] > 0  # the burst was caught by the chi-square gate
     assert s["nav"]["vel_err_touchdown_mps"] <= 0.2
+    in_burst, outside = _rejections_in_burst(result.telemetry)
+    burst = len(_FaultyTracker.BURST)
+    assert in_burst >= burst - 2, (in_burst, outside)  # the gate caught (nearly) every false measurement
+    # The same window of the fault-free run rejects nothing: the rejections are the burst's.
+    clean_in_burst, clean_outside = _rejections_in_burst(default_nav_run.telemetry)
+    assert clean_in_burst == 0 and outside <= clean_outside + 2, (clean_in_burst, clean_outside, outside)
 
 
 def test_truth_tracks_separate_vision_error_from_filter_error():

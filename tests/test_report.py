@@ -290,9 +290,9 @@ def test_summary_table_shows_navigation_and_vision_when_present():
         "realtime_factor": 6.7, "seed": 3,
         "touchdown": {"t_s": 75.0, "v_vertical_mps": 0.8, "v_horizontal_mps": 0.05, "tilt_deg": 0.3, "miss_distance_m": 30.0},
         "criteria": {"v_vertical_max_mps": 1.0, "v_horizontal_max_mps": 0.5, "tilt_max_deg": 10.0, "settle_s": 5.0},
-        "nav": {"vel_err_touchdown_mps": 0.0642, "pos_err_touchdown_m": 30.2, "nees_in_bounds_frac": 0.95},
+        "nav": {"vel_err_touchdown_mps": 0.0642, "pos_err_touchdown_m": 30.2, "nees_per_dof_mean": {"v_h": 1.1}},
         "vision": {"frames": 392, "tracks_median": 78.0, "rejected_frac": 0.046},
     }
     text = summary_table(summary)
-    assert "0.064 m/s" in text and "30.2 m" in text and "95%" in text
+    assert "0.064 m/s" in text and "30.2 m" in text and "v_h 1.10" in text
     assert "392 frames" in text and "4.6%" in text

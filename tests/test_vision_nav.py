@@ -1,12 +1,16 @@
-"""Velocity from tracks against a synthetic scene with known motion."""
+"""The vision measurement (mean ground flow between two frames) against a synthetic scene with known motion."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from gnc.vision_nav import VisionNavConfig, velocity_from_tracks
+from scipy.stats import chi2
+
+from gnc.vision_nav import VisionNavConfig, vision_measurement
 from vision.tracks import Tracks
 
 K = np.array([[221.7, 0.0, 127.5], [0.0, 221.7, 127.5], [0.0, 0.0, 1.0]])
@@ -41,42 +45,83 @@ def _q(euler_deg):
     return Rotation.from_euler("xyz", euler_deg, degrees=True).as_quat(scalar_first=True)
 
 
-def test_noise_free_scene_gives_the_exact_velocity():
+def _R(q):
+    return Rotation.from_quat(q, scalar_first=True).as_matrix()
+
+
+def _measure(tracks, r0, r1, q0, q1, h_view=0.0, cfg=CFG, dt=0.1):
+    return vision_measurement(tracks, 0, int(round(dt * 1e9)), K, R_BC, R_CAM_B, _R(q0), _R(q1), r0, r1, h_view,
+                              0.0, cfg)
+
+
+def _flow_model(r0, r1, q0, q1, h_view, b_mean):
+    """The measurement model written out: mean ray-difference of a plane at h_view, for given mean ray b."""
+    c0, c1 = r0 + _R(q0) @ R_CAM_B, r1 + _R(q1) @ R_CAM_B
+    h0 = c0[2] - h_view
+    return ((c1 - c0)[:2] + (c1 - c0)[2] * b_mean) / h0
+
+
+def test_noise_free_scene_is_predicted_exactly_and_the_horizontal_jacobians_match_finite_differences():
     rng = np.random.default_rng(0)
     r0, v, a = np.array([20.0, -10.0, 300.0]), np.array([4.0, -3.0, -12.0]), np.array([0.1, -0.2, 0.5])
     dt = 0.1
     r1 = r0 + v * dt + 0.5 * a * dt**2
     q0, q1 = _q([3.0, -2.0, 10.0]), _q([3.4, -1.7, 10.5])
-    tracks, c0 = _scene(rng, r0, r1, q0, q1)
-    dz = (r1 - r0)[2] + ((Rotation.from_quat(q1, scalar_first=True).as_matrix()
-                          - Rotation.from_quat(q0, scalar_first=True).as_matrix()) @ R_CAM_B)[2]
-    m = velocity_from_tracks(tracks, 0, int(dt * 1e9), K, R_BC, R_CAM_B, q0, q1, c0[2], 0.0, a * dt, dz, 0.0, CFG)
+    tracks, _ = _scene(rng, r0, r1, q0, q1)
+    m = _measure(tracks, r0, r1, q0, q1)
     assert m is not None and m.n_used == 80
-    np.testing.assert_allclose(m.v_L, (v + a * dt)[:2], atol=1e-6)  # horizontal velocity at the second frame
+    np.testing.assert_allclose(m.z, m.hx, rtol=0, atol=1e-12)  # the truth predicts the measurement
+    # The telemetry velocity is the mean velocity over the interval.
+    np.testing.assert_allclose(m.v_L, ((r1 - r0) / dt)[:2], atol=1e-6)
+    # Jacobians by central differences of the model written out above (the mean ray b is held).
+    b_mean = (m.hx * (r0 + _R(q0) @ R_CAM_B)[2] - ((r1 + _R(q1) @ R_CAM_B) - (r0 + _R(q0) @ R_CAM_B))[:2]) \
+        / ((r1 + _R(q1) @ R_CAM_B) - (r0 + _R(q0) @ R_CAM_B))[2]
+    np.testing.assert_allclose(_flow_model(r0, r1, q0, q1, 0.0, b_mean), m.hx, atol=1e-14)
+    eps = 1e-3
+    for k in range(2):  # the horizontal components; vision does not correct the vertical ones
+        d = np.zeros(3)
+        d[k] = eps
+        num_r = (_flow_model(r0, r1 + d, q0, q1, 0.0, b_mean) - _flow_model(r0, r1 - d, q0, q1, 0.0, b_mean)) / (2 * eps)
+        num_c = (_flow_model(r0 + d, r1, q0, q1, 0.0, b_mean) - _flow_model(r0 - d, r1, q0, q1, 0.0, b_mean)) / (2 * eps)
+        np.testing.assert_allclose(m.H_r[:, k], num_r, rtol=1e-6, atol=1e-12)
+        np.testing.assert_allclose(m.H_c[:, k], num_c, rtol=1e-6, atol=1e-12)
+    assert not m.H_r[:, 2].any() and not m.H_c[:, 2].any()
+    num_g = (_flow_model(r0, r1, q0, q1, eps, b_mean) - _flow_model(r0, r1, q0, q1, -eps, b_mean)) / (2 * eps)
+    np.testing.assert_allclose(m.H_g, num_g, rtol=1e-6, atol=1e-12)
+
+
+def test_a_raised_ground_is_a_scale_error_of_its_height_over_the_camera_height():
+    # Unless the filter knows the ground's height (h_view), which then predicts it exactly.
+    rng = np.random.default_rng(5)
+    r0, v = np.array([0.0, 0.0, 120.0]), np.array([3.0, 1.0, 0.0])
+    q = _q([0.0, 0.0, 0.0])
+    dh = 7.0
+    r0_ground = r0 - np.array([0.0, 0.0, dh])  # the same scene with the ground 7 m up is the lander 7 m down
+    tracks, _ = _scene(rng, r0_ground, r0_ground + v * 0.1, q, q)
+    m = _measure(tracks, r0, r0 + v * 0.1, q, q)
+    h0 = (r0 + R_CAM_B)[2]
+    np.testing.assert_allclose(m.z, m.hx * h0 / (h0 - dh), rtol=1e-9)
+    np.testing.assert_allclose(m.z, _measure(tracks, r0, r0 + v * 0.1, q, q, h_view=dh).hx, rtol=1e-9)
 
 
 def test_noisy_tracks_are_consistent_with_the_reported_covariance():
+    # Independent pixel noise in both frames: the error of z has covariance R + 2 R_frame (the two frames'
+    # offsets), which must be honest: the mean NEES over the trials lies in its chi-square 99.9 % band.
     rng = np.random.default_rng(1)
     nees = []
     for _ in range(200):
         r0 = np.array([rng.uniform(-100, 100), rng.uniform(-100, 100), rng.uniform(50, 500)])
         v = rng.normal(0, [5, 5, 3]) + np.array([0, 0, -8])
-        dt = 0.1
-        r1 = r0 + v * dt
+        r1 = r0 + v * 0.1
         q0 = _q(rng.normal(0, 3, 3))
         q1 = _q(Rotation.from_quat(q0, scalar_first=True).as_euler("xyz", degrees=True) + rng.normal(0, 0.1, 3))
-        tracks, c0 = _scene(rng, r0, r1, q0, q1, noise_px=0.08)
-        sigma_h = 0.5
-        h0 = c0[2] + rng.normal(0, sigma_h)
-        sigma_dz = 0.01
-        dz = v[2] * dt + rng.normal(0, sigma_dz)  # the filter's vertical displacement, with its error
-        m = velocity_from_tracks(tracks, 0, int(dt * 1e9), K, R_BC, R_CAM_B, q0, q1, h0, sigma_h, np.zeros(3),
-                                 dz, sigma_dz, CFG)
-        e = m.v_L - v[:2]
-        nees.append(e @ np.linalg.solve(m.R, e))
-    # The covariance is honest (the inflation factor makes it a little conservative).
-    assert 0.6 < np.mean(nees) < 2.5, np.mean(nees)
-    assert np.mean(np.array(nees) < 9.21) > 0.97  # chi2(2) 99 %
+        tracks, _ = _scene(rng, r0, r1, q0, q1, noise_px=0.4)
+        m = _measure(tracks, r0, r1, q0, q1)
+        e = m.z - m.hx
+        nees.append(e @ np.linalg.solve(m.R + 2.0 * m.R_frame, e))
+    n = len(nees)
+    lo, hi = chi2.ppf([0.0005, 0.9995], 2 * n) / n
+    assert lo < np.mean(nees) < hi, (np.mean(nees), lo, hi)
 
 
 def test_wrong_tracks_are_rejected():
@@ -84,42 +129,39 @@ def test_wrong_tracks_are_rejected():
     r0, v = np.array([0.0, 0.0, 200.0]), np.array([3.0, 1.0, -6.0])
     r1 = r0 + v * 0.1
     q = _q([0.0, 0.0, 0.0])
-    tracks, c0 = _scene(rng, r0, r1, q, q, noise_px=0.05)
+    tracks, _ = _scene(rng, r0, r1, q, q, noise_px=0.3)
     xy = tracks.xy.copy()
     xy[:15] += rng.uniform(-8, 8, (15, 2))  # a burst of wrong correspondences
     bad = Tracks(ids=tracks.ids, xy=xy, prev_xy=tracks.prev_xy, age=tracks.age)
-    m = velocity_from_tracks(bad, 0, 100_000_000, K, R_BC, R_CAM_B, q, q, c0[2], 0.2, np.zeros(3), v[2] * 0.1,
-                             0.01, CFG)
+    m = _measure(bad, r0, r1, q, q)
     assert m is not None and m.n_used <= 80 - 12
-    e = m.v_L - v[:2]
-    assert np.hypot(e[0], e[1]) < 0.1
-    assert e @ np.linalg.solve(m.R, e) < 13.82  # and consistent with its covariance (chi2(2) 99.9 %)
+    e = m.z - m.hx
+    assert e @ np.linalg.solve(m.R + 2.0 * m.R_frame, e) < chi2.ppf(0.999, 2)  # consistent with its covariance
     # Without the rejection the burst would have pulled the estimate far off.
-    naive = velocity_from_tracks(bad, 0, 100_000_000, K, R_BC, R_CAM_B, q, q, c0[2], 0.2, np.zeros(3), v[2] * 0.1,
-                                 0.01, VisionNavConfig(outlier_iterations=0, outlier_mad_k=1e9))
-    assert np.linalg.norm(naive.v_L - v[:2]) > 2 * np.linalg.norm(e)
+    naive = _measure(bad, r0, r1, q, q, cfg=VisionNavConfig(outlier_iterations=0, outlier_mad_k=1e9))
+    assert np.linalg.norm(naive.z - naive.hx) > 5 * np.linalg.norm(e)
 
 
 def test_too_few_or_unusable_inputs_give_none():
     rng = np.random.default_rng(3)
     q = _q([0.0, 0.0, 0.0])
-    tracks, c0 = _scene(rng, np.array([0.0, 0.0, 100.0]), np.array([0.1, 0.0, 99.0]), q, q, n=5)
-    args = (K, R_BC, R_CAM_B, q, q)
-    assert velocity_from_tracks(tracks, 0, 100_000_000, *args, c0[2], 0.1, np.zeros(3), -1.0, 0.01, CFG) is None
-    tracks, c0 = _scene(rng, np.array([0.0, 0.0, 100.0]), np.array([0.1, 0.0, 99.0]), q, q, n=40)
-    for h0, t1, dz in ((float("nan"), 100_000_000, -1.0), (-5.0, 100_000_000, -1.0), (c0[2], 0, -1.0),
-                       (c0[2], 100_000_000, float("nan"))):
-        assert velocity_from_tracks(tracks, 0, t1, *args, h0, 0.1, np.zeros(3), dz, 0.01, CFG) is None
+    r0, r1 = np.array([0.0, 0.0, 100.0]), np.array([0.1, 0.0, 99.0])
+    tracks, _ = _scene(rng, r0, r1, q, q, n=5)
+    assert _measure(tracks, r0, r1, q, q) is None  # fewer than min_tracks
+    tracks, _ = _scene(rng, r0, r1, q, q, n=40)
+    assert _measure(tracks, r0, r1, q, q, dt=0.0) is None  # no interval
+    assert _measure(tracks, np.array([0.0, 0.0, math.nan]), r1, q, q) is None  # non-finite prior
+    assert _measure(tracks, r0 * [1, 1, 0] + [0, 0, 1.2], r1, q, q) is None  # camera at the ground
     empty = Tracks(ids=np.zeros(0, np.int64), xy=np.zeros((0, 2)), prev_xy=np.zeros((0, 2)), age=np.zeros(0, np.int64))
-    assert velocity_from_tracks(empty, 0, 100_000_000, *args, 100.0, 0.1, np.zeros(3), -1.0, 0.01, CFG) is None
+    assert _measure(empty, r0, r1, q, q) is None
 
 
 @pytest.mark.parametrize("relief", [0.0, 2.0])
-def test_relief_under_the_view_biases_only_mildly(relief):
+def test_relief_under_the_view_scatters_but_hardly_biases(relief):
     rng = np.random.default_rng(4)
     r0, v = np.array([0.0, 0.0, 100.0]), np.array([2.0, -1.0, -4.0])
     q = _q([1.0, 1.0, 0.0])
-    tracks, c0 = _scene(rng, r0, r0 + v * 0.1, q, q, n=100, relief_m=relief)
-    m = velocity_from_tracks(tracks, 0, 100_000_000, K, R_BC, R_CAM_B, q, q, c0[2], 0.5, np.zeros(3), v[2] * 0.1,
-                             0.01, CFG)
-    assert np.linalg.norm(m.v_L - v[:2]) < 0.05 + 0.05 * relief
+    tracks, _ = _scene(rng, r0, r0 + v * 0.1, q, q, n=100, relief_m=relief)
+    m = _measure(tracks, r0, r0 + v * 0.1, q, q)
+    # Relative error of the flow: relief of sigma s at height h scales each track by ~s/h; the mean by s/h/sqrt(n).
+    assert np.linalg.norm(m.z - m.hx) < 1e-9 + 4 * relief / 100.0 / 10.0 * np.linalg.norm(m.hx)

@@ -1,0 +1,263 @@
+"""Filter consistency measured the way the field measures it (bench side: it needs truth).
+
+One run cannot show that a filter is consistent: its horizontal position error
+is one frozen draw, its samples are autocorrelated, and channels offset each
+other in a pooled figure. So a run records, per error block, its NEES at fixed
+altitudes and at touchdown, and per sensor the sums of its NIS; a campaign
+averages them over its cases into the **ensemble NEES** (ANEES, Bar-Shalom,
+Li & Kirubarajan 2001, sec. 5.4) and the mean NIS, each against its two-sided
+chi-square band.
+
+Blocks of the error ``e = x_hat - x_true`` (filter state minus truth):
+    ``r_h`` horizontal position (2), ``r_v`` vertical position (1),
+    ``v_h`` horizontal velocity (2), ``v_v`` vertical velocity (1),
+    ``b_a`` accelerometer bias (3).
+
+Bands: for ``N`` cases of a block with ``n`` degrees of freedom, ``N`` times the
+ANEES is chi-square with ``N n`` degrees of freedom when the filter is
+consistent, so the ANEES lies in ``chi2.ppf([a/2, 1 - a/2], N n) / N`` with
+probability ``1 - a``. For ``k`` NIS samples of ``m`` degrees of freedom, the
+mean NIS lies in ``chi2.ppf(..., k m) / k`` (independent samples).
+
+Altitudes are the truth height of the body origin above the target's ground
+elevation (``r_z`` in L); a block's NEES at altitude ``h`` is taken at the first
+control tick at or below ``h``. A case that starts below ``h`` has no value there.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+from scipy.stats import chi2
+
+# Error blocks: name -> degrees of freedom; their indices in e = [r (3), v (3), b_a (3)].
+NEES_BLOCKS: dict[str, int] = {"r_h": 2, "r_v": 1, "v_h": 2, "v_v": 1, "b_a": 3}
+_BLOCK_INDEX: dict[str, list[int]] = {"r_h": [0, 1], "r_v": [2], "v_h": [3, 4], "v_v": [5], "b_a": [6, 7, 8]}
+NEES_ALTITUDES_M = (500, 300, 150, 80, 30, 10)
+TOUCHDOWN = "touchdown"
+# NIS altitude bands [m], (low, high].
+NIS_BANDS_M = ((400, 600), (120, 250), (30, 120))
+NIS_SENSORS: dict[str, int] = {"altimeter": 1, "vision": 2}
+BAND_PROB = 0.95
+BAND_PROB_WIDE = 0.999
+CONSISTENCY_FILE = "consistency.json"
+SCHEMA_VERSION = 1
+
+
+def block_nees(e: np.ndarray, P: np.ndarray) -> tuple[float, ...]:
+    """NEES of each block, in :data:`NEES_BLOCKS` order.
+
+    Args:
+        e: Error ``[r (3), v (3), b_a (3)]``, (9,), in the filter's state order.
+        P: The filter's covariance; its leading (9, 9) block is used.
+
+    Returns:
+        ``e_b^T P_bb^-1 e_b`` per block (NaN where the block is singular).
+    """
+    out = []
+    for block in NEES_BLOCKS:
+        idx = _BLOCK_INDEX[block]
+        eb = e[idx]
+        Pb = P[np.ix_(idx, idx)]
+        try:
+            out.append(float(eb @ np.linalg.solve(Pb, eb)))
+        except np.linalg.LinAlgError:
+            out.append(math.nan)
+    return tuple(out)
+
+
+def chi2_band(n_samples: int, dof: int, prob: float = BAND_PROB) -> list[float] | None:
+    """Two-sided ``prob`` band of the mean of ``n_samples`` chi-square(``dof``) variables."""
+    if n_samples <= 0:
+        return None
+    k = n_samples * dof
+    a = 0.5 * (1.0 - prob)
+    return [float(chi2.ppf(a, k) / n_samples), float(chi2.ppf(1.0 - a, k) / n_samples)]
+
+
+def _band_key(lo: float, hi: float) -> str:
+    return f"{lo:g}_{hi:g}"
+
+
+def run_consistency(tel: Mapping[str, np.ndarray], touchdown: Mapping[str, Any] | None,
+                    log: Sequence[Any]) -> dict[str, Any]:
+    """One run's contribution to the ensemble statistics.
+
+    Args:
+        tel: The run's telemetry columns (``t_s``, ``r_z_m``, ``nees_<block>``).
+        touchdown: The touchdown metrics (``t_s``), or None.
+        log: The filter's update records (``t_ns``, ``kind``, ``y``, ``S``, ``nis``, ``accepted``).
+
+    Returns:
+        ``{"nees_at": {"500": {block: NEES} | None, ..., "touchdown": ...},
+        "nis": {sensor: {"dof", "n", "sum", "rejected", "bands": {"400_600": {"n", "sum"}, ...}}},
+        "vision_lag1": {"x"|"y": {"n", "sum_sq", "n_pairs", "sum_prod"}}}``: sums, so
+        that a campaign can pool them.
+    """
+    out: dict[str, Any] = {"nees_at": {}, "nis": {}, "vision_lag1": {}}
+    if not tel:
+        return out
+    t = np.asarray(tel["t_s"], float)
+    z = np.asarray(tel["r_z_m"], float)
+    flying = t < touchdown["t_s"] if touchdown is not None else np.ones(t.size, bool)
+    idx_flying = np.flatnonzero(flying)
+
+    def nees_row(k: int) -> dict[str, float]:
+        return {block: float(tel[f"nees_{block}"][k]) for block in NEES_BLOCKS}
+
+    for alt in NEES_ALTITUDES_M:
+        below = idx_flying[z[idx_flying] <= alt]
+        ok = below.size > 0 and below[0] > 0  # a case that starts below the altitude has no value there
+        out["nees_at"][str(alt)] = nees_row(int(below[0])) if ok else None
+    out["nees_at"][TOUCHDOWN] = nees_row(int(idx_flying[-1])) if touchdown is not None and idx_flying.size else None
+
+    for sensor, dof in NIS_SENSORS.items():
+        recs = [r for r in log if r.kind == sensor and math.isfinite(r.nis)]
+        used = [r for r in recs if r.accepted]
+        nis = np.array([r.nis for r in used])
+        alt = np.interp([r.t_ns / 1e9 for r in used], t, z) if used else np.zeros(0)
+        bands = {}
+        for lo, hi in NIS_BANDS_M:
+            sel = (alt > lo) & (alt <= hi)
+            bands[_band_key(lo, hi)] = {"n": int(sel.sum()), "sum": float(nis[sel].sum())}
+        out["nis"][sensor] = {"dof": dof, "n": int(nis.size), "sum": float(nis.sum()),
+                              "rejected": len(recs) - len(used), "bands": bands}
+
+    out["vision_lag1"] = _lag1_sums([r for r in log if r.kind == "vision" and r.accepted])
+    return out
+
+
+def _lag1_sums(records: Sequence[Any]) -> dict[str, dict[str, float]]:
+    """Sums for the lag-1 autocorrelation of the normalised vision residuals, per axis.
+
+    Residual ``y_i / sqrt(S_ii)``, the run's mean removed; pairs are consecutive
+    accepted measurements that share a frame (the second's first frame is the
+    first's second), i.e. are one frame period apart.
+    """
+    out = {}
+    if not records:
+        return {ax: {"n": 0, "sum_sq": 0.0, "n_pairs": 0, "sum_prod": 0.0} for ax in "xy"}
+    t = np.array([r.t_ns for r in records], dtype=np.int64)
+    steps = np.diff(t)
+    period = int(np.min(steps)) if steps.size else 0
+    consecutive = steps == period
+    for i, ax in enumerate("xy"):
+        e = np.array([r.y[i] / math.sqrt(r.S[i, i]) for r in records])
+        e = e - e.mean()
+        prod = e[:-1] * e[1:]
+        out[ax] = {"n": int(e.size), "sum_sq": float(np.sum(e * e)),
+                   "n_pairs": int(consecutive.sum()), "sum_prod": float(np.sum(prod[consecutive]))}
+    return out
+
+
+# --------------------------------------------------------------------------- campaign
+def _get(row: Mapping[str, Any], key: str) -> float:
+    v = row.get(key)
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        return math.nan
+    return v
+
+
+def campaign_consistency(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """The ensemble statistics of a campaign from its flattened case rows.
+
+    Args:
+        rows: ``cases.parquet`` rows (summary flattened with ``_``); failed cases
+            (no consistency columns) are skipped.
+
+    Returns:
+        The ``consistency.json`` document::
+
+            {"schema": 1, "n_cases": N, "altitudes_m": [...],
+             "blocks": {block: {"dof", "anees": [.. per altitude, then touchdown],
+                                "n": [...], "band": [[lo, hi], ...], "band_999": [...],
+                                "in_band": [...]}},
+             "nis": {sensor: {"dof", "mean", "n", "band", "rejected",
+                              "bands": [{"alt_m": [lo, hi], "mean", "n", "band"}]}},
+             "vision_lag1": {"x": rho, "y": rho, "n_pairs": k}}
+
+        ``altitudes_m`` lists the fixed altitudes and ``"touchdown"`` last; every
+        per-altitude list follows it. ANEES values are NaN (JSON null after
+        ``json_safe``) where no case has a value.
+    """
+    cases = [r for r in rows if any(k.startswith("consistency_nees_at_") for k in r)]
+    levels = [str(a) for a in NEES_ALTITUDES_M] + [TOUCHDOWN]
+    blocks: dict[str, Any] = {}
+    for block, dof in NEES_BLOCKS.items():
+        anees, ns, band, band_999, in_band = [], [], [], [], []
+        for level in levels:
+            vals = np.array([_get(r, f"consistency_nees_at_{level}_{block}") for r in cases])
+            vals = vals[np.isfinite(vals)]
+            n = int(vals.size)
+            a = float(vals.mean()) if n else math.nan
+            b95, b999 = chi2_band(n, dof), chi2_band(n, dof, BAND_PROB_WIDE)
+            anees.append(a)
+            ns.append(n)
+            band.append(b95)
+            band_999.append(b999)
+            in_band.append(bool(b95 is not None and b95[0] <= a <= b95[1]))
+        blocks[block] = {"dof": dof, "anees": anees, "n": ns, "band": band, "band_999": band_999,
+                         "in_band": in_band}
+    nis: dict[str, Any] = {}
+    for sensor, dof in NIS_SENSORS.items():
+        pre = f"consistency_nis_{sensor}"
+        n = int(np.nansum([_get(r, f"{pre}_n") for r in cases])) if cases else 0
+        total = float(np.nansum([_get(r, f"{pre}_sum") for r in cases])) if cases else 0.0
+        rejected = int(np.nansum([_get(r, f"{pre}_rejected") for r in cases])) if cases else 0
+        per_band = []
+        for lo, hi in NIS_BANDS_M:
+            key = f"{pre}_bands_{_band_key(lo, hi)}"
+            bn = int(np.nansum([_get(r, f"{key}_n") for r in cases])) if cases else 0
+            bs = float(np.nansum([_get(r, f"{key}_sum") for r in cases])) if cases else 0.0
+            per_band.append({"alt_m": [lo, hi], "mean": bs / bn if bn else math.nan, "n": bn,
+                             "band": chi2_band(bn, dof)})
+        nis[sensor] = {"dof": dof, "mean": total / n if n else math.nan, "n": n, "band": chi2_band(n, dof),
+                       "rejected": rejected, "bands": per_band}
+    lag1: dict[str, Any] = {}
+    for ax in "xy":
+        pre = f"consistency_vision_lag1_{ax}"
+        n = np.nansum([_get(r, f"{pre}_n") for r in cases]) if cases else 0
+        n_pairs = np.nansum([_get(r, f"{pre}_n_pairs") for r in cases]) if cases else 0
+        sum_sq = np.nansum([_get(r, f"{pre}_sum_sq") for r in cases]) if cases else 0.0
+        sum_prod = np.nansum([_get(r, f"{pre}_sum_prod") for r in cases]) if cases else 0.0
+        lag1[ax] = float((sum_prod / n_pairs) / (sum_sq / n)) if n_pairs and sum_sq else math.nan
+        lag1["n_pairs"] = int(n_pairs)
+    return {"schema": SCHEMA_VERSION, "n_cases": len(cases), "altitudes_m": [*NEES_ALTITUDES_M, TOUCHDOWN],
+            "blocks": blocks, "nis": nis, "vision_lag1": lag1}
+
+
+def consistency_table(doc: Mapping[str, Any]) -> str:
+    """A plain-text table of a ``consistency.json`` document (ANEES per block and altitude, NIS per sensor)."""
+    levels = [str(a) for a in doc["altitudes_m"]]
+    lines = [f"filter consistency over {doc['n_cases']} cases (ANEES, 95 % band; * outside it)"]
+    lines.append("block dof " + " ".join(f"{lv + (' m' if lv != TOUCHDOWN else ''):>17}" for lv in levels))
+    for block, b in doc["blocks"].items():
+        cells = []
+        for a, band in zip(b["anees"], b["band"]):
+            if band is None or a is None or not math.isfinite(a):
+                cells.append(f"{'-':>17}")
+                continue
+            mark = " " if band[0] <= a <= band[1] else "*"
+            cells.append(f"{a:6.2f}{mark}[{band[0]:.2f},{band[1]:.2f}]".rjust(17))
+        lines.append(f"{block:<5} {b['dof']:>3} " + " ".join(cells))
+    for sensor, s in doc["nis"].items():
+        if not s["n"]:
+            lines.append(f"NIS {sensor}: no updates")
+            continue
+        band = s["band"]
+        parts = [f"NIS {sensor} (dof {s['dof']}): mean {s['mean']:.2f} over {s['n']}"
+                 + (f" [{band[0]:.2f},{band[1]:.2f}]" if band else "") + f", {s['rejected']} gated out"]
+        for b in s["bands"]:
+            if b["n"]:
+                parts.append(f"{b['alt_m'][0]}-{b['alt_m'][1]} m: {b['mean'] / s['dof']:.2f}/dof (n {b['n']})")
+        lines.append("; ".join(parts))
+    lag = doc["vision_lag1"]
+    if lag.get("n_pairs"):
+        lines.append(f"vision residual lag-1 autocorrelation: x {lag['x']:+.3f}, y {lag['y']:+.3f} "
+                     f"({lag['n_pairs']} pairs)")
+    return "\n".join(lines)

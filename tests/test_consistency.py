@@ -1,0 +1,100 @@
+"""Ensemble consistency statistics (bench/consistency.py) against textbook values and explicit loops."""
+
+from __future__ import annotations
+
+import json
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from bench.consistency import (
+    NEES_ALTITUDES_M,
+    NEES_BLOCKS,
+    block_nees,
+    campaign_consistency,
+    chi2_band,
+    consistency_table,
+    run_consistency,
+)
+from bench.io import json_safe
+from bench.mc import summary_row
+
+
+def test_band_matches_bar_shalom_textbook_example():
+    # Bar-Shalom, Li & Kirubarajan (2001), sec. 5.4.2: 50 runs of a 2-state filter, the two-sided 95 %
+    # region of the average NEES is [1.5, 2.6].
+    lo, hi = chi2_band(50, 2)
+    assert round(lo, 1) == 1.5 and round(hi, 1) == 2.6
+    assert chi2_band(0, 2) is None
+
+
+def test_block_nees_matches_an_explicit_inverse():
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(20, 20))
+    P = A @ A.T + 20 * np.eye(20)
+    e = rng.normal(size=9)
+    got = block_nees(e, P)
+    idx = {"r_h": [0, 1], "r_v": [2], "v_h": [3, 4], "v_v": [5], "b_a": [6, 7, 8]}
+    for value, block in zip(got, NEES_BLOCKS):
+        i = idx[block]
+        want = e[i] @ np.linalg.inv(P[np.ix_(i, i)]) @ e[i]
+        assert value == pytest.approx(want, rel=1e-12)
+
+
+def _telemetry(rng, z0=510.0):
+    t = np.arange(0.0, 60.0, 0.02)
+    z = np.maximum(z0 - 9.0 * t, 0.0)
+    tel = {"t_s": t, "r_z_m": z}
+    for block, dof in NEES_BLOCKS.items():
+        tel[f"nees_{block}"] = rng.chisquare(dof, t.size)
+    return tel
+
+
+def test_a_consistent_ensemble_is_inside_its_bands_and_the_table_reads_it():
+    rng = np.random.default_rng(1)
+    rows = []
+    for case in range(200):
+        tel = _telemetry(rng)
+        log = []
+        for k in range(300):  # vision updates 0.1 s apart, white normalised innovations
+            y = rng.normal(size=2)
+            log.append(SimpleNamespace(t_ns=int(k * 1e8), kind="vision", nis=float(y @ y), accepted=True,
+                                       y=y, S=np.eye(2)))
+        summary = {"consistency": run_consistency(tel, {"t_s": 59.0}, log)}
+        rows.append(json.loads(json.dumps(json_safe(summary_row(summary)))))
+    doc = campaign_consistency(rows)
+    assert doc["n_cases"] == 200
+    in_band = sum(sum(b["in_band"]) for b in doc["blocks"].values())
+    cells = len(NEES_BLOCKS) * (len(NEES_ALTITUDES_M) + 1)
+    assert in_band >= cells - 3  # 95 % bands: about 1.8 of 35 cells out by chance
+    v = doc["nis"]["vision"]
+    assert v["band"][0] <= v["mean"] <= v["band"][1]
+    assert abs(doc["vision_lag1"]["x"]) < 0.02 and abs(doc["vision_lag1"]["y"]) < 0.02
+    text = consistency_table(json.loads(json.dumps(json_safe(doc))))
+    assert "v_h" in text and "NIS vision" in text and "NIS altimeter: no updates" in text
+
+
+def test_lag1_autocorrelation_matches_an_explicit_loop_and_sees_ma1_noise():
+    rng = np.random.default_rng(2)
+    d = rng.normal(size=(401, 2))
+    e = d[1:] - d[:-1]  # MA(1) with rho = -1/2: a shared frame in consecutive pairs
+    log = [SimpleNamespace(t_ns=int(k * 1e8), kind="vision", nis=float(v @ v), accepted=True, y=v,
+                           S=2.0 * np.eye(2)) for k, v in enumerate(e)]
+    tel = _telemetry(rng)
+    out = run_consistency(tel, None, log)["vision_lag1"]
+    for i, ax in enumerate("xy"):
+        x = e[:, i] / math.sqrt(2.0)
+        x = x - x.mean()
+        num = sum(x[k] * x[k + 1] for k in range(len(x) - 1)) / (len(x) - 1)
+        rho = num / (sum(v * v for v in x) / len(x))
+        got = (out[ax]["sum_prod"] / out[ax]["n_pairs"]) / (out[ax]["sum_sq"] / out[ax]["n"])
+        assert got == pytest.approx(rho, rel=1e-9)
+        assert -0.6 < got < -0.4
+
+
+def test_a_case_that_starts_below_an_altitude_has_no_value_there():
+    rng = np.random.default_rng(3)
+    out = run_consistency(_telemetry(rng, z0=495.0), {"t_s": 59.0}, [])
+    assert out["nees_at"]["500"] is None and out["nees_at"]["300"] is not None

@@ -19,13 +19,13 @@ demo: bootstrap
 	$(LB) run --out $(OUT)
 	@echo "demo: results in $(OUT)/ (summary.json, telemetry.parquet, scenario.toml, plots.png, camera.mp4, world.png)"
 
-## test: the fast suite (CI runs this; well under 10 minutes on 2 cores)
+## test: the fast suite (CI runs this); the 15 slowest tests are listed so the time budget stays visible
 test: bootstrap
-	$(PYTEST) -q
+	$(PYTEST) -q --durations=15
 
 ## test-slow: the long checks (full descents, campaigns), marked @pytest.mark.slow
 test-slow: bootstrap
-	$(PYTEST) -q -m slow
+	$(PYTEST) -q -m slow --durations=15
 
 test-all: bootstrap
 	$(PYTEST) -q -m "slow or not slow"

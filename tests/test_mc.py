@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import pyarrow.parquet as pq
+import pytest
 
 from bench import mc
 from bench.cli import main
@@ -30,6 +31,7 @@ def _sets(extra=()):
     return [a for s in (*QUICK, *extra) for a in ("--set", s)]
 
 
+@pytest.mark.slow  # the default campaign's acceptance test (slow) checks the same on the default scenario
 def test_cases_are_identical_with_one_or_two_workers(tmp_path):
     base = load_scenario(None, QUICK)
     one = mc.run_campaign(base, 3, tmp_path / "w1", campaign_seed=11, workers=1, progress=False)

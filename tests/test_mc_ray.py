@@ -86,6 +86,7 @@ def _case_pids() -> list[int]:
     return pids
 
 
+@pytest.mark.slow  # the default campaign's acceptance test (slow) checks Ray against local rows too
 def test_ray_cases_equal_local_cases_row_for_row(tmp_path, ray_address, capsys):
     # Through the CLI, as a cluster user runs it; failed cases keep their files.
     assert main(["mc", "--backend", "ray", "--address", ray_address, "--runs", "3", "--workers", "2",

@@ -114,8 +114,9 @@ INITIAL_CONDITIONS = [
 
 
 @pytest.mark.parametrize("law", ["apollo", "zem_zev"])
-@pytest.mark.parametrize("ic", range(len(INITIAL_CONDITIONS)))
+@pytest.mark.parametrize("ic", [0, *(pytest.param(i, marks=pytest.mark.slow) for i in range(1, len(INITIAL_CONDITIONS)))])
 def test_each_guidance_law_lands_from_several_initial_conditions(law, ic):
+    # The first initial condition runs in `make test`; the others are multi-case landings for `make test-slow`.
     sc = load_scenario(None, [*NO_CAMERA, f'guidance.law="{law}"', *INITIAL_CONDITIONS[ic]])
     _meets_criteria(run(sc).summary)
 

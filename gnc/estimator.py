@@ -639,6 +639,19 @@ class NavFilter:
         self.log.append(rec)
         return rec
 
+    def _checked_noise_and_lag(self, t_ns: int, kind: str, z: np.ndarray,
+                               R: np.ndarray) -> UpdateRecord | tuple[np.ndarray, int]:
+        """The symmetrised ``R`` and the lag to the filter time, or the record of why the update is not made."""
+        R = 0.5 * (R + R.T)
+        try:
+            np.linalg.cholesky(R)
+        except np.linalg.LinAlgError:
+            return self._not_applied(t_ns, kind, z, REASON_INVALID_R, "invalid")
+        lag_ns = self._lag_ns(t_ns)
+        if abs(lag_ns) > self._max_lag_ns:
+            return self._not_applied(t_ns, kind, z, REASON_STALE, "rejected")
+        return R, lag_ns
+
     def update_altimeter(self, msg: AltimeterMessage) -> UpdateRecord | None:
         """Slant-range update against a horizontal plane at the target's elevation.
 
@@ -741,14 +754,10 @@ class NavFilter:
             raise ValueError(f"update_velocity: R has shape {R.shape}; expected ({n}, {n}) [(m/s)^2]")
         if not (np.all(np.isfinite(z)) and np.all(np.isfinite(R))):
             return self._not_applied(t_ns, KIND_VELOCITY, z, REASON_NONFINITE, "invalid")
-        R = 0.5 * (R + R.T)
-        try:
-            np.linalg.cholesky(R)
-        except np.linalg.LinAlgError:
-            return self._not_applied(t_ns, KIND_VELOCITY, z, REASON_INVALID_R, "invalid")
-        lag_ns = self._lag_ns(t_ns)
-        if abs(lag_ns) > self._max_lag_ns:
-            return self._not_applied(t_ns, KIND_VELOCITY, z, REASON_STALE, "rejected")
+        checked = self._checked_noise_and_lag(t_ns, KIND_VELOCITY, z, R)
+        if isinstance(checked, UpdateRecord):
+            return checked
+        R, lag_ns = checked
         hx = (self.ekf.x[IDX_V] + self._a_L * (lag_ns / NS_PER_S))[idx]
         return self._gated_update(int(t_ns), KIND_VELOCITY, z, hx, self._H_vel[idx], R)
 
@@ -866,14 +875,10 @@ class NavFilter:
             return self._not_applied(t_ns, kind, z, REASON_NONFINITE, "invalid")
         if self._clone_t_ns is None:
             return self._not_applied(t_ns, kind, z, REASON_NO_CLONE, "invalid")
-        R = 0.5 * (R + R.T)
-        try:
-            np.linalg.cholesky(R)
-        except np.linalg.LinAlgError:
-            return self._not_applied(t_ns, kind, z, REASON_INVALID_R, "invalid")
-        lag_ns = self._lag_ns(t_ns)
-        if abs(lag_ns) > self._max_lag_ns:
-            return self._not_applied(t_ns, kind, z, REASON_STALE, "rejected")
+        checked = self._checked_noise_and_lag(t_ns, kind, z, R)
+        if isinstance(checked, UpdateRecord):
+            return checked
+        R, lag_ns = checked
         H = np.zeros((m, DIM_X))
         H[:, IDX_R] = H_r
         H[:, IDX_V] = H_r * (lag_ns / NS_PER_S)

@@ -6,7 +6,7 @@ Ports (Drake-style block ``NavFilter``)::
     ImuMessage ------>| propagate_imu       (100 Hz)      |   (alias predict_imu)
     AttitudeMsg ----->| set_attitude        (10 Hz)       |   (alias update_attitude)
     AltimeterMsg ---->| update_altimeter    (20 Hz)       |----> NavState (nav_state, at the control rate)
-    frame time ------>| clone_position      (camera rate) |----> UpdateRecord (return value, and .log)
+    frame time ------>| clone_frame         (camera rate) |----> UpdateRecord (return value, and .log)
     relative z,H,R -->| update_relative     (camera rate) |
     velocity z,R ---->| update_velocity     (any rate)    |
                       +-----------------------------------+
@@ -14,7 +14,7 @@ Ports (Drake-style block ``NavFilter``)::
     Inputs: :class:`gnc.messages.ImuMessage`, :class:`gnc.messages.AttitudeMessage`,
         :class:`gnc.messages.AltimeterMessage` (all through :meth:`NavFilter.process`
         or their own methods); at each camera frame a position clone
-        (``clone_position``) and a measurement relating the current position to
+        (``clone_frame``) and a measurement relating the current position to
         the clone (``update_relative``, from :mod:`gnc.vision_nav`); optionally a
         ground-relative velocity with its covariance (``update_velocity``).
         Messages must arrive in time order (integer ns); an IMU sample not after
@@ -71,15 +71,17 @@ Model:
       Its noise is the altimeter spec, 1-sigma ``hypot(floor, frac * rho)``.
       The relief is a Gauss-Markov process along the footprint track: between
       two used samples whose footprints lie ``d`` apart its correlation is
-      ``phi = exp(-d / terrain_correlation_length_m)``. With the default length 0
+      ``phi = exp(-d / terrain_correlation_length_m)``. With a length of 0
       (``phi = 0``) every sample sees independent ground, which is exactly the
       spec noise plus a white relief term ``terrain_relief_sigma_m / c`` in
       quadrature. Real relief is correlated along track; treated as white it is
-      averaged away and the vertical channel becomes overconfident, so set the
-      length (tens of metres for crater-scale relief) when the terrain is known
-      to be correlated. The Jacobian of ``phi`` with respect to the state is
-      neglected.
-    * Stochastic cloning (``clone_position``): at a camera frame the position is
+      averaged away and the vertical channel becomes overconfident. The default
+      length, 100 m, comes from the default terrain: along a descent's footprint
+      track its relief (sd 0.8 m) correlates 0.5 over 40 m and 0.27 over 80 m,
+      and a shorter exponential length makes the modelled relief far rougher
+      between consecutive samples, 0.1 m apart, than it is. The Jacobian of
+      ``phi`` with respect to the state is neglected.
+    * Stochastic cloning (``clone_frame``): at a camera frame the position is
       copied into the clone slot, with its covariance and every cross-covariance
       (``x_c = r``, ``P_cc = P_rr``, ``P_c* = P_r*``). The clone does not move in
       prediction (identity in ``F``, no process noise) but is corrected by every

@@ -1,8 +1,8 @@
 """The navigation state: what navigation hands to guidance and control.
 
 Ports:
-    Producer: the navigation function (perfect navigation from truth in the
-        bench today, the estimator later), once per control period.
+    Producer: the navigation filter (:meth:`gnc.estimator.NavFilter.nav_state`),
+        or the bench's truth oracle with ``nav = "truth"``, once per control period.
     Consumers: :mod:`gnc.guidance` and :mod:`gnc.control`, at the control rate
         (default 50 Hz).
 
@@ -31,8 +31,9 @@ class NavState:
         q_LB: Attitude quaternion rotating B vectors into L, (4,) scalar-first.
         omega_B: Angular rate of B relative to L, in B, (3,) [rad/s].
         mass_kg: Current vehicle mass, dry plus remaining propellant [kg].
-        P: Optional state-error covariance from the estimator (its layout is
-            the estimator's, e.g. (15, 15)); None for perfect navigation.
+        P: Optional position/velocity error covariance from the estimator,
+            (6, 6), in the order of ``r_BL_L`` then ``v_BL_L``; None for perfect
+            navigation.
     """
 
     t_ns: int

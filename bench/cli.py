@@ -42,7 +42,7 @@ def cmd_scenario_show(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from bench.render import render_view
+    from bench.sim.render import render_view
 
     out = _check_out(args.out, (".png",), "--out")
     depth_out = _check_out(args.depth, (".npy",), "--depth") if args.depth else None
@@ -56,7 +56,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_world(args: argparse.Namespace) -> int:
-    from bench.render import draw_world
+    from bench.sim.render import draw_world
 
     out = _check_out(args.out, (".png",), "--out")
     scenario = load_scenario(args.scenario, args.overrides)
@@ -65,11 +65,11 @@ def cmd_world(args: argparse.Namespace) -> int:
 
 
 def cmd_perf(args: argparse.Namespace) -> int:
-    from bench.perf import format_perf, run_perf
+    from bench.evaluation.perf import format_perf, run_perf
 
     scenario = load_scenario(args.scenario, args.overrides)
     if args.campaign is not None:
-        from bench.perf import format_campaign_perf, run_campaign_perf
+        from bench.evaluation.perf import format_campaign_perf, run_campaign_perf
 
         workers = _int_list(args.campaign_workers, "--campaign-workers")
         result = run_campaign_perf(scenario, args.campaign, workers, campaign_seed=scenario.seed,
@@ -89,7 +89,7 @@ def _int_list(text: str, flag: str) -> tuple[int, ...]:
 
 
 def cmd_track_eval(args: argparse.Namespace) -> int:
-    from bench.track_eval import format_track_eval, run_track_eval
+    from bench.evaluation.track_eval import format_track_eval, run_track_eval
 
     if args.frames < 3:
         raise ValueError(f"--frames {args.frames}: need at least 3 frames")
@@ -102,8 +102,8 @@ def cmd_track_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_vision_figures(args: argparse.Namespace) -> int:
-    from bench.descent import render_descent
-    from bench.vision_figures import write_vision_figures
+    from bench.sim.descent import render_descent
+    from bench.evaluation.vision_figures import write_vision_figures
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -121,7 +121,7 @@ EXIT_NOT_LANDED = 3
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from bench.run_outputs import run_and_write
+    from bench.report.run_outputs import run_and_write
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -133,7 +133,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_mc(args: argparse.Namespace) -> int:
-    from bench import mc
+    from bench.campaign import mc
 
     if args.replay:
         if args.case is None or not args.out:
@@ -163,13 +163,13 @@ def cmd_mc(args: argparse.Namespace) -> int:
     if args.dry_run:
         print(f"dry run: {args.runs} dispersed scenarios in {directory / mc.CASES}/NNNNN/scenario.toml")
         return 0
-    from bench.consistency import CONSISTENCY_FILE, consistency_table
-    from bench.mc_report import campaign_table, write_campaign_report
+    from bench.evaluation.consistency import CONSISTENCY_FILE, consistency_table
+    from bench.report.mc_report import campaign_table, write_campaign_report
 
     crit = base.landing.model_dump()
     terrain = None
     if "terrain.seed" not in base.dispersions:  # one terrain for all cases: draw it under the points
-        from bench.world_builder import build_terrain
+        from bench.sim.world_builder import build_terrain
 
         terrain = build_terrain(base)
     write_campaign_report(rows, crit, directory / mc.REPORT, terrain=terrain,
@@ -183,8 +183,8 @@ def cmd_mc(args: argparse.Namespace) -> int:
 
 
 def _mc_replay(directory: Path, case: int, out: Path) -> int:
-    from bench import mc
-    from bench.run_outputs import run_and_write
+    from bench.campaign import mc
+    from bench.report.run_outputs import run_and_write
 
     meta = json.loads((directory / mc.CAMPAIGN).read_text())
     if not 0 <= case < meta["runs"]:

@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from bench.scenario import load_scenario
-from bench.world_builder import build_terrain, build_world
+from bench.sim.world_builder import build_terrain, build_world
 from models.camera import CameraConfig, apply_detector_noise, intrinsics
 from tests.conftest import SMALL_SET
 
@@ -97,7 +97,7 @@ def _grad_rms(img: np.ndarray) -> float:
 
 
 def test_landing_site_patch_keeps_fine_detail_at_the_vision_cutoff():
-    from bench.world_builder import place_above_target
+    from bench.sim.world_builder import place_above_target
 
     grads = {}
     for patch in (0.0, 96.0):

@@ -1,4 +1,4 @@
-"""Ensemble consistency statistics (bench/consistency.py) against textbook values and explicit loops."""
+"""Ensemble consistency statistics (bench/evaluation/consistency.py) against textbook values and explicit loops."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from bench.consistency import (
+from bench.evaluation.consistency import (
     NEES_ALTITUDES_M,
     NEES_BLOCKS,
     block_nees,
@@ -18,8 +18,8 @@ from bench.consistency import (
     consistency_table,
     run_consistency,
 )
-from bench.io import json_safe
-from bench.mc import summary_row
+from bench.report.io import json_safe
+from bench.campaign.mc import summary_row
 
 
 def test_band_matches_bar_shalom_textbook_example():

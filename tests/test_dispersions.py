@@ -9,10 +9,10 @@ import pytest
 
 from pydantic import BaseModel
 
-from bench.dispersions import apply_dispersions, case_seeds
-from bench.run import build_flight_software, run
+from bench.scenario import apply_dispersions, case_seeds
+from bench.sim.run import build_flight_software, run
 from bench.scenario import ScenarioError, load_scenario
-from bench.world_builder import build_sensors, build_world
+from bench.sim.world_builder import build_sensors, build_world
 from tests.conftest import SMALL_SET
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
-from bench import mc
+from bench.campaign import mc
 from bench.cli import main
 from bench.scenario import load_scenario
 from tests.conftest import SMALL_SET

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import pytest
 
-from bench import mc
+from bench.campaign import mc
 from bench.scenario import load_scenario
 
 RUNS = 20

@@ -22,7 +22,7 @@ import pytest
 
 pytest.importorskip("ray", reason="the Ray extra is not installed: pip install 'landbench[ray]'")
 
-from bench import mc  # noqa: E402
+from bench.campaign import mc  # noqa: E402
 from bench.cli import main  # noqa: E402
 from bench.scenario import load_scenario  # noqa: E402
 from tests.test_mc import QUICK, _sets, _strip  # noqa: E402

@@ -1,4 +1,4 @@
-"""Campaign report (bench/mc_report.py): Wilson interval, error ellipse, report PNG, text table."""
+"""Campaign report (bench/report/mc_report.py): Wilson interval, error ellipse, report PNG, text table."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from bench.mc_report import (
+from bench.report.mc_report import (
     FIGURE_DPI,
     FIGURE_SIZE_IN,
     campaign_figure,

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import bench.run as bench_run
-from bench.run import run
+import bench.sim.run as bench_run
+from bench.sim.run import run
 from bench.scenario import load_scenario
 from vision.tracker import Tracker
 from vision.tracks import Tracks

@@ -1,4 +1,4 @@
-"""Output files of one run (bench/report.py): Parquet telemetry, plots, camera video, terminal summary."""
+"""Output files of one run (bench/report/report.py): Parquet telemetry, plots, camera video, terminal summary."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from bench.report import (
+from bench.report.report import (
     CHECK_FAIL,
     CHECK_OK,
     CameraVideo,
@@ -276,14 +276,14 @@ def test_summary_no_touchdown_and_missing_key():
 
 # ------------------------------------------------------------------- import
 def test_import_is_cheap():
-    code = ("import sys, bench.report; bad = [m for m in ('mujoco', 'matplotlib', 'models.terrain') "
+    code = ("import sys, bench.report.report; bad = [m for m in ('mujoco', 'matplotlib', 'models.terrain') "
             "if m in sys.modules]; sys.exit(f'imported {bad}' if bad else 0)")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
 
 
 def test_summary_table_shows_navigation_and_vision_when_present():
-    from bench.report import summary_table
+    from bench.report.report import summary_table
 
     summary = {
         "outcome": "landed", "landed": True, "fuel_used_kg": 90.0, "sim_time_s": 80.0, "wall_time_s": 12.0,

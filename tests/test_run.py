@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from bench.run import OUTCOMES, run, tilt_deg
+from bench.sim.run import OUTCOMES, run, tilt_deg
 from bench.scenario import ScenarioError, load_scenario
 from tests.conftest import SMALL_SET
 

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 
 from bench.cli import main
-from bench.report import read_telemetry_parquet
+from bench.report.report import read_telemetry_parquet
 from bench.scenario import load_scenario
 from tests.conftest import SMALL_SET
 
@@ -68,7 +68,7 @@ def test_bad_input_writes_nothing(tmp_path, capsys):
 def test_a_failure_after_the_run_leaves_no_partial_video(tmp_path, monkeypatch):
     import pytest
 
-    import bench.run_outputs as ro
+    import bench.report.run_outputs as ro
 
     def broken_plots(*args, **kwargs):
         raise RuntimeError("disk full")

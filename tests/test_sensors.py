@@ -7,7 +7,7 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bench.seeding import component_rng
+from bench.scenario.seeding import component_rng
 from models.camera import CameraConfig
 from models.lander import LanderConfig
 from models.sensors import (

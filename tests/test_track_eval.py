@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from bench.cli import main
-from bench.descent import descent_poses, render_descent
+from bench.sim.descent import descent_poses, render_descent
 from bench.scenario import load_scenario
-from bench.track_eval import run_track_eval
-from bench.tracking_eval import truth_flow
+from bench.evaluation.track_eval import run_track_eval
+from bench.evaluation.tracking_eval import truth_flow
 
 DEFAULT_FRAMES = 150  # landbench track-eval's default descent
 

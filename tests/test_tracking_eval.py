@@ -1,12 +1,12 @@
-"""Tests of bench.tracking_eval on a synthetic textured-plane descent (no MuJoCo)."""
+"""Tests of bench.evaluation.tracking_eval on a synthetic textured-plane descent (no MuJoCo)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-import bench.tracking_eval as tracking_eval
-from bench.tracking_eval import (
+import bench.evaluation.tracking_eval as tracking_eval
+from bench.evaluation.tracking_eval import (
     BaselineConfig,
     OpenCVBaseline,
     compare,

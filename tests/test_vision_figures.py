@@ -1,12 +1,12 @@
-"""bench.vision_figures writes one non-empty PNG per stage (paper Figs. 3-8)."""
+"""bench.evaluation.vision_figures writes one non-empty PNG per stage (paper Figs. 3-8)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from bench.tracking_eval import synthetic_descent
-from bench.vision_figures import write_vision_figures
+from bench.evaluation.tracking_eval import synthetic_descent
+from bench.evaluation.vision_figures import write_vision_figures
 from vision import TrackerConfig
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"

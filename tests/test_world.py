@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bench.scenario import load_scenario
-from bench.world_builder import build_terrain, build_world
+from bench.sim.world_builder import build_terrain, build_world
 from models.lander import PATCH_GEOM_GROUP, TERRAIN_GEOM_GROUP
 from models.world import PATCH_LIFT_M
 from tests.conftest import SMALL_SET

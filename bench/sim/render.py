@@ -5,9 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 
-from bench.io import save_figure, write_npy, write_png
+from bench.report.io import save_figure, write_npy, write_png
 from bench.scenario import Scenario
-from bench.world_builder import build_sensors, build_terrain, build_world, place_above_target
+from bench.sim.world_builder import build_sensors, build_terrain, build_world, place_above_target
 from models.camera import apply_detector_noise
 
 

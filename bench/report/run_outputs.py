@@ -15,9 +15,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from bench.io import atomic_write_text, json_safe
-from bench.report import CameraVideo, frame_caption, summary_table, write_plots, write_telemetry_parquet
-from bench.run import RunResult, run
+from bench.report.io import atomic_write_text, json_safe
+from bench.report.report import CameraVideo, frame_caption, summary_table, write_plots, write_telemetry_parquet
+from bench.sim.run import RunResult, run
 from bench.scenario import NS_PER_S, Scenario, scenario_to_toml
 
 SUMMARY = "summary.json"

@@ -3,7 +3,7 @@
 Pure: campaign rows in, a figure and text out; no simulator (``mujoco`` is
 never imported here, and matplotlib only when a figure is drawn).
 
-A row is one case (``bench.mc``): ``case``, ``seed``, ``outcome`` (landed,
+A row is one case (``bench.campaign.mc``): ``case``, ``seed``, ``outcome`` (landed,
 hard_landing, tipped_over, fuel_exhausted, timeout, diverged, or ``error``
 when the case raised, crashed or timed out in the runner), ``landed``,
 ``touchdown_t_s``, ``touchdown_v_vertical_mps``, ``touchdown_v_horizontal_mps``,
@@ -14,7 +14,7 @@ may be missing, None or NaN (no touchdown, or a failed case).
 
 Outputs:
     * :func:`write_campaign_report`: ``report.png`` (``FIGURE_SIZE_IN`` at
-      ``FIGURE_DPI``), written atomically (``bench.io``);
+      ``FIGURE_DPI``), written atomically (``bench.report.io``);
     * :func:`campaign_table`: the terminal summary.
 
 Statistics: :func:`wilson_interval` (success rate) and :func:`error_ellipse`
@@ -30,9 +30,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from bench.consistency import campaign_consistency
-from bench.io import save_figure
-from bench.report import check_criteria, draw_hillshade
+from bench.evaluation.consistency import campaign_consistency
+from bench.report.io import save_figure
+from bench.report.report import check_criteria, draw_hillshade
 
 if TYPE_CHECKING:  # typing only
     from matplotlib.figure import Figure

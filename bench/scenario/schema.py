@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from bench.dispersions import Dispersion, check_dispersion_paths
+from bench.scenario.dispersions import Dispersion, check_dispersion_paths, draw_dispersions
 from gnc.config import format_validation_error
 from gnc.control import ControlConfig
 from gnc.estimator import EstimatorConfig
@@ -286,7 +286,7 @@ def _read_toml(path: Path) -> dict[str, Any]:
 
 def default_scenario_text() -> str:
     """Text of the bundled default scenario."""
-    return resources.files("bench.scenarios").joinpath(DEFAULT_SCENARIO).read_text(encoding="utf-8")
+    return resources.files("bench.scenario").joinpath(DEFAULT_SCENARIO).read_text(encoding="utf-8")
 
 
 def scenario_from_dict(data: dict[str, Any]) -> Scenario:
@@ -295,6 +295,24 @@ def scenario_from_dict(data: dict[str, Any]) -> Scenario:
         return Scenario.model_validate(data)
     except ValidationError as err:
         raise ScenarioError(format_validation_error(err, Scenario)) from None
+
+
+def apply_dispersions(scenario: Scenario, rng: np.random.Generator | None = None) -> tuple[Scenario, dict[str, Any]]:
+    """Draw every dispersion and return the dispersed, re-validated scenario.
+
+    The draws are :func:`bench.scenario.dispersions.draw_dispersions`; the
+    validation is here, so the dispersions module never imports the schema.
+
+    Args:
+        scenario: The nominal scenario (its ``dispersions`` table says what to draw).
+        rng: The draws' generator; by default the scenario's own "dispersions" stream.
+
+    Returns:
+        (the dispersed scenario, {path: drawn value}). The dispersed scenario
+        keeps its seed and has an empty ``dispersions`` table (it is one case).
+    """
+    data, drawn = draw_dispersions(scenario, rng)
+    return scenario_from_dict(data), drawn
 
 
 def load_scenario(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Scenario:

@@ -13,7 +13,7 @@ Outputs:
 
 Every file appears whole or not at all: results are built in memory or in a
 temporary file in the destination folder and renamed into place
-(``bench.io``), so a failed run never leaves a truncated file or clobbers a
+(``bench.report.io``), so a failed run never leaves a truncated file or clobbers a
 result that was already there.
 
 Telemetry is a ``dict[str, np.ndarray]`` of equal-length 1-D columns (the
@@ -37,7 +37,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from bench.io import atomic_write_bytes, save_figure
+from bench.report.io import atomic_write_bytes, save_figure
 
 if TYPE_CHECKING:  # typing only: keeps this module cheap to import
     from models.terrain import Terrain
@@ -79,7 +79,7 @@ VIDEO_FOURCC = "mp4v"  # MPEG-4 Part 2 in .mp4: encodes with opencv-python-headl
 # Tried in order for a .mp4 path; MJPG is the last resort and renames the output to .avi.
 VIDEO_CODECS_MP4 = (("mp4v", ".mp4"), ("avc1", ".mp4"), ("MJPG", ".avi"))
 VIDEO_CODECS_AVI = (("MJPG", ".avi"),)
-VIDEO_FILE_MODE = 0o666  # permissions of the finished video, before the umask (as bench.io gives its files)
+VIDEO_FILE_MODE = 0o666  # permissions of the finished video, before the umask (as bench.report.io gives its files)
 TRACK_RADIUS_PX = 3.0  # circle drawn at each track position [px]
 TRACK_COLOR_BGR = (0, 255, 0)
 MOTION_COLOR_BGR = (0, 200, 255)

@@ -41,10 +41,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from bench.dispersions import apply_dispersions, case_seeds
-from bench.consistency import CONSISTENCY_FILE, campaign_consistency
-from bench.io import atomic_write_bytes, atomic_write_text, json_safe
-from bench.scenario import Scenario, load_scenario, scenario_from_dict, scenario_to_toml
+from bench.evaluation.consistency import CONSISTENCY_FILE, campaign_consistency
+from bench.report.io import atomic_write_bytes, atomic_write_text, json_safe
+from bench.scenario import Scenario, apply_dispersions, case_seeds, load_scenario, scenario_from_dict, scenario_to_toml
 
 CAMPAIGN = "campaign.json"
 BASE_SCENARIO = "scenario.toml"
@@ -146,18 +145,18 @@ def _case_row(base_data: dict, campaign_seed: int, n_cases: int, index: int, cas
         row.update(disp)
         out = case_dir / f"{index:05d}"
         if retention == "all":
-            from bench.run_outputs import run_and_write
+            from bench.report.run_outputs import run_and_write
 
             summary, _ = run_and_write(scenario, out, video=True, progress=False)
         else:
             # Files only for a case that failed, and only if asked: plots and
             # Parquet would cost every case time and ~60 MB of imports.
-            from bench.run import run
+            from bench.sim.run import run
 
             result = run(scenario)
             summary = json_safe(result.summary)
             if retention == "failed" and not summary["landed"]:
-                from bench.run_outputs import write_run_outputs
+                from bench.report.run_outputs import write_run_outputs
 
                 write_run_outputs(scenario, result, out)
             del result

@@ -1,8 +1,8 @@
 """``landbench track-eval``: the paper's tracker against truth and against OpenCV.
 
-A descent is rendered from the simulated world (:mod:`bench.descent`). Both
+A descent is rendered from the simulated world (:mod:`bench.sim.descent`). Both
 trackers run on the same frames in the same process, interleaved
-(:func:`bench.tracking_eval.compare`). Every tracked point is back-projected
+(:func:`bench.evaluation.tracking_eval.compare`). Every tracked point is back-projected
 through the depth image and the camera pose of its frame and projected into
 the next frame; the endpoint error is the distance to where the tracker put
 it. Reported per tracker: tracks per frame, median and p95 endpoint error
@@ -14,9 +14,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from bench.descent import render_descent
+from bench.sim.descent import render_descent
 from bench.scenario import Scenario
-from bench.tracking_eval import BaselineConfig, OpenCVBaseline, compare
+from bench.evaluation.tracking_eval import BaselineConfig, OpenCVBaseline, compare
 from vision import Tracker, TrackerConfig
 
 REPORT_KEYS = (

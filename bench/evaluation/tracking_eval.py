@@ -11,7 +11,7 @@ Pure NumPy/OpenCV, no simulator:
   lifetimes, and milliseconds per ``step``.
 * :func:`synthetic_descent` -- a textured ground plane seen by a descending
   pinhole camera, rendered by homography, with analytic depth; used by the
-  tests and by ``python -m bench.tracking_eval``.
+  tests and by ``python -m bench.evaluation.tracking_eval``.
 
 Frames: L is the landing frame (x east, y north, z up, ground z = 0); C is
 OpenCV's camera frame (x right, y down, z forward); ``R_LC`` rotates C vectors
@@ -162,7 +162,7 @@ def truth_flow(
 class BaselineConfig(BaseModel):
     """Parameters of :class:`OpenCVBaseline`.
 
-    Tuning (``python -m bench.tracking_eval --sweep``: synthetic descent, 40
+    Tuning (``python -m bench.evaluation.tracking_eval --sweep``: synthetic descent, 40
     frames, 256^2 and 512^2, one OpenCV thread, 2-core x86). Every setting
     below was as accurate as the alternatives; the sweep's cost per frame
     (mean over frames of the fastest of 3 repeats) was:

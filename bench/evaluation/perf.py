@@ -20,7 +20,7 @@ import time
 import numpy as np
 
 from bench.scenario import Scenario
-from bench.world_builder import build_sensors, build_terrain, build_world, place_above_target
+from bench.sim.world_builder import build_sensors, build_terrain, build_world, place_above_target
 from models.camera import apply_detector_noise
 
 RESOLUTIONS_PX = (256, 512)
@@ -141,7 +141,7 @@ def run_campaign_perf(scenario: Scenario, runs: int, workers: tuple[int, ...] = 
     import tempfile
     from pathlib import Path
 
-    from bench.mc import landing_values, run_campaign
+    from bench.campaign.mc import landing_values, run_campaign
 
     if runs < 1:
         raise ValueError(f"--campaign {runs}: must be >= 1 case")

@@ -25,7 +25,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bench.scenario import Scenario
-from bench.world_builder import build_sensors, build_terrain, build_world
+from bench.sim.world_builder import build_sensors, build_terrain, build_world
 
 NS_PER_S = 1_000_000_000
 WOBBLE_AMPLITUDE_DEG = 2.0  # roll/pitch oscillation of the attitude loop

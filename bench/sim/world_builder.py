@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bench.scenario import Scenario
-from bench.seeding import component_rng
+from bench.scenario.seeding import component_rng
 from models.camera import apply_detector_noise
 from models.sensors import AltimeterModel, ImuModel, StarTrackerModel
 from models.terrain import Terrain, generate_terrain

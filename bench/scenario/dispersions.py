@@ -23,7 +23,7 @@ Integer fields (e.g. ``terrain.seed``) take rounded draws.
 Seeds: ``SeedSequence(campaign_seed).spawn(n)`` gives one stream per case; a
 case's scenario seed is drawn from its stream, and inside the case every
 component (terrain, sensors, dispersions, ...) has its own child stream
-(:mod:`bench.seeding`). A case's result therefore never depends on the
+(:mod:`bench.scenario.seeding`). A case's result therefore never depends on the
 number of workers or the order in which cases run.
 """
 
@@ -37,7 +37,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy.stats import truncnorm
 
-from bench.seeding import component_rng
+from bench.scenario.seeding import component_rng
 
 SEED_BITS = 63  # case seeds fit TOML's signed 64-bit integers
 # Truth sections whose nominal values the flight software keeps (scenario.knowledge.<part>).
@@ -180,19 +180,21 @@ def _draw(spec: Any, nominal: Any, rng: np.random.Generator) -> Any:
     return out if vector else out[0]
 
 
-def apply_dispersions(scenario, rng: np.random.Generator | None = None):
-    """Draw every dispersion and return the dispersed, re-validated scenario.
+def draw_dispersions(scenario, rng: np.random.Generator | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Draw every dispersion into a plain dict of the scenario (not validated).
+
+    This module does not import the scenario schema (the schema imports this
+    module): :func:`bench.scenario.apply_dispersions` calls this and
+    re-validates the dict into a Scenario.
 
     Args:
         scenario: The nominal scenario (its ``dispersions`` table says what to draw).
         rng: The draws' generator; by default the scenario's own "dispersions" stream.
 
     Returns:
-        (the dispersed scenario, {path: drawn value}). The dispersed scenario
-        keeps its seed and has an empty ``dispersions`` table (it is one case).
+        (the dispersed scenario as a dict, {path: drawn value}). The dict
+        keeps the seed and has an empty ``dispersions`` table (it is one case).
     """
-    from bench.scenario import scenario_from_dict
-
     rng = component_rng(scenario.seed, "dispersions") if rng is None else rng
     data = scenario.model_dump(mode="json")
     # The flight software keeps the nominal vehicle and camera: pin them before the truth is drawn.
@@ -207,7 +209,7 @@ def apply_dispersions(scenario, rng: np.random.Generator | None = None):
         _set(data, path, value)
         drawn[path] = value
     data["dispersions"] = {}
-    return scenario_from_dict(data), drawn
+    return data, drawn
 
 
 def case_seeds(campaign_seed: int, n_cases: int) -> list[int]:

@@ -1,0 +1,1 @@
+"""Monte Carlo campaigns: many dispersed landings, run in parallel and summarised."""

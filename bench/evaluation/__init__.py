@@ -1,0 +1,1 @@
+"""Evaluation: vision-tracker accuracy, filter consistency statistics, vision figures and performance benchmarks."""

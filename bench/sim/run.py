@@ -1,0 +1,489 @@
+"""One closed-loop landing: ``run(scenario) -> RunResult``, a pure function of the scenario.
+
+Loop (integer-nanosecond scheduler):
+    physics  ->  sensor models  ->  flight software  ->  actuators  ->  physics
+
+* Every periodic component (IMU, altimeter, star tracker, camera, control)
+  fires on its own period, all whole multiples of the physics step (checked
+  at scenario load). Time advances from one event to the next in whole
+  physics steps; between events every output is held (zero-order hold).
+* Flight software (``gnc/``, ``vision/``) receives messages only, and is
+  built from the scenario's onboard knowledge (:func:`onboard_knowledge`):
+  the nominal vehicle and camera plus explicit knowledge errors, never a
+  campaign case's drawn values. With ``nav = "estimator"`` (the default)
+  guidance flies on the filter's estimate; ``nav = "truth"`` hands it the
+  true kinematic state instead (an oracle for studies; the mass is still the
+  flight software's own gauge). Footpad contact switches are a sensor
+  message, and the controller cuts the engine on them.
+* Sensors are sampled after ``mj_forward``, so each sample describes the
+  state at its time tag.
+* Touchdown is the first footpad contact. Its velocity and tilt are those of
+  the last instant before contact forces acted (the previous event), its
+  miss distance the horizontal distance from the target. The run goes on for
+  ``landing.settle_s`` to see whether the lander stays upright.
+
+Outcomes, first match wins: ``diverged`` (physics blew up), ``fuel_exhausted``
+(propellant ran out before touchdown), ``timeout`` (no touchdown by
+``sim.t_max_ns``), ``hard_landing`` (touchdown beyond the velocity or tilt
+limits), ``tipped_over`` (not upright after settling), ``landed``.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import reduce
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from bench.evaluation.consistency import NEES_BLOCKS, block_nees, run_consistency
+from bench.scenario import NS_PER_S, Scenario
+from bench.scenario.seeding import component_rng
+from bench.sim.truth_tracker import TruthTracker
+from bench.sim.world_builder import SensorSuite, build_sensors, build_terrain, build_world
+from gnc.control import Controller, VehicleParams
+from gnc.estimator import make_estimator
+from gnc.flight import FlightSoftware, OnboardKnowledge
+from gnc.guidance import make_guidance
+from gnc.messages import ContactMessage, ImageMessage
+from gnc.navstate import NavState
+from models.camera import R_BC
+from vision.tracker import Tracker
+from vision.tracks import Tracks
+from models.camera import intrinsics
+from models.lander import LanderConfig, altimeter_position_B, camera_position_B, footpad_positions_B
+from models.terrain import Terrain
+from models.world import PhysicsDivergedError, TruthState, World
+
+OUTCOMES = ("landed", "hard_landing", "tipped_over", "fuel_exhausted", "timeout", "diverged")
+PHASE_TOUCHDOWN = "touchdown"
+
+FrameSink = Callable[[int, np.ndarray, TruthState, "Tracks | None"], None]
+"""Called with (t_ns, frame (H, W) uint8, truth, tracks or None) for every camera frame."""
+TRUTH_TRACK_POINTS = 80  # points the truth tracker keeps in view (about the paper tracker's count)
+VEL_RMS_BELOW_M = 100.0  # vel_err_rms_mps is taken below this altitude
+
+
+@dataclass
+class RunResult:
+    """What one landing produced.
+
+    Attributes:
+        summary: The ``summary.json`` contract (see :func:`run`).
+        telemetry: One row per control tick, column name -> (N,) array.
+        terrain: The terrain flown over (for plots).
+    """
+
+    summary: dict[str, Any]
+    telemetry: dict[str, np.ndarray]
+    terrain: Terrain = field(repr=False)
+
+
+def onboard_knowledge(scenario: Scenario) -> OnboardKnowledge:
+    """The flight software's knowledge of its vehicle: the nominal lander and camera plus the knowledge errors.
+
+    Never the truth of a campaign case: the nominal lander and camera are
+    ``scenario.knowledge.lander`` / ``.camera`` (pinned by the campaign before
+    it draws), else the scenario's own. The mounts come from the same geometry
+    functions the world's MJCF is built with (one calibration source).
+    """
+    k = scenario.knowledge
+    lander = scenario.nominal_lander()
+    vehicle = VehicleParams(
+        thrust_min_N=lander.engine.thrust_min_N,
+        thrust_max_N=lander.engine.thrust_max_N,
+        rcs_torque_max_Nm=lander.rcs_torque_max_Nm,
+        dry_mass_kg=lander.dry_mass_kg + k.dry_mass_error_kg,
+        dry_inertia_B_kgm2=tuple(float(x) * (1.0 + k.inertia_error_frac) for x in lander.body_inertia_kgm2()),
+        tank_radius_m=lander.tank_radius_m,
+        thrust_scale=1.0 + k.thrust_calibration_error_frac,
+    )
+    return OnboardKnowledge(
+        vehicle=vehicle,
+        wet_mass_kg=lander.wet_mass_kg + k.dry_mass_error_kg + k.propellant_error_kg,
+        isp_s=lander.engine.isp_s,
+        K=intrinsics(scenario.nominal_camera()),
+        R_BC=R_BC,
+        r_cam_B_m=camera_position_B(lander),
+        r_alt_B_m=altimeter_position_B(lander),
+    )
+
+
+def tilt_deg(q_LB: np.ndarray) -> float:
+    """Angle between body +z and L +z [deg]."""
+    w, x, y, z = q_LB
+    # R[2, 2] of the rotation body -> L, for a unit scalar-first quaternion.
+    r22 = 1.0 - 2.0 * (x * x + y * y)
+    return math.degrees(math.acos(max(-1.0, min(1.0, r22))))
+
+
+class _Telemetry:
+    """Row-wise recorder, turned into columns at the end."""
+
+    def __init__(self) -> None:
+        self.rows: list[tuple] = []
+
+    COLUMNS = (
+        "t_s", "r_x_m", "r_y_m", "r_z_m", "v_x_mps", "v_y_mps", "v_z_mps",
+        "q_w", "q_x", "q_y", "q_z", "omega_x_radps", "omega_y_radps", "omega_z_radps",
+        "mass_kg", "propellant_kg", "tilt_deg",
+        "thrust_cmd_N", "thrust_N", "throttle", "torque_x_Nm", "torque_y_Nm", "torque_z_Nm",
+        "q_cmd_w", "q_cmd_x", "q_cmd_y", "q_cmd_z", "a_cmd_x_mps2", "a_cmd_y_mps2", "a_cmd_z_mps2",
+        "t_go_s", "engine_on", "phase", "legs_in_contact",
+        "imu_f_x_mps2", "imu_f_y_mps2", "imu_f_z_mps2", "imu_w_x_radps", "imu_w_y_radps", "imu_w_z_radps",
+        "alt_range_m", "alt_valid", "st_q_w", "st_q_x", "st_q_y", "st_q_z",
+        "nav_r_x_m", "nav_r_y_m", "nav_r_z_m", "nav_v_x_mps", "nav_v_y_mps", "nav_v_z_mps",
+        "nav_err_r_x_m", "nav_err_r_y_m", "nav_err_r_z_m", "nav_err_v_x_mps", "nav_err_v_y_mps", "nav_err_v_z_mps",
+        "nav_sigma_r_x_m", "nav_sigma_r_y_m", "nav_sigma_r_z_m",
+        "nav_sigma_v_x_mps", "nav_sigma_v_y_mps", "nav_sigma_v_z_mps",
+        "nav_err_ba_x_mps2", "nav_err_ba_y_mps2", "nav_err_ba_z_mps2",
+        *(f"nees_{block}" for block in NEES_BLOCKS), "fsw_mass_kg",
+        "vision_tracks", "vision_measurements", "vision_rejected",
+        "vision_v_x_mps", "vision_v_y_mps",
+    )
+
+    def columns(self, terrain: Terrain, lander: LanderConfig) -> dict[str, np.ndarray]:
+        cols = {name: np.array(values) for name, values in zip(self.COLUMNS, zip(*self.rows, strict=True), strict=True)}
+        for name in ("engine_on", "alt_valid"):
+            cols[name] = cols[name].astype(bool)
+        for name in ("legs_in_contact", "vision_tracks", "vision_measurements", "vision_rejected"):
+            cols[name] = cols[name].astype(np.int64)
+        cols["phase"] = cols["phase"].astype(str)
+        # Height of the lowest footpad above the terrain under it (vectorised once, after the run).
+        r_L = np.column_stack([cols["r_x_m"], cols["r_y_m"], cols["r_z_m"]])
+        R_LB = Rotation.from_quat(np.column_stack([cols[f"q_{c}"] for c in "wxyz"]), scalar_first=True)
+        feet = np.stack([r_L + R_LB.apply(p_B) for p_B in footpad_positions_B(lander)], axis=1)  # (N, 4, 3)
+        clearance = feet[..., 2] - lander.footpad_radius_m - terrain.surface_height(feet[..., 0], feet[..., 1])
+        cols["height_m"] = clearance.min(axis=1)
+        return cols
+
+
+def run(scenario: Scenario, frame_sink: FrameSink | None = None, progress: bool = False) -> RunResult:
+    """Fly one landing.
+
+    Args:
+        scenario: The scenario (seed included); nothing else influences the result.
+        frame_sink: Receives every camera frame (for ``camera.mp4``); frames are
+            rendered at the camera rate when ``camera.enabled``.
+        progress: Show a progress bar over simulated time (on a terminal).
+
+    Returns:
+        The summary (keys: ``outcome``, ``landed``, ``touchdown`` {``t_s``,
+        ``v_vertical_mps``, ``v_horizontal_mps``, ``tilt_deg``,
+        ``miss_distance_m``}, ``fuel_used_kg``, ``sim_time_s``,
+        ``wall_time_s``, ``realtime_factor``, ``seed``, and more), the
+        telemetry and the terrain.
+    """
+    t_setup = time.perf_counter()
+    terrain = build_terrain(scenario)
+    world = build_world(scenario, terrain)
+    sensors = build_sensors(scenario)
+    setup_s = time.perf_counter() - t_setup
+    try:
+        return _fly(scenario, terrain, world, sensors, frame_sink, progress, setup_s)
+    finally:
+        world.close()
+
+
+def handover_estimate(scenario: Scenario, truth: TruthState) -> tuple[np.ndarray, np.ndarray]:
+    """The navigation state handed over at t = 0: the truth plus a draw of the hand-over error.
+
+    The error is drawn with ``estimator.init_*_sigma`` (the filter's own initial
+    covariance, so the hand-over is consistent) from the run's "estimator" stream.
+
+    Returns:
+        (r_BL_L estimate (3,) [m], v_BL_L estimate (3,) [m/s]).
+    """
+    est = scenario.estimator
+    rng = component_rng(scenario.seed, "estimator")
+    r0 = truth.r_BL_L + rng.normal(0.0, est.init_pos_sigma_m, 3)
+    v0 = truth.v_BL_L + rng.normal(0.0, est.init_vel_sigma_mps, 3)
+    return r0, v0
+
+
+def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.ndarray) -> FlightSoftware:
+    """The flight computer of the run: onboard knowledge, configuration and the hand-over estimate.
+
+    Nothing of the truth reaches it but the hand-over estimate passed in.
+    """
+    knowledge = onboard_knowledge(scenario)
+    controller = Controller(scenario.control, knowledge.vehicle)
+    guidance = make_guidance(scenario.guidance, controller.guidance_limits())
+    nav_filter = make_estimator(scenario.estimator, x0_r_L, x0_v_L, 0, altimeter_mount_B_m=knowledge.r_alt_B_m)
+    tracker = Tracker(scenario.tracker) if scenario.tracks == "vision" and scenario.vision == "on" else None
+    return FlightSoftware(guidance, controller, nav_filter, tracker, scenario.vision_nav, scenario.vision == "on",
+                          knowledge)
+
+
+def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuite,
+         frame_sink: FrameSink | None, progress: bool, setup_s: float) -> RunResult:
+    sim, cam, crit = scenario.sim, scenario.camera, scenario.landing
+    dt_ns = sim.physics_dt_ns
+    truth_tracks = scenario.vision == "on" and scenario.tracks == "truth"
+    periods = {
+        "imu": scenario.sensors.imu.period_ns,
+        "altimeter": scenario.sensors.altimeter.period_ns,
+        "star_tracker": scenario.sensors.star_tracker.period_ns,
+        "control": sim.control_period_ns,
+    }
+    if cam.enabled or truth_tracks:
+        periods["camera"] = cam.period_ns
+    tick_ns = reduce(math.gcd, periods.values())  # every event falls on a tick; a multiple of dt
+    steps_per_tick = tick_ns // dt_ns
+    assert tick_ns % dt_ns == 0
+
+    fsw = build_flight_software(scenario, *handover_estimate(scenario, world.truth()))
+    tracker_truth = (TruthTracker(terrain, world.K, (cam.width_px, cam.height_px), TRUTH_TRACK_POINTS,
+                                  component_rng(scenario.seed, "vision")) if truth_tracks else None)
+    thrust_max = scenario.lander.engine.thrust_max_N
+    thrust_gain = 1.0 + scenario.lander.engine.thrust_error_frac
+
+    tel = _Telemetry()
+    imu_msg = alt_msg = st_msg = None
+    act = None
+    truth = world.truth()
+    prev_truth = truth
+    propellant0 = truth.propellant_kg
+    exhausted_ns: int | None = None
+    touchdown: dict[str, Any] | None = None
+    touchdown_ns: int | None = None
+    outcome: str | None = None
+    error: str | None = None
+    settle_ns = int(round(crit.settle_s * NS_PER_S))
+    bar = _progress_bar(sim.t_max_ns, progress)
+    timing = {"render_s": 0.0, "vision_s": 0.0, "filter_s": 0.0}
+
+    t_ns = 0
+    wall0 = time.perf_counter()
+    try:
+        while True:
+            truth = world.truth()
+            legs = world.footpad_contacts()
+            if touchdown is None and legs.any():
+                touchdown_ns = t_ns
+                touchdown = _touchdown_metrics(prev_truth, t_ns)
+            # Sensors due now (zero-order hold between samples); the filter consumes them.
+            t0 = time.perf_counter()
+            if t_ns % periods["imu"] == 0:
+                imu_msg = sensors.imu.sample(t_ns, world.specific_force_B(), world.angular_rate_B())
+                fsw.on_imu(imu_msg)
+            if t_ns % periods["star_tracker"] == 0:
+                st_msg = sensors.star_tracker.sample(t_ns, truth.q_LB)
+                fsw.on_attitude(st_msg)
+            if t_ns % periods["altimeter"] == 0:
+                alt_msg = sensors.altimeter.sample(t_ns, world.altimeter_range_truth())
+                fsw.on_altimeter(alt_msg)
+            timing["filter_s"] += time.perf_counter() - t0
+            if "camera" in periods and t_ns % periods["camera"] == 0:
+                tracks = None
+                frame = None
+                if cam.enabled:
+                    t0 = time.perf_counter()
+                    frame = sensors.camera_frame(world)
+                    timing["render_s"] += time.perf_counter() - t0
+                t0 = time.perf_counter()
+                if tracker_truth is not None:
+                    tracks = tracker_truth.step(*world.camera_pose())
+                    fsw.on_tracks(t_ns, tracks)
+                elif frame is not None:
+                    tracks = fsw.on_image(ImageMessage(t_ns, frame, world.K, R_BC))
+                timing["vision_s"] += time.perf_counter() - t0
+                if frame is not None and frame_sink is not None:
+                    frame_sink(t_ns, frame, truth, tracks)
+            # Flight software at the control rate.
+            if t_ns % periods["control"] == 0:
+                truth_nav = None
+                if scenario.nav == "truth":
+                    truth_nav = NavState(t_ns, truth.r_BL_L, truth.v_BL_L, truth.q_LB, truth.omega_B, fsw.mass_kg)
+                act = fsw.control(t_ns, ContactMessage(t_ns, legs), truth_nav)
+                tel.rows.append(_row(t_ns, truth, act, fsw.last_guidance, legs, imu_msg, alt_msg, st_msg, thrust_max,
+                                     world.propulsion.clamp_thrust(act.thrust_N) * thrust_gain,
+                                     PHASE_TOUCHDOWN if touchdown is not None else fsw.last_guidance.phase,
+                                     fsw, sensors.imu.accel_bias))
+            # End conditions.
+            if touchdown_ns is not None and t_ns - touchdown_ns >= settle_ns:
+                break
+            if t_ns >= sim.t_max_ns:
+                break
+            prev_truth = truth
+            out = world.step(steps_per_tick, act.thrust_N, act.torque_B_Nm)
+            if out.exhausted and exhausted_ns is None:
+                exhausted_ns = t_ns
+            t_ns += tick_ns
+            if bar is not None and t_ns % NS_PER_S == 0:
+                bar.update(1)
+    except PhysicsDivergedError as exc:
+        outcome, error = "diverged", str(exc)
+    finally:
+        if bar is not None:
+            bar.close()
+    wall_s = time.perf_counter() - wall0
+
+    truth = world.truth()
+    final_tilt = tilt_deg(truth.q_LB)
+    if outcome is None:
+        outcome = _classify(touchdown, exhausted_ns, touchdown_ns, final_tilt, scenario)
+    sim_time_s = world.t_ns / NS_PER_S
+    telemetry = tel.columns(terrain, scenario.lander) if tel.rows else {}
+    summary: dict[str, Any] = {
+        "outcome": outcome,
+        "landed": outcome == "landed",
+        "touchdown": touchdown or {k: None for k in ("t_s", "v_vertical_mps", "v_horizontal_mps", "tilt_deg",
+                                                      "miss_distance_m", "x_m", "y_m")},
+        "final_tilt_deg": final_tilt,
+        "fuel_used_kg": propellant0 - truth.propellant_kg,
+        "propellant_left_kg": truth.propellant_kg,
+        "sim_time_s": sim_time_s,
+        "wall_time_s": wall_s,
+        "setup_time_s": setup_s,
+        "realtime_factor": sim_time_s / wall_s if wall_s > 0 else math.inf,
+        "seed": scenario.seed,
+        "modes": {"nav": scenario.nav, "tracks": scenario.tracks, "vision": scenario.vision},
+        "guidance_law": scenario.guidance.law,
+        "camera_enabled": cam.enabled,
+        "criteria": scenario.landing.model_dump(),
+        "nav": _nav_summary(telemetry, touchdown),
+        "guidance": _guidance_summary(telemetry, scenario),
+        "vision": _vision_summary(fsw),
+        "consistency": run_consistency(telemetry, touchdown, fsw.filter.log),
+        "time_split_s": timing,
+        "platform": _platform(world),
+        "error": error,
+    }
+    return RunResult(summary=summary, telemetry=telemetry, terrain=terrain)
+
+
+def _nav_summary(tel: dict[str, np.ndarray], touchdown: dict | None) -> dict[str, Any]:
+    """Navigation-error figures from the telemetry (estimate vs truth).
+
+    Consistency is reported per block as the mean of ``NEES / dof`` over the
+    flight (the per-block mean ``(e / sigma)^2``); the ensemble statistics that
+    can show consistency are a campaign's (``consistency.json``).
+    """
+    if not tel:
+        return {"pos_err_touchdown_m": None, "vel_err_touchdown_mps": None, "vel_err_rms_mps": None,
+                "vel_err_horizontal_touchdown_mps": None, "nees_per_dof_mean": None}
+    t = tel["t_s"]
+    flying = t < touchdown["t_s"] if touchdown is not None else np.ones(t.size, bool)
+    k = int(np.flatnonzero(flying)[-1]) if flying.any() else 0  # last tick before touchdown
+    e_r = np.column_stack([tel[f"nav_err_r_{a}_m"] for a in "xyz"])
+    e_v = np.column_stack([tel[f"nav_err_v_{a}_mps"] for a in "xyz"])
+    low = flying & (tel["r_z_m"] < VEL_RMS_BELOW_M)
+    return {
+        "pos_err_touchdown_m": float(np.linalg.norm(e_r[k])),
+        "vel_err_touchdown_mps": float(np.linalg.norm(e_v[k])),
+        "vel_err_horizontal_touchdown_mps": float(np.hypot(e_v[k, 0], e_v[k, 1])),
+        "vel_err_rms_mps": float(np.sqrt(np.mean(np.sum(e_v[low] ** 2, axis=1)))) if low.any() else None,
+        "nees_per_dof_mean": ({block: float(np.mean(tel[f"nees_{block}"][flying])) / dof
+                               for block, dof in NEES_BLOCKS.items()} if flying.any() else None),
+    }
+
+
+def _guidance_summary(tel: dict[str, np.ndarray], scenario: Scenario) -> dict[str, Any]:
+    """The hand-over to the terminal phase: truth altitude and vertical speed at its first tick."""
+    out: dict[str, Any] = {"handover_t_s": None, "handover_altitude_m": None, "handover_v_z_mps": None,
+                           "handover_v_z_error_mps": None}
+    if not tel:
+        return out
+    terminal = np.flatnonzero(tel["phase"] == "terminal")
+    if terminal.size:
+        k = int(terminal[0])
+        v_z = float(tel["v_z_mps"][k])
+        out.update(handover_t_s=float(tel["t_s"][k]), handover_altitude_m=float(tel["r_z_m"][k]),
+                   handover_v_z_mps=v_z,
+                   handover_v_z_error_mps=abs(v_z) - scenario.guidance.terminal_descent_rate_mps)
+    return out
+
+
+def _cpu_model() -> str:
+    """The CPU's model name (Linux ``/proc/cpuinfo``), else what ``platform`` knows."""
+    import platform
+
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            for line in f:
+                if line.lower().startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _platform(world: World) -> dict[str, Any]:
+    """Where the run ran: results are bit-identical on one machine and one GL build, not across them."""
+    import mujoco
+
+    return {"cpu": _cpu_model(), "gl": world.gl_info(), "mujoco": mujoco.__version__}
+
+
+def _vision_summary(fsw: FlightSoftware) -> dict[str, float | int | None]:
+    v = fsw.vision
+    return {
+        "frames": v.frames,
+        "tracks_median": float(np.median(v.track_counts)) if v.track_counts else None,
+        "measurements": v.measurements,
+        "rejected_frac": v.rejected / v.measurements if v.measurements else None,
+        "unusable_pairs": v.unusable,
+    }
+
+
+def _touchdown_metrics(before: TruthState, t_ns: int) -> dict[str, float]:
+    v = before.v_BL_L
+    return {
+        "t_s": t_ns / NS_PER_S,
+        "v_vertical_mps": float(abs(v[2])),
+        "v_horizontal_mps": float(math.hypot(v[0], v[1])),
+        "tilt_deg": tilt_deg(before.q_LB),
+        "miss_distance_m": float(math.hypot(before.r_BL_L[0], before.r_BL_L[1])),
+        "x_m": float(before.r_BL_L[0]),
+        "y_m": float(before.r_BL_L[1]),
+    }
+
+
+def _classify(touchdown: dict | None, exhausted_ns: int | None, touchdown_ns: int | None, final_tilt: float,
+              scenario: Scenario) -> str:
+    crit = scenario.landing
+    if exhausted_ns is not None and (touchdown_ns is None or exhausted_ns < touchdown_ns):
+        return "fuel_exhausted"
+    if touchdown is None:
+        return "timeout"
+    if (touchdown["v_vertical_mps"] > crit.v_vertical_max_mps or touchdown["v_horizontal_mps"] > crit.v_horizontal_max_mps
+            or touchdown["tilt_deg"] > crit.tilt_max_deg):
+        return "hard_landing"
+    if final_tilt > crit.tilt_max_deg:
+        return "tipped_over"
+    return "landed"
+
+
+def _row(t_ns, truth, act, cmd, legs, imu, alt, st, thrust_max, thrust_delivered, phase, fsw, accel_bias_B) -> tuple:
+    nan3 = (math.nan,) * 3
+    x, P = fsw.filter.ekf.x, fsw.filter.ekf.P
+    e = np.concatenate([x[0:6] - np.concatenate([truth.r_BL_L, truth.v_BL_L]), x[6:9] - accel_bias_B])
+    sig = np.sqrt(np.diag(P)[:6])
+    vm = fsw.vision.last
+    return (
+        t_ns / NS_PER_S, *truth.r_BL_L, *truth.v_BL_L, *truth.q_LB, *truth.omega_B,
+        truth.mass_kg, truth.propellant_kg, tilt_deg(truth.q_LB),
+        act.thrust_N, thrust_delivered, thrust_delivered / thrust_max, *act.torque_B_Nm,
+        *act.q_LB_cmd, *cmd.a_cmd_L, cmd.t_go_s, act.engine_on, phase, int(legs.sum()),
+        *(imu.f_B if imu is not None else nan3), *(imu.omega_B if imu is not None else nan3),
+        alt.range_m if alt is not None else math.nan, bool(alt.valid) if alt is not None else False,
+        *(st.q_LB if st is not None else (math.nan,) * 4),
+        *x[0:6], *e[:6], *sig, *e[6:9], *block_nees(e, P), fsw.mass_kg,
+        len(fsw.vision.last_tracks) if fsw.vision.last_tracks is not None else 0,
+        fsw.vision.measurements, fsw.vision.rejected,
+        *(vm.v_L if vm is not None else (math.nan,) * 2),
+    )
+
+
+def _progress_bar(t_max_ns: int, enabled: bool):
+    if not enabled or not sys.stderr.isatty():
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=t_max_ns // NS_PER_S, unit="sim s", desc="landing", leave=False)

@@ -698,10 +698,7 @@ class NavFilter:
         prior = None
         if phi != 1.0:
             x, P = x.copy(), P.copy()
-            x[IDX_H] *= phi
-            P[IDX_H, :] *= phi
-            P[:, IDX_H] *= phi
-            P[IDX_H, IDX_H] += self.cfg.terrain_relief_sigma_m**2 * (1.0 - phi * phi)
+            _decay(x, P, IDX_H, phi, self.cfg.terrain_relief_sigma_m)
             prior = (x, P)
         height = p_alt_L[2] + x[IDX_VZ] * lag_s - x[IDX_H]  # altimeter height above the ground [m]
         rho_hat = height / cos_nadir
@@ -771,7 +768,9 @@ class NavFilter:
         cross-covariance: the augmentation ``x_c = T x``, ``P_cc = T P T^T``,
         ``P_c* = T P``. The frame's image offset ``d_new`` (introduced by this
         frame's :meth:`update_relative`, if any) moves to ``d_clone`` the same way,
-        and ``d_new`` is cleared for the next frame.
+        and ``d_new`` is cleared for the next frame. Before that, the Gauss-Markov
+        states that vision uses step from the last frame to this one: ``h_view``
+        over the distance travelled, ``b_flow`` over the time.
 
         Args:
             t_ns: Time of the frame [ns].
@@ -791,9 +790,9 @@ class NavFilter:
             # The view moved: its mean ground height decorrelates with the travel, and the flow
             # bias with time (Gauss-Markov).
             phi_g = math.exp(-float(np.linalg.norm(x[IDX_R] - x[IDX_C])) / cfg.view_ground_correlation_length_m)
-            _decay(x, P, [IDX_G], phi_g, cfg.view_ground_sigma_m)
+            _decay(x, P, IDX_G, phi_g, cfg.view_ground_sigma_m)
             phi_b = math.exp(-(int(t_ns) - self._clone_t_ns) / NS_PER_S / cfg.vision_bias_time_s)
-            _decay(x, P, [17, 18], phi_b, cfg.vision_bias_sigma)
+            _decay(x, P, IDX_BF, phi_b, cfg.vision_bias_sigma)
         # The frame's offset: d_clone <- d_new, with its correlations.
         row = P[IDX_DN, :].copy()
         x[IDX_DC] = x[IDX_DN]
@@ -815,9 +814,7 @@ class NavFilter:
         return True
 
     def _clear_new_offset(self, x: np.ndarray, P: np.ndarray) -> None:
-        x[IDX_DN] = 0.0
-        P[IDX_DN, :] = 0.0
-        P[:, IDX_DN] = 0.0
+        _enter_independent(x, P, IDX_DN, 0.0)
         self._offset_new_known = False
 
     def drop_clone(self) -> None:
@@ -892,12 +889,8 @@ class NavFilter:
         # Enter this frame's offset (and the clone frame's, if no update introduced it) into the prior.
         x, P = self.ekf.x.copy(), self.ekf.P.copy()
         R_f = 0.5 * (R_f + R_f.T)
-        fresh = [IDX_DN] if self._offset_clone_known else [IDX_DN, IDX_DC]
-        for idx in fresh:
-            x[idx] = 0.0
-            P[idx, :] = 0.0
-            P[:, idx] = 0.0
-            P[idx, idx] = R_f
+        for idx in [IDX_DN] if self._offset_clone_known else [IDX_DN, IDX_DC]:
+            _enter_independent(x, P, idx, R_f)
         hx = hx + x[IDX_BF] + x[IDX_DN] - x[IDX_DC]
         rec = self._gated_update(int(t_ns), kind, z, hx, H, R, prior=(x, P))
         if rec.accepted:
@@ -955,13 +948,24 @@ class NavFilter:
         )
 
 
-def _decay(x: np.ndarray, P: np.ndarray, idx: list[int], phi: float, sigma: float) -> None:
-    """One step of a first-order Gauss-Markov process of stationary 1-sigma ``sigma`` on states ``idx``, in place."""
-    for i in idx:
-        x[i] *= phi
-        P[i, :] *= phi
-        P[:, i] *= phi
-        P[i, i] += sigma**2 * (1.0 - phi * phi)
+def _decay(x: np.ndarray, P: np.ndarray, idx: int | slice, phi: float, sigma: float) -> None:
+    """One step of a first-order Gauss-Markov process of stationary 1-sigma ``sigma`` on states ``idx``, in place.
+
+    ``x_i <- phi x_i``, so ``P_i* <- phi P_i*`` and ``P_ii <- phi^2 P_ii + sigma^2 (1 - phi^2)`` (each state its own process).
+    """
+    x[idx] *= phi
+    P[idx, :] *= phi
+    P[:, idx] *= phi
+    q = sigma**2 * (1.0 - phi * phi)
+    P[idx, idx] += q * np.eye(idx.stop - idx.start) if isinstance(idx, slice) else q
+
+
+def _enter_independent(x: np.ndarray, P: np.ndarray, idx: slice, cov: np.ndarray | float) -> None:
+    """Set states ``idx`` to zero mean with covariance ``cov``, uncorrelated with every other state, in place."""
+    x[idx] = 0.0
+    P[idx, :] = 0.0
+    P[:, idx] = 0.0
+    P[idx, idx] = cov
 
 
 # --------------------------------------------------------------------------- factory

@@ -114,9 +114,8 @@ class FlightSoftware:
             (vision off, or tracks supplied by :meth:`on_tracks`).
         vision_cfg: Vision-measurement settings.
         vision_enabled: Use vision measurements at all.
-        knowledge: The onboard knowledge of the vehicle.
-        gyro_noise_density: Gyro white-noise density, specification [rad/s/sqrt(Hz)].
-        gyro_bias_sigma_radps: Gyro turn-on bias, specification [rad/s].
+        knowledge: The onboard knowledge of the vehicle. (The gyro's specification,
+            for the relative rotation's uncertainty, is the filter's configuration.)
     """
 
     def __init__(self, guidance: GuidanceLaw, controller: Controller, nav_filter: NavFilter,

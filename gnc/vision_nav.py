@@ -230,15 +230,14 @@ def vision_measurement(
     sums = np.zeros((n_clusters, 2))
     np.add.at(sums, cluster, res)
     cov_mean = sums.T @ sums / (n_used * n_used) * (n_clusters / max(n_clusters - 1, 1))
-    cov_mean = np.maximum(cov_mean, 0.0) if n_clusters < 2 else cov_mean
     cov_mean = cov_mean + np.eye(2) * max(floor**2 / n_used - float(np.min(np.diag(cov_mean))), 0.0)
     z = g[keep].mean(axis=0)
     b_mean = b[keep, :2].mean(axis=0)
     dr_xy = (c1 - c0)[:2]
     hx = (dr_xy + dz * b_mean) / h0
-    # Horizontal states only: the flow's weak dependence on the height and the vertical displacement
-    # (through h0 and dz) is evaluated at the prior and not used to correct them; its slowly varying
-    # error (a viewed ground off the target's elevation) is the filter's flow bias.
+    # Horizontal states and the viewed ground only: the flow's weak dependence on the camera's
+    # height and vertical displacement (through h0 and dz) is evaluated at the prior and not used
+    # to correct them.
     H_r = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]) / h0
     H_c = -H_r
     H_g = hx / h0  # a higher ground is a shorter range: a larger flow
@@ -255,8 +254,9 @@ def vision_measurement(
     R_frame = cfg.covariance_inflation * R_frame
     v_xy = (h0 * z - dz * b_mean - ((R_LB1 - R_LB0) @ r_cam_B)[:2]) / dt_s
     return VisionMeasurement(
-        t0_ns=int(t0_ns), t_ns=int(t1_ns), z=z, hx=hx, H_r=H_r, H_c=H_c, H_g=H_g, R=0.5 * (R + R.T), R_frame=R_frame, b_mean=b_mean, v_L=v_xy,
-        n_tracks=n_tracks, n_used=n_used, residual_px=math.sqrt(s2) * f_px / h0,
+        t0_ns=int(t0_ns), t_ns=int(t1_ns), z=z, hx=hx, H_r=H_r, H_c=H_c, H_g=H_g, R=0.5 * (R + R.T),
+        R_frame=R_frame, b_mean=b_mean, v_L=v_xy, n_tracks=n_tracks, n_used=n_used,
+        residual_px=math.sqrt(s2) * f_px / h0,
     )
 
 

@@ -33,6 +33,8 @@ from typing import Any
 import numpy as np
 from scipy.stats import chi2
 
+from bench.campaign.rows import column
+
 # Error blocks: name -> degrees of freedom; their indices in e = [r (3), v (3), b_a (3)].
 NEES_BLOCKS: dict[str, int] = {"r_h": 2, "r_v": 1, "v_h": 2, "v_v": 1, "b_a": 3}
 _BLOCK_INDEX: dict[str, list[int]] = {"r_h": [0, 1], "r_v": [2], "v_h": [3, 4], "v_v": [5], "b_a": [6, 7, 8]}
@@ -154,15 +156,6 @@ def _lag1_sums(records: Sequence[Any]) -> dict[str, dict[str, float]]:
 
 
 # --------------------------------------------------------------------------- campaign
-def _get(row: Mapping[str, Any], key: str) -> float:
-    v = row.get(key)
-    try:
-        v = float(v)
-    except (TypeError, ValueError):
-        return math.nan
-    return v
-
-
 def campaign_consistency(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """The ensemble statistics of a campaign from its flattened case rows.
 
@@ -191,7 +184,7 @@ def campaign_consistency(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     for block, dof in NEES_BLOCKS.items():
         anees, ns, band, band_999, in_band = [], [], [], [], []
         for level in levels:
-            vals = np.array([_get(r, f"consistency_nees_at_{level}_{block}") for r in cases])
+            vals = column(cases, f"consistency_nees_at_{level}_{block}")
             vals = vals[np.isfinite(vals)]
             n = int(vals.size)
             a = float(vals.mean()) if n else math.nan
@@ -206,14 +199,14 @@ def campaign_consistency(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     nis: dict[str, Any] = {}
     for sensor, dof in NIS_SENSORS.items():
         pre = f"consistency_nis_{sensor}"
-        n = int(np.nansum([_get(r, f"{pre}_n") for r in cases])) if cases else 0
-        total = float(np.nansum([_get(r, f"{pre}_sum") for r in cases])) if cases else 0.0
-        rejected = int(np.nansum([_get(r, f"{pre}_rejected") for r in cases])) if cases else 0
+        n = int(np.nansum(column(cases, f"{pre}_n")))
+        total = float(np.nansum(column(cases, f"{pre}_sum")))
+        rejected = int(np.nansum(column(cases, f"{pre}_rejected")))
         per_band = []
         for lo, hi in NIS_BANDS_M:
             key = f"{pre}_bands_{_band_key(lo, hi)}"
-            bn = int(np.nansum([_get(r, f"{key}_n") for r in cases])) if cases else 0
-            bs = float(np.nansum([_get(r, f"{key}_sum") for r in cases])) if cases else 0.0
+            bn = int(np.nansum(column(cases, f"{key}_n")))
+            bs = float(np.nansum(column(cases, f"{key}_sum")))
             per_band.append({"alt_m": [lo, hi], "mean": bs / bn if bn else math.nan, "n": bn,
                              "band": chi2_band(bn, dof)})
         nis[sensor] = {"dof": dof, "mean": total / n if n else math.nan, "n": n, "band": chi2_band(n, dof),
@@ -221,10 +214,8 @@ def campaign_consistency(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     lag1: dict[str, Any] = {}
     for ax in "xy":
         pre = f"consistency_vision_lag1_{ax}"
-        n = np.nansum([_get(r, f"{pre}_n") for r in cases]) if cases else 0
-        n_pairs = np.nansum([_get(r, f"{pre}_n_pairs") for r in cases]) if cases else 0
-        sum_sq = np.nansum([_get(r, f"{pre}_sum_sq") for r in cases]) if cases else 0.0
-        sum_prod = np.nansum([_get(r, f"{pre}_sum_prod") for r in cases]) if cases else 0.0
+        n, n_pairs, sum_sq, sum_prod = (np.nansum(column(cases, f"{pre}_{k}"))
+                                        for k in ("n", "n_pairs", "sum_sq", "sum_prod"))
         lag1[ax] = float((sum_prod / n_pairs) / (sum_sq / n)) if n_pairs and sum_sq else math.nan
         lag1["n_pairs"] = int(n_pairs)
     return {"schema": SCHEMA_VERSION, "n_cases": len(cases), "altitudes_m": [*NEES_ALTITUDES_M, TOUCHDOWN],

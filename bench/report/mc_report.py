@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from bench.campaign.rows import column, row_float
 from bench.evaluation.consistency import campaign_consistency
 from bench.report.io import save_figure
 from bench.report.report import check_criteria, draw_hillshade
@@ -158,20 +159,6 @@ def _check_rows(rows: Any) -> list[Mapping[str, Any]]:
     return list(rows)
 
 
-def _num(value: Any) -> float:
-    """A row value as a float; NaN for None, non-numbers and booleans."""
-    if value is None or isinstance(value, (bool, str, bytes)):
-        return math.nan
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        return math.nan
-
-
-def _column(rows: Sequence[Mapping[str, Any]], key: str) -> np.ndarray:
-    return np.array([_num(r.get(key)) for r in rows], dtype=np.float64)
-
-
 def _landed(row: Mapping[str, Any]) -> bool:
     """Success: the row's ``landed`` flag (its outcome is 'landed' when the flag is missing)."""
     flag = row.get("landed")
@@ -187,7 +174,7 @@ def _outcome(row: Mapping[str, Any]) -> str:
 
 def _touched_down(rows: Sequence[Mapping[str, Any]]) -> np.ndarray:
     """(N,) bool: landed, or a finite touchdown time."""
-    t = _column(rows, "touchdown_t_s")
+    t = column(rows, "touchdown_t_s")
     return np.array([_landed(r) for r in rows], dtype=bool) | np.isfinite(t)
 
 
@@ -204,8 +191,8 @@ def outcome_counts(rows: Sequence[Mapping[str, Any]]) -> dict[str, int]:
 
 def _wall_times(rows: Sequence[Mapping[str, Any]]) -> np.ndarray:
     """Wall time of each case [s]: the runner's ``case_wall_time_s`` when present, else ``wall_time_s``."""
-    case = _column(rows, "case_wall_time_s")
-    run = _column(rows, "wall_time_s")
+    case = column(rows, "case_wall_time_s")
+    run = column(rows, "wall_time_s")
     return np.where(np.isfinite(case), case, run)
 
 
@@ -274,7 +261,7 @@ def campaign_table(rows: Sequence[Mapping[str, Any]], criteria: Mapping[str, Any
     lines.append(f"touchdown statistics over {n_td} case{'s' if n_td != 1 else ''} that landed or touched down:")
     lines.append(f"  {'':<18}{'mean':>12}{'p95':>12}{'max':>12}" + ("   limit" if limits else ""))
     for key, label, unit, crit_key, spec in METRICS:
-        values = _column(rows, key)[td]
+        values = column(rows, key)[td]
         _, mean, p95, vmax = _stats(values)
         line = f"  {label:<18}{_fmt(mean, spec, unit):>12}{_fmt(p95, spec, unit):>12}{_fmt(vmax, spec, unit):>12}"
         if crit_key in limits:
@@ -286,7 +273,7 @@ def campaign_table(rows: Sequence[Mapping[str, Any]], criteria: Mapping[str, Any
     walls = walls[np.isfinite(walls)]
     lines.append(f"wall time per case: mean {_fmt(float(walls.mean()) if walls.size else math.nan, '.2f', 's')}"
                  f" ({walls.size} timed)")
-    rss = _column(rows, "case_peak_rss_mb")
+    rss = column(rows, "case_peak_rss_mb")
     rss = rss[np.isfinite(rss)]
     if rss.size:  # rows of older campaigns, and killed cases, have none
         lines.append(f"peak memory per worker: max {rss.max():.0f} MB, mean {rss.mean():.0f} MB")
@@ -320,7 +307,7 @@ def _map_bounds(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float, floa
 def _draw_map(ax, rows, terrain, sun_elevation_deg: float, sun_azimuth_deg: float) -> None:
     from matplotlib.patches import Ellipse
 
-    x, y = _column(rows, "touchdown_x_m"), _column(rows, "touchdown_y_m")
+    x, y = column(rows, "touchdown_x_m"), column(rows, "touchdown_y_m")
     ok = np.isfinite(x) & np.isfinite(y)
     ell = error_ellipse(np.column_stack((x[ok], y[ok])), ELLIPSE_SIGMA) if ok.sum() >= ELLIPSE_MIN_POINTS else None
     bx, by = x[ok], y[ok]
@@ -471,7 +458,7 @@ def campaign_figure(
     for key, label, unit, crit_key, _ in METRICS[:3]:
         panel = {"touchdown_v_vertical_mps": "v_vertical", "touchdown_v_horizontal_mps": "v_horizontal",
                  "touchdown_tilt_deg": "tilt"}[key]
-        _draw_hist(axd[panel], _column(rows, key)[td], label, unit, limits.get(crit_key))
+        _draw_hist(axd[panel], column(rows, key)[td], label, unit, limits.get(crit_key))
     _draw_outcomes(axd["outcomes"], rows)
     _draw_rate(axd["rate"], rows)
     _draw_consistency(axd["consistency"], campaign_consistency(rows))

@@ -47,9 +47,9 @@ from bench.scenario.seeding import component_rng
 from bench.sim.truth_tracker import TruthTracker
 from bench.sim.world_builder import SensorSuite, build_sensors, build_terrain, build_world
 from gnc.control import Controller, VehicleParams
-from gnc.estimator import make_estimator
+from gnc.estimator import IDX_BA, IDX_R, IDX_V, make_estimator
 from gnc.flight import FlightSoftware, OnboardKnowledge
-from gnc.guidance import make_guidance
+from gnc.guidance import PHASE_TERMINAL, make_guidance
 from gnc.messages import ContactMessage, ImageMessage
 from gnc.navstate import NavState
 from models.camera import R_BC
@@ -390,7 +390,7 @@ def _guidance_summary(tel: dict[str, np.ndarray], scenario: Scenario) -> dict[st
                            "handover_v_z_error_mps": None}
     if not tel:
         return out
-    terminal = np.flatnonzero(tel["phase"] == "terminal")
+    terminal = np.flatnonzero(tel["phase"] == PHASE_TERMINAL)
     if terminal.size:
         k = int(terminal[0])
         v_z = float(tel["v_z_mps"][k])
@@ -463,8 +463,8 @@ def _classify(touchdown: dict | None, exhausted_ns: int | None, touchdown_ns: in
 def _row(t_ns, truth, act, cmd, legs, imu, alt, st, thrust_max, thrust_delivered, phase, fsw, accel_bias_B) -> tuple:
     nan3 = (math.nan,) * 3
     x, P = fsw.filter.ekf.x, fsw.filter.ekf.P
-    e = np.concatenate([x[0:6] - np.concatenate([truth.r_BL_L, truth.v_BL_L]), x[6:9] - accel_bias_B])
-    sig = np.sqrt(np.diag(P)[:6])
+    e = np.concatenate([x[IDX_R] - truth.r_BL_L, x[IDX_V] - truth.v_BL_L, x[IDX_BA] - accel_bias_B])
+    sig = np.sqrt(np.diag(P)[:6])  # position then velocity
     vm = fsw.vision.last
     return (
         t_ns / NS_PER_S, *truth.r_BL_L, *truth.v_BL_L, *truth.q_LB, *truth.omega_B,
@@ -474,7 +474,7 @@ def _row(t_ns, truth, act, cmd, legs, imu, alt, st, thrust_max, thrust_delivered
         *(imu.f_B if imu is not None else nan3), *(imu.omega_B if imu is not None else nan3),
         alt.range_m if alt is not None else math.nan, bool(alt.valid) if alt is not None else False,
         *(st.q_LB if st is not None else (math.nan,) * 4),
-        *x[0:6], *e[:6], *sig, *e[6:9], *block_nees(e, P), fsw.mass_kg,
+        *x[IDX_R], *x[IDX_V], *e[:6], *sig, *e[6:9], *block_nees(e, P), fsw.mass_kg,
         len(fsw.vision.last_tracks) if fsw.vision.last_tracks is not None else 0,
         fsw.vision.measurements, fsw.vision.rejected,
         *(vm.v_L if vm is not None else (math.nan,) * 2),

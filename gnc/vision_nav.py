@@ -31,21 +31,30 @@ Model and assumptions:
       ``h(x) = (dr_xy + dz b_mean,xy) / h0`` depends on the state only through
       the camera positions at the two frames, i.e. on the current position and
       the clone (the lever arm is removed exactly with both attitudes). Its
-      Jacobians are kept for the horizontal components and ``h_view``: vision
-      corrects the horizontal position and velocity and the ground's height.
-      The camera's height and vertical displacement come from the filter's
-      prior, not from a difference of two filter outputs; vision does not
-      correct them (letting the flow's scale correct the vertical states made
-      them overconfident in campaigns).
+      Jacobians cover all three components and ``h_view``. The vertical ones
+      matter: with the tracked features off-centre (``|b_mean|`` reaches 0.3 in
+      a tilted approach) an error of the prior's vertical velocity ``dv_z``
+      shifts the flow by ``dv_z dt b_mean / h0``, which the filter must count.
+      The filter takes them as **consider** columns (Schmidt-Kalman): their
+      uncertainty enters the innovation covariance and the horizontal gain,
+      but vision does not correct the height, the vertical velocity or the
+      terrain (the divergence would read terrain slope in view as vertical
+      velocity); the altimeter does.
     * As DIMES did, only the horizontal flow is used: the vertical motion shows
       in the image only through its divergence, weak and scaled by relief.
     * Covariance: the covariance of the mean flow from the scatter of the kept
       tracks about it, cluster-robust over image cells of ``cluster_px`` (the
       features of one template err together, so they are not independent
       samples), with each track's variance floored by ``pixel_sigma_px``, is the
-      pixel noise of the two frames. Its share ``frame_noise_share`` is per-frame noise (a frame's noise
-      moves its tracked positions in both pairs it belongs to), half from each
-      frame: ``R_frame``, one frame's offset, which the filter carries as a state.
+      pixel noise of the two frames. Its per-frame part (a frame's noise moves its
+      tracked positions in both pairs it belongs to) is ``2 frame_pixel_sigma_px^2``
+      of the per-track variance, capped at all of it: half from each frame,
+      ``R_frame``, one frame's offset, which the filter carries as a state. The
+      tracker's per-frame noise is a calibration: on rendered descents, pairs
+      above 250 m, where the consecutive pairs' errors correlate -0.5 (all
+      per-frame), err 0.059 px per track, 0.042 px per frame; lower down the
+      appearance changes more between frames, the pair's error grows and its
+      white part with it.
       The rest is white, ``R``, plus the gyro's relative-rotation error over the
       interval (``sigma_rot_rad``) and a tracking error proportional to the
       rotation between the frames (``rotation_error_frac``: under a slew the
@@ -86,12 +95,13 @@ class VisionNavConfig(BaseModel):
         64.0, gt=0.0, description="image cells whose tracks are taken to err together (cluster-robust covariance) [px]"
     )
     rotation_error_frac: float = Field(
-        0.01, ge=0.0,
+        0.005, ge=0.0,
         description="1-sigma error of the flow per radian of rotation between the frames (tracking under slews) [-]",
     )
-    frame_noise_share: float = Field(
-        0.7, ge=0.0, le=1.0,
-        description="share of the tracks' scatter that is per-frame pixel noise, shared with the neighbouring pair [-]",
+    frame_pixel_sigma_px: float = Field(
+        0.042, ge=0.0,
+        description="per-frame localisation noise of one track, 1-sigma per axis [px]: the part of a pair's "
+                    "error that the frame shares with its neighbouring pair",
     )
     covariance_inflation: float = Field(
         1.0, ge=1.0, description="factor on the measurement covariance for unmodelled errors [-]"
@@ -110,7 +120,8 @@ class VisionMeasurement:
         t_ns: Time of validity (the second frame) [ns].
         z: Mean horizontal difference of the unit-height rays, ``mean (a - b)_xy``, (2,) [-].
         hx: Its prediction at the prior, (2,) [-].
-        H_r: Jacobian of ``h`` on the body position at ``t_ns``, (2, 3) [1/m].
+        H_r: Jacobian of ``h`` on the body position at ``t_ns``, (2, 3) [1/m] (its
+            vertical column, ``b_mean / h0``, is the divergence term).
         H_c: Jacobian of ``h`` on the clone (body position at ``t0_ns``), (2, 3) [1/m].
         H_g: Jacobian of ``h`` on the tracked ground's mean height, (2,) [1/m].
         R: Covariance of the white part of the error of ``z``, (2, 2) [-].
@@ -235,21 +246,24 @@ def vision_measurement(
     b_mean = b[keep, :2].mean(axis=0)
     dr_xy = (c1 - c0)[:2]
     hx = (dr_xy + dz * b_mean) / h0
-    # Horizontal states and the viewed ground only: the flow's weak dependence on the camera's
-    # height and vertical displacement (through h0 and dz) is evaluated at the prior and not used
-    # to correct them.
-    H_r = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]) / h0
-    H_c = -H_r
+    # The vertical columns: the camera's vertical displacement enters through dz b_mean (the
+    # divergence term), the clone's height also through h0. The filter takes them as consider
+    # columns: their uncertainty is in the innovation covariance, but vision does not correct them.
+    H_r = np.array([[1.0, 0.0, b_mean[0]], [0.0, 1.0, b_mean[1]]]) / h0
+    H_c = -np.array([[1.0, 0.0, b_mean[0] + hx[0]], [0.0, 1.0, b_mean[1] + hx[1]]]) / h0
     H_g = hx / h0  # a higher ground is a shorter range: a larger flow
-    # The tracks' scatter about their mean holds the pixel noise of both frames; the share
-    # frame_noise_share of it is per-frame (shared with the neighbouring pair), split evenly.
+    # The tracks' scatter about their mean holds the pixel noise of both frames. Its per-frame part,
+    # 2 frame_pixel_sigma_px^2 of the per-track variance, is shared with the neighbouring pair
+    # (split evenly between the frames); the rest (appearance change between the frames) is white.
     track_cov = cov_mean / (h0 * h0)  # covariance of the mean flow from the tracks' scatter [-]
-    R_frame = 0.5 * cfg.frame_noise_share * track_cov
+    track_var_px2 = s2 * (f_px / h0) ** 2  # per-track variance of the pair, per axis [px^2]
+    share = min(1.0, 2.0 * cfg.frame_pixel_sigma_px**2 / track_var_px2)
+    R_frame = 0.5 * share * track_cov
     # Under a slew most of the image motion is rotation; the tracker follows it to about
     # rotation_error_frac of the rotation, an error the scatter does not show (all tracks share it).
     cos_rot = float(np.clip((np.trace(R_LB1.T @ R_LB0) - 1.0) / 2.0, -1.0, 1.0))
     sigma_slew = cfg.rotation_error_frac * math.acos(cos_rot)
-    R = (1.0 - cfg.frame_noise_share) * track_cov + (sigma_rot_rad**2 + sigma_slew**2) * np.eye(2)
+    R = (1.0 - share) * track_cov + (sigma_rot_rad**2 + sigma_slew**2) * np.eye(2)
     R = cfg.covariance_inflation * R
     R_frame = cfg.covariance_inflation * R_frame
     v_xy = (h0 * z - dz * b_mean - ((R_LB1 - R_LB0) @ r_cam_B)[:2]) / dt_s

@@ -63,6 +63,7 @@ SIM_SPEC = {
     "init_accel_bias_sigma_mps2": ACC_BIAS_SIGMA,
     "attitude_sigma_arcsec": 10.0,
     "altimeter_noise_sigma_m": ALT_FLOOR_M,
+    "terrain_relief_sigma_m": TERRAIN_SIGMA_M,
 }
 
 
@@ -129,12 +130,33 @@ def _attitude(t, a_L):
     return wobble * base
 
 
+FIELD_WINDOW = 200  # footprints a new height is conditioned on (older ones lie hundreds of metres back)
+
+
+def _field_sample(here: np.ndarray, spots: list, heights: list, length_m: float,
+                  rng: np.random.Generator) -> float:
+    """A Matern-3/2 field's height at ``here`` given its heights at the last FIELD_WINDOW spots."""
+    def cov(d):
+        return TERRAIN_SIGMA_M**2 * (1.0 + d / length_m) * np.exp(-d / length_m)
+    if not spots:
+        return float(rng.normal(0.0, TERRAIN_SIGMA_M))
+    X = np.array(spots[-FIELD_WINDOW:])
+    y = np.array(heights[-FIELD_WINDOW:])
+    C = cov(np.linalg.norm(X[:, None, :] - X[None, :, :], axis=2)) + 1e-9 * np.eye(len(X))
+    c = cov(np.linalg.norm(X - here, axis=1))
+    w = np.linalg.solve(C, c)
+    var = max(TERRAIN_SIGMA_M**2 - float(c @ w), 0.0)
+    return float(w @ y + math.sqrt(var) * rng.normal())
+
+
 def simulate(seed: int, duration_s: float = DURATION_S, terrain_corr_m: float = 0.0) -> Truth:
     """Truth and sensor messages of one descent (no filter inside).
 
     The ground under the altimeter is at height ``h`` above z = 0, with ``h ~ N(0, TERRAIN_SIGMA_M^2)``: independent per sample when
-    ``terrain_corr_m`` is 0, else a Gauss-Markov process along the footprint track
-    with that correlation length.
+    ``terrain_corr_m`` is 0, else an isotropic Gaussian field of Matern-3/2 covariance
+    ``C(d) = TERRAIN_SIGMA_M^2 (1 + d / l) exp(-d / l)`` with ``l = terrain_corr_m``, sampled
+    at each footprint conditionally on the last ``FIELD_WINDOW`` footprints' heights (the
+    exact Gaussian conditional, not the filter's Markov recursion).
     """
     rng = np.random.default_rng(seed)
     n = int(round(duration_s * NS / IMU_DT_NS))
@@ -165,15 +187,18 @@ def simulate(seed: int, duration_s: float = DURATION_S, terrain_corr_m: float = 
         star[k] = AttitudeMessage(int(t_ns[k]), (rot[k] * err).as_quat(canonical=True, scalar_first=True))
 
     alt = {}
-    h, footprint = rng.normal(0.0, TERRAIN_SIGMA_M), None
+    h, spots, heights = 0.0, [], []
     for k in range(ALT_EVERY, n + 1, ALT_EVERY):
         R = rot[k].as_matrix()
         b_L = R @ BORESIGHT_B
         p_alt = r[k] + R @ LEVER_B
         here = p_alt[:2] + (p_alt[2] - h) / -b_L[2] * b_L[:2]
-        phi = 0.0 if terrain_corr_m == 0 or footprint is None else math.exp(-np.linalg.norm(here - footprint) / terrain_corr_m)
-        h = phi * h + math.sqrt(1 - phi * phi) * rng.normal(0.0, TERRAIN_SIGMA_M)
-        footprint = here
+        if terrain_corr_m == 0:
+            h = rng.normal(0.0, TERRAIN_SIGMA_M)
+        else:
+            h = _field_sample(here, spots, heights, terrain_corr_m, rng)
+            spots.append(here)
+            heights.append(h)
         rho = (p_alt[2] - h) / -b_L[2]
         noise = rng.normal(0.0, math.hypot(ALT_FLOOR_M, ALT_FRAC * rho))
         if rng.random() < ALT_DROPOUT:
@@ -187,7 +212,7 @@ def simulate(seed: int, duration_s: float = DURATION_S, terrain_corr_m: float = 
 
 
 # The simulator's relief is white unless a test asks otherwise, so the filters under test
-# model it as white too (the bench default, 30 m, matches the rendered world's terrain).
+# model it as white too (the bench default, Matern-3/2 over 30 m, matches the rendered world's terrain).
 WHITE_RELIEF = {"terrain_correlation_length_m": 0.0}
 
 
@@ -438,20 +463,21 @@ def test_covariance_and_rotating_prediction_match_an_explicit_loop():
     nav = make(cfg, r0, v0, 0, q0_LB=q0.as_quat(scalar_first=True))
     n, dt = 300, IMU_DT_NS / NS
     # Independent recursion: mid-interval attitude by scipy, F and Q written out.
-    # State: r, v, b_a, h_terrain, then the position clone (r0), two image offsets, the flow bias and the viewed ground's height.
-    x = np.concatenate([r0, v0, np.zeros(4), r0, np.zeros(7)])
+    # State: r, v, b_a, h_terrain, then the position clone (r0), two image offsets, the flow bias,
+    # the viewed ground's height and the terrain's slope.
+    x = np.concatenate([r0, v0, np.zeros(4), r0, np.zeros(9)])
     P = initial_covariance(cfg)
-    assert x.shape == (20,) and P.shape == (20, 20)
+    assert x.shape == (22,) and P.shape == (22, 22)
     att_psd = cfg.accel_noise_density**2 + (math.radians(cfg.attitude_sigma_arcsec / 3600)
                                              * np.linalg.norm(f_B)) ** 2 * cfg.attitude_period_s
     I3 = np.eye(3)
     for k in range(1, n + 1):
         R = (q0 * Rotation.from_rotvec(w_B * (k - 0.5) * dt)).as_matrix()
-        F = np.eye(20)  # the clone, the offsets and the ground heights do not move between updates
+        F = np.eye(22)  # the clone, the offsets and the ground's heights and slope do not move between updates
         F[0:3, 3:6] = dt * I3
         F[0:3, 6:9] = -0.5 * dt**2 * R
         F[3:6, 6:9] = -dt * R
-        Q = np.zeros((20, 20))
+        Q = np.zeros((22, 22))
         Q[0:3, 0:3] = att_psd * dt**3 / 4 * I3
         Q[0:3, 3:6] = Q[3:6, 0:3] = att_psd * dt**2 / 2 * I3
         Q[3:6, 3:6] = att_psd * dt * I3
@@ -605,7 +631,7 @@ def test_nav_state_and_records(_converged_once):
     angle = (Rotation.from_quat(ns.q_LB, scalar_first=True).inv() * truth.rot[-1]).magnitude()
     assert angle < 10 * ST_SIGMA_RAD
     rec = next(r for r in nav.log if r.accepted and r.kind == "velocity")
-    assert rec.z.shape == rec.y.shape == (3,) and rec.S.shape == (3, 3) and rec.P_post.shape == (20, 20)
+    assert rec.z.shape == rec.y.shape == (3,) and rec.S.shape == (3, 3) and rec.P_post.shape == (22, 22)
     assert not rec.x_post.flags.writeable  # records are immutable
     assert np.all(np.diag(rec.P_post)[3:6] < np.diag(rec.P_prior)[3:6])
 
@@ -613,43 +639,76 @@ def test_nav_state_and_records(_converged_once):
 def test_filter_is_a_filterpy_ekf():
     nav = make(None, [0, 0, 100.0], [0, 0, 0], 0)
     assert isinstance(nav.ekf, ExtendedKalmanFilter)
-    assert nav.ekf.x.shape == (20,) and nav.ekf.P.shape == (20, 20)
+    assert nav.ekf.x.shape == (22,) and nav.ekf.P.shape == (22, 22)
 
 
 def test_flight_computer_names_and_altimeter_sigma():
     nav = make(None, [0, 0, 100.0], [0, 0, 0], 0)
     assert nav.update_attitude(AttitudeMessage(0, np.array([1.0, 0, 0, 0])))
     assert nav.predict_imu(_imu(1, [0, 0, G])) and nav.time_ns == IMU_DT_NS
-    # Spec hypot(0.08, 1e-3 * range), plus the 3 m relief over the cosine.
+    # Spec hypot(0.08, 1e-3 * range), plus the default 4 m relief over the cosine.
     assert nav.altimeter_sigma_m(400.0, include_relief=False) == pytest.approx(math.hypot(0.08, 0.4))
-    assert nav.altimeter_sigma_m(400.0, 0.5) == pytest.approx(math.sqrt(0.08**2 + 0.4**2 + 6.0**2))
+    assert nav.altimeter_sigma_m(400.0, 0.5) == pytest.approx(math.sqrt(0.08**2 + 0.4**2 + 8.0**2))
+
+
+def _matern32_step_reference(d_xy, sigma, length):
+    """(F, Q) of the terrain's (h, dh/dx, dh/dy) over d_xy, from the Matern-3/2 SDE itself.
+
+    Along the track, (h, g_u)' = A (h, g_u) + (0, w) with A = [[0, 1], [-lam^2, -2 lam]] and
+    white noise of density 4 lam^3 sigma^2 (the SDE whose stationary covariance is
+    sigma^2 (1 + lam d) exp(-lam d)); across it, g_p' = -lam g_p + w_p, stationary at
+    (lam sigma)^2. Phi by scipy's expm, Q by Van Loan's method.
+    """
+    from scipy.linalg import expm
+    lam, s = 1.0 / length, float(np.hypot(*d_xy))
+    A = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, -lam]])
+    A[:2, :2] = [[0.0, 1.0], [-lam * lam, -2.0 * lam]]
+    W = np.diag([0.0, 4.0 * lam**3 * sigma**2, 2.0 * lam * (lam * sigma) ** 2])
+    M = expm(np.block([[-A, W], [np.zeros((3, 3)), A.T]]) * s)
+    phi = M[3:, 3:].T
+    Q = phi @ M[:3, 3:]
+    u = np.asarray(d_xy, float) / s
+    T = np.array([[1.0, 0, 0], [0, u[0], u[1]], [0, -u[1], u[0]]])
+    return T.T @ phi @ T, T.T @ Q @ T
 
 
 def test_terrain_state_is_carried_between_footprints():
-    # Two ranges whose footprints lie 10 m apart, with a 10 m correlation length: the
-    # second update's innovation covariance uses phi = exp(-1) on the terrain state.
+    # Two ranges whose footprints lie 10 m apart (east, then north-east), with a 10 m length:
+    # the updates' innovation covariances use the Matern-3/2 step on the height and the slope,
+    # checked against the SDE's matrix exponential (not the filter's closed form).
     length, sigma_t = 10.0, 3.0
     cfg = {**SIM_SPEC, "terrain_correlation_length_m": length, "terrain_relief_sigma_m": sigma_t}
     nav = make(cfg, [0, 0, 100.0], [0, 0, 0], 0, q0_LB=[1, 0, 0, 0])
     rho = 100.0 + LEVER_B[2]
-    rec1 = nav.update_altimeter(AltimeterMessage(0, rho, True, BORESIGHT_B))
-    assert rec1.accepted
-    x = nav.ekf.x.copy()
-    x[0] += 10.0  # move the lander (and the footprint) 10 m east
-    nav.ekf.x = x
-    rec2 = nav.update_altimeter(AltimeterMessage(0, rho, True, BORESIGHT_B))
-    phi = math.exp(-1.0)
-    P = rec1.P_post.copy()
-    T_h = np.eye(20)
-    T_h[9, 9] = phi
-    P = T_h @ P @ T_h.T
-    P[9, 9] += sigma_t**2 * (1 - phi**2)
-    H = np.zeros(20)
+    rec = nav.update_altimeter(AltimeterMessage(0, rho, True, BORESIGHT_B))
+    assert rec.accepted
+    idx = [9, 20, 21]
+    H = np.zeros(22)
     H[2], H[9] = 1.0, -1.0
-    rho_hat = x[2] + LEVER_B[2] - phi * rec1.x_post[9]
-    spec_var = ALT_FLOOR_M**2 + (ALT_FRAC * rho_hat) ** 2
-    assert rec2.S[0, 0] == pytest.approx(H @ P @ H + spec_var, rel=1e-12)
-    assert rec2.y[0] == pytest.approx(rho - rho_hat, abs=1e-9)
+    for step in ([10.0, 0.0], [6.0, 8.0]):
+        x = nav.ekf.x.copy()
+        x[:2] += step  # move the lander (and the footprint)
+        nav.ekf.x = x
+        P_before = rec.P_post.copy() if step[1] == 0 else nav.ekf.P.copy()
+        x_before = nav.ekf.x.copy()
+        F, Q = _matern32_step_reference(step, sigma_t, length)
+        T = np.eye(22)
+        T[np.ix_(idx, idx)] = F
+        P = T @ P_before @ T.T
+        P[np.ix_(idx, idx)] += Q
+        new = nav.update_altimeter(AltimeterMessage(0, rho, True, BORESIGHT_B))
+        rho_hat = x[2] + LEVER_B[2] - (T @ x_before)[9]
+        spec_var = ALT_FLOOR_M**2 + (ALT_FRAC * rho_hat) ** 2
+        assert new.S[0, 0] == pytest.approx(H @ P @ H + spec_var, rel=1e-9)
+        assert new.y[0] == pytest.approx(rho - rho_hat, abs=1e-9)
+        # The posterior on the terrain states (the record's prior is the one before the step).
+        k = P @ H / (H @ P @ H + spec_var)
+        P_post = P - np.outer(k, H @ P)
+        np.testing.assert_allclose(new.P_post[np.ix_(idx, idx)], P_post[np.ix_(idx, idx)], rtol=1e-7, atol=1e-12)
+        rec = new
+    # The slope's prior: sigma / length per axis, so the relief 1 m away differs by about that.
+    P0 = make(cfg, [0, 0, 100.0], [0, 0, 0], 0).ekf.P
+    np.testing.assert_allclose(np.sqrt(np.diag(P0)[20:22]), sigma_t / length)
     # White relief (length 0): the spec plus the relief variance, whatever came before.
     white = make({**SIM_SPEC, **WHITE_RELIEF}, [0, 0, 100.0], [0, 0, 0], 0, q0_LB=[1, 0, 0, 0])
     for _ in range(2):
@@ -657,3 +716,54 @@ def test_terrain_state_is_carried_between_footprints():
         rho_hat = rec.x_prior[2] + LEVER_B[2]
         spec_var = ALT_FLOOR_M**2 + (ALT_FRAC * rho_hat) ** 2
         assert rec.S[0, 0] == pytest.approx(rec.P_prior[2, 2] + sigma_t**2 + spec_var, rel=1e-12)
+
+
+def test_relative_update_is_a_consider_update_that_leaves_the_vertical_channel_alone():
+    # A vision pair after 0.1 s of flight: the update must equal the Schmidt-Kalman consider update
+    # written out here (gain rows of the vertical channel and the terrain zeroed, Joseph form),
+    # with this frame's offset (and the clone frame's, first pair) entered at R_frame.
+    nav = make(None, [5.0, -3.0, 200.0], [2.0, 1.0, -10.0], 0, q0_LB=[1, 0, 0, 0])
+    assert nav.clone_frame(0)
+    for k in range(1, 51):
+        nav.propagate_imu(_imu(k, [0.05, -0.02, G]))
+    x0, P0 = nav.ekf.x.copy(), nav.ekf.P.copy()
+    h0 = 200.0
+    H_r = np.array([[1.0, 0.0, 0.3], [0.0, 1.0, -0.1]]) / h0
+    H_c = -np.array([[1.0, 0.0, 0.31], [0.0, 1.0, -0.09]]) / h0
+    H_g = np.array([4e-5, -2e-5])
+    R = np.diag([3e-9, 4e-9])
+    R_frame = np.diag([1e-9, 2e-9])
+    hx = np.array([1e-3, 5e-4])
+    z = hx + np.array([2e-5, -1e-5])
+    t_ns = nav.time_ns
+    rec = nav.update_relative(t_ns, z, hx, H_r, H_c, R, R_frame, H_g)
+    assert rec.accepted
+    # Explicit: enter both offsets, build H, consider gain, Joseph.
+    x, P = x0.copy(), P0.copy()
+    for sl in (slice(13, 15), slice(15, 17)):
+        x[sl] = 0.0
+        P[sl, :] = 0.0
+        P[:, sl] = 0.0
+        P[sl, sl] = R_frame
+    H = np.zeros((2, 22))
+    H[:, 0:3], H[:, 10:13], H[:, 19] = H_r, H_c, H_g
+    H[:, 17:19] = np.eye(2)
+    H[:, 15:17], H[:, 13:15] = np.eye(2), -np.eye(2)
+    y = z - hx
+    S = H @ P @ H.T + R
+    K = P @ H.T @ np.linalg.inv(S)
+    for i in (2, 5, 8, 9, 12, 20, 21):
+        K[i, :] = 0.0
+    x_post = x + K @ y
+    A = np.eye(22) - K @ H
+    P_post = A @ P @ A.T + K @ R @ K.T
+    np.testing.assert_allclose(rec.S, S, rtol=1e-9)
+    np.testing.assert_allclose(nav.ekf.x, x_post, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(nav.ekf.P, 0.5 * (P_post + P_post.T), rtol=1e-7, atol=1e-10)  # P up to 400 m^2
+    for i in (2, 5, 8, 9, 12, 20, 21):  # the vertical channel and the terrain are not corrected
+        assert nav.ekf.x[i] == x0[i]
+    assert np.any(nav.ekf.x[:2] != x0[:2]) and np.any(nav.ekf.x[3:5] != x0[3:5])
+    # The consider columns count: without them, S is smaller.
+    H_h = H.copy()
+    H_h[:, [2, 12]] = 0.0
+    assert np.all(np.diag(H_h @ P @ H_h.T + R) < np.diag(S))

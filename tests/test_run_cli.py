@@ -12,7 +12,8 @@ from bench.report.report import read_telemetry_parquet
 from bench.scenario import load_scenario
 from tests.conftest import SMALL_SET
 
-QUICK = [*SMALL_SET, 'nav="truth"', 'vision="off"', "initial.r_BL_L_m=[10.0, -5.0, 60.0]", "initial.v_BL_L_mps=[0.0, 0.0, -3.0]",
+# A short landing: from 20 m, below the 30 m gate, so only the terminal descent is flown (about 27 s).
+QUICK = [*SMALL_SET, 'nav="truth"', 'vision="off"', "initial.r_BL_L_m=[5.0, -3.0, 20.0]", "initial.v_BL_L_mps=[0.0, 0.0, -1.0]",
          "camera.width_px=64", "camera.height_px=64", "landing.settle_s=2.0"]
 SUMMARY_KEYS = {"outcome", "landed", "touchdown", "fuel_used_kg", "sim_time_s", "wall_time_s", "realtime_factor", "seed"}
 TOUCHDOWN_KEYS = {"t_s", "v_vertical_mps", "v_horizontal_mps", "tilt_deg", "miss_distance_m"}

@@ -66,3 +66,47 @@ def test_patch_texture_continues_the_coarse_texture(world_and_terrain):
     corr = np.corrcoef(coarse.ravel(), back.ravel())[0, 1]
     assert corr > 0.9, corr
     assert abs(back.mean() - coarse.mean()) < 3.0
+
+
+def _assert_same_terrain(a, b) -> None:
+    assert a.size_m == b.size_m and (a.patch is None) == (b.patch is None)
+    for name in ("height_m", "albedo", "craters", "boulders"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), name  # bit for bit
+    if a.patch is not None:
+        assert a.patch.size_m == b.patch.size_m
+        for name in ("height_m", "albedo"):
+            x, y = getattr(a.patch, name), getattr(b.patch, name)
+            assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), f"patch.{name}"
+
+
+def test_terrain_cache_returns_the_generated_terrain_bit_for_bit(tmp_path, monkeypatch):
+    from bench.sim import world_builder as wb
+
+    sets = [*SMALL_SET, "terrain.patch_size_m=96.0", "terrain.patch_texture_px=256"]
+    sc = load_scenario(None, sets)
+    wb.clear_terrain_cache()
+    first = wb.build_terrain(sc)
+    assert wb.build_terrain(load_scenario(None, sets)) is first  # an equal scenario hits the cache
+    _assert_same_terrain(first, wb.generate_scenario_terrain(sc))  # cached == freshly generated
+    # Everything that generates the terrain is in the key: another seed, sun or setting is another terrain.
+    for other in (["terrain.seed=7"], ["sun.elevation_deg=40.0"], ["sun.azimuth_deg=200.0"],
+                  ["terrain.crater_density_per_km2=50.0"]):
+        osc = load_scenario(None, [*sets, *other])
+        t = wb.build_terrain(osc)
+        assert t is not first and t.albedo.tobytes() != first.albedo.tobytes(), other
+        _assert_same_terrain(t, wb.generate_scenario_terrain(osc))
+    # Bounded: the least recently used entries go first once the cache passes its byte budget.
+    assert len(wb._terrain_cache) == 5
+    monkeypatch.setattr(wb, "TERRAIN_CACHE_MAX_BYTES", int(2.5 * wb._terrain_bytes(first)))  # room for two
+    again = wb.build_terrain(sc)  # a hit: now the most recently used
+    assert again is first
+    wb.build_terrain(load_scenario(None, [*sets, "terrain.seed=8"]))
+    assert len(wb._terrain_cache) == 2 and wb.build_terrain(sc) is first
+    # A DEM terrain is read from its file every time (the file may change): never cached.
+    dem = tmp_path / "dem.npy"
+    np.save(dem, np.random.default_rng(0).normal(0.0, 1.0, (65, 65)))
+    dsc = load_scenario(None, [*sets, 'terrain.kind="dem"', f'terrain.dem_path="{dem}"', "terrain.dem_spacing_m=4.0",
+                               "terrain.target_clear_radius_m=20.0", "terrain.patch_size_m=0.0"])
+    assert wb.build_terrain(dsc) is not wb.build_terrain(dsc)
+    wb.clear_terrain_cache()

@@ -6,6 +6,8 @@ are built where they are used and never pickled.
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,14 +20,72 @@ from models.terrain import Terrain, generate_terrain
 from models.world import World
 
 
-def build_terrain(scenario: Scenario) -> Terrain:
-    """Generate (or load) the scenario's terrain from its own stream."""
+def generate_scenario_terrain(scenario: Scenario) -> Terrain:
+    """Generate (or load) the scenario's terrain from its own stream, always anew (no cache)."""
     return generate_terrain(
         scenario.terrain,
         component_rng(scenario.terrain_seed(), "terrain"),
         sun_elevation_deg=scenario.sun.elevation_deg,
         sun_azimuth_deg=scenario.sun.azimuth_deg,
     )
+
+
+# Process-level cache of procedural terrains. A procedural terrain is a pure,
+# deterministic function of (terrain configuration, terrain seed, sun
+# direction), and a Terrain is immutable (frozen, read-only arrays), so runs
+# in one process that fly over the same terrain share one generation (the
+# default 4096^2 tile takes seconds). Terrains loaded from a DEM file are not
+# cached: the file may change between runs. A campaign worker flies one case,
+# so the cache costs it nothing; in a long process the least recently used
+# terrains are dropped once the cached arrays pass TERRAIN_CACHE_MAX_BYTES
+# (the default 4096^2 tile with its patch is about 21 MB).
+TERRAIN_CACHE_MAX_BYTES = 160 * 2**20
+_terrain_cache: OrderedDict[tuple, Terrain] = OrderedDict()
+_terrain_cache_lock = threading.Lock()
+
+
+def _terrain_key(scenario: Scenario) -> tuple | None:
+    cfg = scenario.terrain
+    if cfg.kind != "procedural":
+        return None
+    return (cfg.model_dump_json(), scenario.terrain_seed(), float(scenario.sun.elevation_deg),
+            float(scenario.sun.azimuth_deg))
+
+
+def _terrain_bytes(terrain: Terrain) -> int:
+    arrays = [terrain.height_m, terrain.albedo, terrain.craters, terrain.boulders]
+    if terrain.patch is not None:
+        arrays += [terrain.patch.height_m, terrain.patch.albedo]
+    return sum(a.nbytes for a in arrays)
+
+
+def build_terrain(scenario: Scenario) -> Terrain:
+    """The scenario's terrain: generated from its own stream, or the same one generated earlier in this process.
+
+    Bit-identical to :func:`generate_scenario_terrain` (the cache holds only
+    procedural terrains, keyed on everything that generates them).
+    """
+    key = _terrain_key(scenario)
+    if key is None:
+        return generate_scenario_terrain(scenario)
+    with _terrain_cache_lock:
+        terrain = _terrain_cache.get(key)
+        if terrain is not None:
+            _terrain_cache.move_to_end(key)
+            return terrain
+    terrain = generate_scenario_terrain(scenario)
+    with _terrain_cache_lock:
+        _terrain_cache[key] = terrain
+        _terrain_cache.move_to_end(key)
+        while len(_terrain_cache) > 1 and sum(map(_terrain_bytes, _terrain_cache.values())) > TERRAIN_CACHE_MAX_BYTES:
+            _terrain_cache.popitem(last=False)
+    return terrain
+
+
+def clear_terrain_cache() -> None:
+    """Forget the cached terrains (for benchmarks and tests)."""
+    with _terrain_cache_lock:
+        _terrain_cache.clear()
 
 
 def build_world(scenario: Scenario, terrain: Terrain | None = None) -> World:

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gnc.control import ActuatorCommand, Controller, VehicleParams
-from gnc.estimator import IDX_C, IDX_G, IDX_R, IDX_V, NavFilter, UpdateRecord, quat_to_matrix
+from gnc.estimator import IDX_C, IDX_G, IDX_R, IDX_SV, IDX_V, NavFilter, UpdateRecord, quat_to_matrix
 from gnc.guidance import GuidanceCommand, GuidanceLaw, LandingTarget
 from gnc.messages import AltimeterMessage, AttitudeMessage, ContactMessage, ImageMessage, ImuMessage
 from gnc.navstate import NavState
@@ -186,13 +186,14 @@ class FlightSoftware:
         sigma_rot = math.sqrt(cfg.gyro_noise_density**2 * dt_s + (cfg.gyro_bias_sigma_radps * dt_s) ** 2)
         k = self.knowledge
         m = vision_measurement(tracks, prev.t_ns, t_ns, k.K, k.R_BC, k.r_cam_B_m, R_LB0, R_LB1,
-                               x[IDX_C].copy(), r1, float(x[IDX_G]), sigma_rot, self.vision_cfg)
+                               x[IDX_C].copy(), r1, float(x[IDX_G]), sigma_rot, self.vision_cfg,
+                               s_view=x[IDX_SV].copy())
         if m is None:
             self.vision.unusable += 1
             return
         self.vision.measurements += 1
         self.vision.last = m
-        record = self.filter.update_relative(m.t_ns, m.z, m.hx, m.H_r, m.H_c, m.R, m.R_frame, m.H_g)
+        record = self.filter.update_relative(m.t_ns, m.z, m.hx, m.H_r, m.H_c, m.R, m.R_frame, m.H_g, m.H_s)
         self.vision.last_record = record
         if not record.accepted:
             self.vision.rejected += 1

@@ -14,9 +14,15 @@ Ports:
     Rate: camera rate (one measurement per frame pair).
 
 Model and assumptions:
-    * The tracked features lie on a **locally planar, horizontal ground** at the
-      height ``h_view`` above the target's elevation, a filter state: relief
-      under the view is a slowly varying scale error.
+    * The tracked features lie on a **locally planar ground**, of height
+      ``h_view`` above the target's elevation under the first camera position and
+      slope ``s_view`` (both filter states). A feature seen along the unit-height
+      ray ``a_i`` then lies ``h0_i = h0 / (1 + s_view . a_i)`` below the camera,
+      and its flow is ``g_i = (dr_xy + dz b_i)(1 + s_view . a_i) / h0``, so the mean
+      flow's model is ``h = (dr_xy (1 + s . a_mean) + dz (b_mean + M s)) / h0`` with
+      ``M = mean_i b_i a_i^T``. A slope in view matters in a steep descent: with the
+      features off-centre, ``dz M s`` reads as horizontal motion (0.1 m/s at
+      12 m/s of descent over a 5 % slope). Relief about the plane is noise.
     * With unit-height rays ``a = d0 / -d0_z`` and ``b = d1 / -d1_z`` (``d`` the
       pixel rays rotated into L), a static feature gives
       ``c0 + h0 a = c1 + (h0 + dz) b`` for the camera positions ``c0``, ``c1``,
@@ -123,7 +129,8 @@ class VisionMeasurement:
         H_r: Jacobian of ``h`` on the body position at ``t_ns``, (2, 3) [1/m] (its
             vertical column, ``b_mean / h0``, is the divergence term).
         H_c: Jacobian of ``h`` on the clone (body position at ``t0_ns``), (2, 3) [1/m].
-        H_g: Jacobian of ``h`` on the tracked ground's mean height, (2,) [1/m].
+        H_g: Jacobian of ``h`` on the tracked ground's height under the camera, (2,) [1/m].
+        H_s: Jacobian of ``h`` on the tracked ground's slope, (2, 2) [-].
         R: Covariance of the white part of the error of ``z``, (2, 2) [-].
         R_frame: Covariance of one frame's image offset (the shared-frame part), (2, 2) [-].
         b_mean: Mean horizontal unit-height ray of the kept tracks at the second frame, (2,) [-]
@@ -142,6 +149,7 @@ class VisionMeasurement:
     H_r: np.ndarray
     H_c: np.ndarray
     H_g: np.ndarray
+    H_s: np.ndarray
     R: np.ndarray
     R_frame: np.ndarray
     b_mean: np.ndarray
@@ -165,6 +173,7 @@ def vision_measurement(
     h_view_m: float,
     sigma_rot_rad: float,
     cfg: VisionNavConfig,
+    s_view: np.ndarray | None = None,
 ) -> VisionMeasurement | None:
     """The vision measurement of a frame pair, for :meth:`NavFilter.update_relative`.
 
@@ -182,6 +191,7 @@ def vision_measurement(
         h_view_m: Prior mean height of the tracked ground above the target's elevation [m].
         sigma_rot_rad: 1-sigma per axis of the relative rotation between the frames [rad].
         cfg: Settings.
+        s_view: Prior slope ``(dh/dx, dh/dy)`` of the viewed ground, (2,) [-]; None: level.
 
     Returns:
         The measurement, or None when there are too few usable tracks or the
@@ -244,14 +254,20 @@ def vision_measurement(
     cov_mean = cov_mean + np.eye(2) * max(floor**2 / n_used - float(np.min(np.diag(cov_mean))), 0.0)
     z = g[keep].mean(axis=0)
     b_mean = b[keep, :2].mean(axis=0)
+    a_mean = a[keep, :2].mean(axis=0)
+    M = b[keep, :2].T @ a[keep, :2] / n_used  # mean of b_i a_i^T [-]
+    sv = np.zeros(2) if s_view is None else np.asarray(s_view, dtype=float)
     dr_xy = (c1 - c0)[:2]
-    hx = (dr_xy + dz * b_mean) / h0
+    scale = 1.0 + float(sv @ a_mean)
+    div = b_mean + M @ sv  # the divergence term's direction, with the slope
+    hx = (dr_xy * scale + dz * div) / h0
     # The vertical columns: the camera's vertical displacement enters through dz b_mean (the
     # divergence term), the clone's height also through h0. The filter takes them as consider
     # columns: their uncertainty is in the innovation covariance, but vision does not correct them.
-    H_r = np.array([[1.0, 0.0, b_mean[0]], [0.0, 1.0, b_mean[1]]]) / h0
-    H_c = -np.array([[1.0, 0.0, b_mean[0] + hx[0]], [0.0, 1.0, b_mean[1] + hx[1]]]) / h0
+    H_r = np.array([[scale, 0.0, div[0]], [0.0, scale, div[1]]]) / h0
+    H_c = -np.array([[scale, 0.0, div[0] + hx[0]], [0.0, scale, div[1] + hx[1]]]) / h0
     H_g = hx / h0  # a higher ground is a shorter range: a larger flow
+    H_s = (np.outer(dr_xy, a_mean) + dz * M) / h0
     # The tracks' scatter about their mean holds the pixel noise of both frames. Its per-frame part,
     # 2 frame_pixel_sigma_px^2 of the per-track variance, is shared with the neighbouring pair
     # (split evenly between the frames); the rest (appearance change between the frames) is white.
@@ -268,7 +284,7 @@ def vision_measurement(
     R_frame = cfg.covariance_inflation * R_frame
     v_xy = (h0 * z - dz * b_mean - ((R_LB1 - R_LB0) @ r_cam_B)[:2]) / dt_s
     return VisionMeasurement(
-        t0_ns=int(t0_ns), t_ns=int(t1_ns), z=z, hx=hx, H_r=H_r, H_c=H_c, H_g=H_g, R=0.5 * (R + R.T),
+        t0_ns=int(t0_ns), t_ns=int(t1_ns), z=z, hx=hx, H_r=H_r, H_c=H_c, H_g=H_g, H_s=H_s, R=0.5 * (R + R.T),
         R_frame=R_frame, b_mean=b_mean, v_L=v_xy, n_tracks=n_tracks, n_used=n_used,
         residual_px=math.sqrt(s2) * f_px / h0,
     )

@@ -464,20 +464,20 @@ def test_covariance_and_rotating_prediction_match_an_explicit_loop():
     n, dt = 300, IMU_DT_NS / NS
     # Independent recursion: mid-interval attitude by scipy, F and Q written out.
     # State: r, v, b_a, h_terrain, then the position clone (r0), two image offsets, the flow bias,
-    # the viewed ground's height and the terrain's slope.
-    x = np.concatenate([r0, v0, np.zeros(4), r0, np.zeros(9)])
-    P = initial_covariance(cfg)
-    assert x.shape == (22,) and P.shape == (22, 22)
+    # the viewed ground's height, the terrain's slope and the viewed ground's slope.
+    x = np.concatenate([r0, v0, np.zeros(4), r0, np.zeros(11)])
+    P = initial_covariance(cfg, 300.0)
+    assert x.shape == (24,) and P.shape == (24, 24)
     att_psd = cfg.accel_noise_density**2 + (math.radians(cfg.attitude_sigma_arcsec / 3600)
                                              * np.linalg.norm(f_B)) ** 2 * cfg.attitude_period_s
     I3 = np.eye(3)
     for k in range(1, n + 1):
         R = (q0 * Rotation.from_rotvec(w_B * (k - 0.5) * dt)).as_matrix()
-        F = np.eye(22)  # the clone, the offsets and the ground's heights and slope do not move between updates
+        F = np.eye(24)  # the clone, the offsets and the ground's heights and slope do not move between updates
         F[0:3, 3:6] = dt * I3
         F[0:3, 6:9] = -0.5 * dt**2 * R
         F[3:6, 6:9] = -dt * R
-        Q = np.zeros((22, 22))
+        Q = np.zeros((24, 24))
         Q[0:3, 0:3] = att_psd * dt**3 / 4 * I3
         Q[0:3, 3:6] = Q[3:6, 0:3] = att_psd * dt**2 / 2 * I3
         Q[3:6, 3:6] = att_psd * dt * I3
@@ -631,7 +631,7 @@ def test_nav_state_and_records(_converged_once):
     angle = (Rotation.from_quat(ns.q_LB, scalar_first=True).inv() * truth.rot[-1]).magnitude()
     assert angle < 10 * ST_SIGMA_RAD
     rec = next(r for r in nav.log if r.accepted and r.kind == "velocity")
-    assert rec.z.shape == rec.y.shape == (3,) and rec.S.shape == (3, 3) and rec.P_post.shape == (22, 22)
+    assert rec.z.shape == rec.y.shape == (3,) and rec.S.shape == (3, 3) and rec.P_post.shape == (24, 24)
     assert not rec.x_post.flags.writeable  # records are immutable
     assert np.all(np.diag(rec.P_post)[3:6] < np.diag(rec.P_prior)[3:6])
 
@@ -639,7 +639,7 @@ def test_nav_state_and_records(_converged_once):
 def test_filter_is_a_filterpy_ekf():
     nav = make(None, [0, 0, 100.0], [0, 0, 0], 0)
     assert isinstance(nav.ekf, ExtendedKalmanFilter)
-    assert nav.ekf.x.shape == (22,) and nav.ekf.P.shape == (22, 22)
+    assert nav.ekf.x.shape == (24,) and nav.ekf.P.shape == (24, 24)
 
 
 def test_flight_computer_names_and_altimeter_sigma():
@@ -683,7 +683,7 @@ def test_terrain_state_is_carried_between_footprints():
     rec = nav.update_altimeter(AltimeterMessage(0, rho, True, BORESIGHT_B))
     assert rec.accepted
     idx = [9, 20, 21]
-    H = np.zeros(22)
+    H = np.zeros(24)
     H[2], H[9] = 1.0, -1.0
     for step in ([10.0, 0.0], [6.0, 8.0]):
         x = nav.ekf.x.copy()
@@ -692,7 +692,7 @@ def test_terrain_state_is_carried_between_footprints():
         P_before = rec.P_post.copy() if step[1] == 0 else nav.ekf.P.copy()
         x_before = nav.ekf.x.copy()
         F, Q = _matern32_step_reference(step, sigma_t, length)
-        T = np.eye(22)
+        T = np.eye(24)
         T[np.ix_(idx, idx)] = F
         P = T @ P_before @ T.T
         P[np.ix_(idx, idx)] += Q
@@ -736,7 +736,8 @@ def test_relative_update_is_a_consider_update_that_leaves_the_vertical_channel_a
     hx = np.array([1e-3, 5e-4])
     z = hx + np.array([2e-5, -1e-5])
     t_ns = nav.time_ns
-    rec = nav.update_relative(t_ns, z, hx, H_r, H_c, R, R_frame, H_g)
+    H_s = np.array([[2e-4, 1e-5], [-3e-5, 1.5e-4]])
+    rec = nav.update_relative(t_ns, z, hx, H_r, H_c, R, R_frame, H_g, H_s)
     assert rec.accepted
     # Explicit: enter both offsets, build H, consider gain, Joseph.
     x, P = x0.copy(), P0.copy()
@@ -745,8 +746,8 @@ def test_relative_update_is_a_consider_update_that_leaves_the_vertical_channel_a
         P[sl, :] = 0.0
         P[:, sl] = 0.0
         P[sl, sl] = R_frame
-    H = np.zeros((2, 22))
-    H[:, 0:3], H[:, 10:13], H[:, 19] = H_r, H_c, H_g
+    H = np.zeros((2, 24))
+    H[:, 0:3], H[:, 10:13], H[:, 19], H[:, 22:24] = H_r, H_c, H_g, H_s
     H[:, 17:19] = np.eye(2)
     H[:, 15:17], H[:, 13:15] = np.eye(2), -np.eye(2)
     y = z - hx
@@ -755,7 +756,7 @@ def test_relative_update_is_a_consider_update_that_leaves_the_vertical_channel_a
     for i in (2, 5, 8, 9, 12, 20, 21):
         K[i, :] = 0.0
     x_post = x + K @ y
-    A = np.eye(22) - K @ H
+    A = np.eye(24) - K @ H
     P_post = A @ P @ A.T + K @ R @ K.T
     np.testing.assert_allclose(rec.S, S, rtol=1e-9)
     np.testing.assert_allclose(nav.ekf.x, x_post, rtol=1e-9, atol=1e-12)

@@ -19,15 +19,18 @@ R_CAM_B = np.array([0.0, 0.0, -0.77])
 CFG = VisionNavConfig()
 
 
-def _scene(rng, r_B0, r_B1, q0, q1, n=80, noise_px=0.0, relief_m=0.0):
-    """Project random ground points (z ~ 0) into both frames; returns Tracks of frame 1."""
+def _scene(rng, r_B0, r_B1, q0, q1, n=80, noise_px=0.0, relief_m=0.0, slope=(0.0, 0.0)):
+    """Project random ground points (z ~ 0, or on a plane of ``slope`` through the point under the
+    first camera) into both frames; returns Tracks of frame 1."""
     R0 = Rotation.from_quat(q0, scalar_first=True).as_matrix()
     R1 = Rotation.from_quat(q1, scalar_first=True).as_matrix()
     c0, c1 = r_B0 + R0 @ R_CAM_B, r_B1 + R1 @ R_CAM_B
     # Points seen by the first camera: random pixels back-projected onto the plane.
     pix = rng.uniform(10, 245, (n, 2))
     rays = (R0 @ R_BC @ np.linalg.solve(K, np.column_stack([pix, np.ones(n)]).T)).T
-    pts = c0 + rays * (-c0[2] / rays[:, 2:3])
+    sl = np.asarray(slope, float)
+    # The ray c0 + t d meets z = sl . (p_xy - c0_xy) at t = -c0_z / (d_z - sl . d_xy).
+    pts = c0 + rays * (-c0[2] / (rays[:, 2:3] - rays[:, :2] @ sl[:, None]))
     pts[:, 2] += rng.normal(0.0, relief_m, n) if relief_m else 0.0
 
     def project(c, R):
@@ -49,9 +52,9 @@ def _R(q):
     return Rotation.from_quat(q, scalar_first=True).as_matrix()
 
 
-def _measure(tracks, r0, r1, q0, q1, h_view=0.0, cfg=CFG, dt=0.1):
+def _measure(tracks, r0, r1, q0, q1, h_view=0.0, cfg=CFG, dt=0.1, s_view=None):
     return vision_measurement(tracks, 0, int(round(dt * 1e9)), K, R_BC, R_CAM_B, _R(q0), _R(q1), r0, r1, h_view,
-                              0.0, cfg)
+                              0.0, cfg, s_view=s_view)
 
 
 def _flow_model(r0, r1, q0, q1, h_view, b_mean):
@@ -165,3 +168,38 @@ def test_relief_under_the_view_scatters_but_hardly_biases(relief):
     m = _measure(tracks, r0, r0 + v * 0.1, q, q)
     # Relative error of the flow: relief of sigma s at height h scales each track by ~s/h; the mean by s/h/sqrt(n).
     assert np.linalg.norm(m.z - m.hx) < 1e-9 + 4 * relief / 100.0 / 10.0 * np.linalg.norm(m.hx)
+
+
+def test_a_sloped_ground_is_predicted_exactly_with_its_slope_and_its_jacobian_matches_the_explicit_sum():
+    # A steep, tilted descent over a 6 % slope: the level-ground model reads the slope as
+    # horizontal motion; with the slope the model predicts the flow exactly, and H_s matches
+    # central differences of the per-track flow written out (features on the sloped plane).
+    rng = np.random.default_rng(11)
+    r0, v = np.array([0.0, 0.0, 120.0]), np.array([2.0, -1.0, -12.0])
+    dt = 0.1
+    r1 = r0 + v * dt
+    q0, q1 = _q([8.0, -5.0, 30.0]), _q([8.1, -5.1, 30.0])
+    slope = np.array([0.06, -0.04])
+    tracks, c0 = _scene(rng, r0, r1, q0, q1, slope=slope)
+    level = _measure(tracks, r0, r1, q0, q1)
+    sloped = _measure(tracks, r0, r1, q0, q1, s_view=slope)
+    np.testing.assert_allclose(sloped.z, sloped.hx, rtol=0, atol=1e-12)
+    level_err_mps = np.abs(level.z - level.hx) * (c0[2] / dt)
+    assert np.max(level_err_mps) > 0.02, level_err_mps  # what the slope costs the level model [m/s]
+    # H_s by central differences of mean_i (dr + dz b_i)(1 + s . a_i) / h0, rays held.
+    R0, R1 = _R(q0), _R(q1)
+    Kinv = np.linalg.inv(K)
+    d0 = (R0 @ R_BC @ Kinv @ np.column_stack([tracks.prev_xy, np.ones(len(tracks))]).T).T
+    d1 = (R1 @ R_BC @ Kinv @ np.column_stack([tracks.xy, np.ones(len(tracks))]).T).T
+    a, b = d0[:, :2] / -d0[:, 2:3], d1[:, :2] / -d1[:, 2:3]
+    c1 = r1 + R1 @ R_CAM_B
+
+    def model(sv):
+        return np.mean([((c1 - c0)[:2] + (c1 - c0)[2] * bi) * (1.0 + sv @ ai) for ai, bi in zip(a, b)], axis=0) / c0[2]
+
+    np.testing.assert_allclose(model(slope), sloped.hx, rtol=1e-9)
+    eps = 1e-4
+    for k in range(2):
+        d = np.zeros(2)
+        d[k] = eps
+        np.testing.assert_allclose(sloped.H_s[:, k], (model(slope + d) - model(slope - d)) / (2 * eps), rtol=1e-6)

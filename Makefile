@@ -19,13 +19,16 @@ demo: bootstrap
 	$(LB) run --out $(OUT)
 	@echo "demo: results in $(OUT)/ (summary.json, telemetry.parquet, scenario.toml, plots.png, camera.mp4, world.png)"
 
-## test: the fast suite (CI runs this); the 15 slowest tests are listed so the time budget stays visible
+## test: the fast suite (CI runs this); the 15 slowest tests are listed so the time budget stays visible.
+## Two processes (pytest-xdist), whole files per process so module fixtures are built once;
+## TEST_JOBS=1 runs them in one process.
+TEST_JOBS ?= 2
 test: bootstrap
-	$(PYTEST) -q --durations=15
+	$(PYTEST) -q -n $(TEST_JOBS) --dist loadfile --durations=15
 
 ## test-slow: the long checks (full descents, campaigns), marked @pytest.mark.slow
 test-slow: bootstrap
-	$(PYTEST) -q -m slow --durations=15
+	$(PYTEST) -q -n $(TEST_JOBS) --dist loadfile -m slow --durations=15
 
 test-all: bootstrap
 	$(PYTEST) -q -m "slow or not slow"

@@ -130,7 +130,7 @@ def _attitude(t, a_L):
     return wobble * base
 
 
-FIELD_WINDOW = 200  # footprints a new height is conditioned on (older ones lie hundreds of metres back)
+FIELD_WINDOW = 40  # the last footprints a new height is conditioned on (a smooth field: the nearest screen the rest)
 
 
 def _field_sample(here: np.ndarray, spots: list, heights: list, length_m: float,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -25,13 +27,18 @@ def _meets_criteria(s: dict) -> None:
 def default_nav_run():
     sc = load_scenario()
     assert (sc.nav, sc.tracks, sc.vision) == ("estimator", "vision", "on")  # the defaults
-    return run(sc)
+    frames = []
+    result = run(sc, frame_sink=lambda t, f, truth, tracks: frames.append((t, f.shape)))
+    return SimpleNamespace(summary=result.summary, telemetry=result.telemetry, frames=frames)
 
 
 def test_default_scenario_lands_on_vision_navigation(default_nav_run):
     s = default_nav_run.summary
     _meets_criteria(s)
     assert s["nav"]["vel_err_touchdown_mps"] <= 0.2, s["nav"]
+    # The camera rendered at its rate throughout (10 Hz), from touch-down to the end of the run too.
+    frames = default_nav_run.frames
+    assert len(frames) == int(s["sim_time_s"] * 10) + 1 and frames[0][1] == (256, 256)
     v = s["vision"]
     assert v["frames"] > 300 and v["tracks_median"] >= 40 and v["measurements"] > 300
     # Consistent innovations are rejected by the 99.9 % gate about once in a thousand; a clean run

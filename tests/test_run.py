@@ -30,18 +30,15 @@ def _meets_criteria(summary: dict) -> None:
 
 @pytest.fixture(scope="module")
 def default_run():
-    frames = []
-    result = run(load_scenario(None, PERFECT), frame_sink=lambda t, f, truth, tracks: frames.append((t, f.shape)))
-    return result, frames
+    # No camera: guidance and control do not look at it with perfect navigation (the camera's rate
+    # over a whole default run is checked on the vision run, tests/test_nav_loop.py).
+    return run(load_scenario(None, NO_CAMERA)), None
 
 
 def test_default_scenario_lands_and_meets_every_criterion(default_run):
-    result, frames = default_run
+    result, _ = default_run
     _meets_criteria(result.summary)
     assert result.summary["touchdown"]["miss_distance_m"] < 1.0
-    # The camera rendered at its rate throughout (10 Hz).
-    assert len(frames) == int(result.summary["sim_time_s"] * 10) + 1
-    assert frames[0][1] == (256, 256)
 
 
 def test_telemetry_never_exceeds_actuator_and_tilt_limits(default_run):

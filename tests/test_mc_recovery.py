@@ -1,0 +1,104 @@
+"""Monte Carlo campaigns under failure: raising cases, timeouts, a killed campaign, a dead worker.
+
+(Split from test_mc.py so that `make test`'s two processes share the campaign tests.)
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from bench.campaign import mc
+from bench.cli import main
+from bench.scenario import load_scenario
+from tests.test_mc import QUICK, _sets, _strip
+
+
+def test_a_raising_case_and_a_timeout_are_recorded_and_the_campaign_goes_on(tmp_path):
+    # A sun-elevation dispersion wide enough to draw elevations past 90 deg: those cases fail validation.
+    # (Not a mass dispersion: the flight software flies the nominal mass, and a lander thousands of kg
+    # off its nominal mass rightly does not land.)
+    # Campaign seed 2 draws case 0 past 90 deg (it raises) and case 1 within range (it lands).
+    base = load_scenario(None, [*QUICK, 'dispersions."sun.elevation_deg"={dist="normal", sigma=60.0}'])
+    rows = mc.run_campaign(base, 2, tmp_path / "c", campaign_seed=2, workers=2, progress=False)
+    assert len(rows) == 2
+    errors = [r for r in rows if r["outcome"] == "error"]
+    assert errors and all("sun.elevation_deg" in r["error"] for r in errors)
+    assert any(r["outcome"] == "landed" for r in rows)
+    slow = mc.run_campaign(load_scenario(None, QUICK), 2, tmp_path / "t", campaign_seed=2, workers=2,
+                           case_timeout_s=0.5, progress=False)
+    assert [r["outcome"] for r in slow] == ["error", "error"] and all("timeout" in r["error"] for r in slow)
+
+
+def test_kill_and_resume_loses_and_duplicates_nothing(tmp_path):
+    # Three cases, one worker, killed once the first has finished: the resume must run the other two.
+    out = tmp_path / "camp"
+    cmd = [sys.executable, "-m", "bench.cli", "mc", "--runs", "3", "--workers", "1", "--seed", "5",
+           "--out", str(out), *_sets()]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and len(list((out / mc.CASES).glob("*.json"))) < 1:
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGKILL)  # the master and its worker, mid-campaign
+    proc.wait()
+    done_before = sorted(p.name for p in (out / mc.CASES).glob("*.json"))
+    assert 1 <= len(done_before) < 3
+    before = {p.name: p.read_text() for p in (out / mc.CASES).glob("*.json")}
+    # Two workers for the rest and for the reference: a case does not depend on the worker count.
+    assert main(["mc", "--resume", str(out), "--workers", "2", *_sets()]) == 0
+    rows = mc.read_rows(out, 3)
+    assert [r["case"] for r in rows] == [0, 1, 2]
+    for name, text in before.items():  # finished cases were not redone
+        assert (out / mc.CASES / name).read_text() == text
+    fresh = mc.run_campaign(load_scenario(None, QUICK), 3, tmp_path / "fresh", campaign_seed=5, workers=2,
+                            progress=False)
+    assert _strip(rows) == _strip(fresh)
+
+
+def _kill_next_worker(seen: set[int], timeout_s: float = 120.0) -> None:
+    """SIGKILL the next case worker this process spawns (one not in ``seen``)."""
+    me = str(os.getpid())
+    deadline = time.time() + timeout_s
+    while time.time() < deadline:
+        for d in Path("/proc").iterdir():
+            if not d.name.isdigit() or int(d.name) in seen:
+                continue
+            try:
+                ppid = (d / "stat").read_text().rsplit(")", 1)[1].split()[1]
+                is_worker = b"spawn_main" in (d / "cmdline").read_bytes()
+            except (OSError, IndexError):
+                continue
+            if ppid == me and is_worker:
+                os.kill(int(d.name), signal.SIGKILL)
+                seen.add(int(d.name))
+                return
+        time.sleep(0.02)
+    raise AssertionError("no case worker was spawned")
+
+
+def test_a_dead_worker_is_retried_once_then_recorded(tmp_path):
+    base = load_scenario(None, QUICK)
+    result = {}
+
+    def campaign(name):
+        result[name] = mc.run_campaign(base, 1, tmp_path / name, campaign_seed=3, progress=False)
+
+    seen: set[int] = set()
+    th = threading.Thread(target=campaign, args=("once",))
+    th.start()
+    _kill_next_worker(seen)  # killed once: rerun, and the case lands as if nothing happened
+    th.join(timeout=300)
+    clean = mc.run_campaign(base, 1, tmp_path / "clean", campaign_seed=3, progress=False)
+    assert result["once"][0]["outcome"] == "landed" and _strip(result["once"]) == _strip(clean)
+    th = threading.Thread(target=campaign, args=("twice",))
+    th.start()
+    _kill_next_worker(seen)
+    _kill_next_worker(seen)  # killed twice: recorded as failed, and the campaign finishes
+    th.join(timeout=300)
+    (row,) = result["twice"]
+    assert row["outcome"] == "error" and "worker died" in row["error"] and "twice" in row["error"]

@@ -528,7 +528,8 @@ def format_compare(doc: Mapping[str, Any], written: str | Path | None = None) ->
     rest = [k for k in metrics if k not in shown]
     if rest:
         same = sum(metrics[k]["identical"] for k in rest)
-        lines.append(f"{len(rest)} other metrics ({same} identical), none significant after Holm: see {COMPARE_JSON}")
+        lines.append(f"{len(rest)} other metric{'s' if len(rest) != 1 else ''} ({same} identical), none significant "
+                     f"after Holm: see {COMPARE_JSON}")
     for g in doc["gates"]:
         lines.append(f"gate {'PASS' if g['passed'] else 'FAIL'} {g['spec']}: {g['reason']}")
     if written is not None:

@@ -196,6 +196,22 @@ def _mc_replay(directory: Path, case: int, out: Path) -> int:
     return 0 if summary["landed"] else EXIT_NOT_LANDED
 
 
+EXIT_GATE_FAILED = 1
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    from bench.evaluation.compare import compare_campaigns, format_compare, parse_gate, write_compare
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {args.out!r} is a file; give a folder")
+    gates = [parse_gate(g) for g in args.gates]  # every gate checked before the inputs are read
+    doc = compare_campaigns(args.base, args.cand, gates, replay_root=out / "replay")
+    written = write_compare(doc, out)  # only once every input was accepted (HTML report: later, beside it)
+    print(format_compare(doc, written=written))
+    return 0 if doc["passed"] else EXIT_GATE_FAILED
+
+
 # --------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -235,6 +251,20 @@ def build_parser() -> argparse.ArgumentParser:
                    help="whose telemetry and video are kept")
     p.add_argument("--case-timeout", type=float, default=None, metavar="S", help="per-case wall-clock limit [s]")
     p.set_defaults(func=cmd_mc)
+
+    p = sub.add_parser(
+        "compare", help="paired A/B comparison of two Monte Carlo campaigns, case by case",
+        description="Compare CAND against BASE case by case (same case index and seed): success rates with "
+                    "Wilson intervals, exact McNemar, the cases that flipped, and paired differences of every "
+                    "metric (bootstrap interval, Wilcoxon, Holm). Exit status: 0 all gates pass, 1 a gate "
+                    "failed (named on the last line), 2 bad or unpaired input (nothing written).")
+    p.add_argument("base", metavar="BASE", help="baseline campaign folder (landbench mc --out)")
+    p.add_argument("cand", metavar="CAND", help="candidate campaign folder: same --runs, --seed and dispersions")
+    p.add_argument("--gate", dest="gates", action="append", default=[], metavar="SPEC",
+                   help="pass/fail gate (repeatable): success_rate:-2pp, METRIC:p95:+0.05, METRIC:+10%% "
+                        "(statistics: mean (default), median, p95, max; + bounds a rise, - a fall)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder: DIR/compare.json")
+    p.set_defaults(func=cmd_compare)
 
     p = sub.add_parser("render", help="render the camera view from H metres above the landing site")
     _add_scenario_args(p)

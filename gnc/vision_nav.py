@@ -34,7 +34,7 @@ Model and assumptions:
       Vision measures the mean flow ``z = mean_i g_i`` over the tracks kept
       after iterative rejection of those whose residual exceeds
       ``outlier_mad_k`` robust sigmas (wrong tracks, moving shadows). Its model
-      ``h(x) = (dr_xy + dz b_mean,xy) / h0`` depends on the state only through
+      (level ground: ``h(x) = (dr_xy + dz b_mean,xy) / h0``; sloped: above) depends on the state only through
       the camera positions at the two frames, i.e. on the current position and
       the clone (the lever arm is removed exactly with both attitudes). Its
       Jacobians cover all three components and ``h_view``. The vertical ones

@@ -203,3 +203,21 @@ def test_a_sloped_ground_is_predicted_exactly_with_its_slope_and_its_jacobian_ma
         d = np.zeros(2)
         d[k] = eps
         np.testing.assert_allclose(sloped.H_s[:, k], (model(slope + d) - model(slope - d)) / (2 * eps), rtol=1e-6)
+
+
+def test_the_per_frame_share_of_the_error_follows_the_calibrated_pixel_noise():
+    # Each frame's tracks carry independent pixel noise sigma: a pair's per-track error variance is
+    # 2 sigma^2 per axis, of which 2 frame_pixel_sigma_px^2 is per-frame. At sigma = the calibration,
+    # all of it (capped at 1); at twice the calibration, a quarter. No slew, no rotation error.
+    rng = np.random.default_rng(21)
+    r0, r1 = np.array([0.0, 0.0, 200.0]), np.array([0.5, -0.3, 198.8])
+    q = _q([0.0, 0.0, 0.0])
+    cfg = VisionNavConfig(rotation_error_frac=0.0)
+    for noise_px, expected in ((cfg.frame_pixel_sigma_px, 1.0), (2.0 * cfg.frame_pixel_sigma_px, 0.25)):
+        shares = []
+        for _ in range(20):
+            tracks, _ = _scene(rng, r0, r1, q, q, n=200, noise_px=noise_px)
+            m = _measure(tracks, r0, r1, q, q, cfg=cfg)
+            total = np.trace(m.R + 2.0 * m.R_frame)
+            shares.append(np.trace(2.0 * m.R_frame) / total)
+        assert abs(np.mean(shares) - expected) < 0.08 * expected + 0.02, (noise_px, np.mean(shares))

@@ -212,6 +212,36 @@ def cmd_compare(args: argparse.Namespace) -> int:
     return 0 if doc["passed"] else EXIT_GATE_FAILED
 
 
+def cmd_record(args: argparse.Namespace) -> int:
+    from bench.evaluation.record import check_recordable, parse_seeds, record_dataset
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {args.out!r} is a file; give a folder")
+    seeds = parse_seeds(args.seeds)
+    scenario = load_scenario(args.scenario, args.overrides)
+    check_recordable(scenario)
+    for path, manifest in record_dataset(scenario, seeds, out, depth=args.depth, progress=True):
+        c = manifest["counts"]
+        size = sum(f["bytes"] for f in manifest["files"].values())
+        print(f"{path}: seed {manifest['seed']}, {manifest['outcome']}, {c['control']} control ticks, "
+              f"{c['image']} frames, {size / 1e6:.1f} MB")
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from bench.evaluation.replay import format_replay, replay_dataset, write_replay
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {args.out!r} is a file; give a folder")
+    seqs, doc = replay_dataset(Path(args.dataset), args.overrides)  # checks every input before it runs
+    written = write_replay(seqs, doc, out)
+    print(format_replay(doc))
+    print(", ".join(f"{k}: {v}" for k, v in written.items()))
+    return 0
+
+
 # --------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -265,6 +295,30 @@ def build_parser() -> argparse.ArgumentParser:
                         "(statistics: mean (default), median, p95, max; + bounds a rise, - a fall)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder: DIR/compare.json")
     p.set_defaults(func=cmd_compare)
+
+    p = sub.add_parser(
+        "record", help="fly closed-loop descents and record every message the flight software receives",
+        description="For each seed, fly the landing exactly as `landbench run` does and write OUT/seed_NNN/: "
+                    "the sensor messages in order, every camera frame, the truth, the telemetry and a manifest "
+                    "with checksums. Replay them with `landbench replay`.")
+    _add_scenario_args(p)
+    p.add_argument("--seeds", required=True, metavar="SEEDS", help="seeds to fly: a range a-b or a list a,b,c")
+    p.add_argument("--out", required=True, metavar="DS", help="dataset folder")
+    p.add_argument("--depth", action="store_true",
+                   help="also store the truth z-depth image of every frame (for truth correspondences; large)")
+    p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser(
+        "replay", help="replay recorded descents open loop through the flight software (no MuJoCo, no renderer)",
+        description="Feed a recorded dataset's messages to the flight software rebuilt from the recorded scenario, "
+                    "with --set overrides of the tracker, vision_nav and estimator sections only, and score "
+                    "navigation and tracking against the recorded truth: OUT/metrics.json, OUT/frames.parquet, "
+                    "OUT/nav.parquet.")
+    p.add_argument("dataset", metavar="DS", help="dataset folder (landbench record --out), or one seed_NNN folder")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override tracker.*, vision_nav.* or estimator.* (repeatable)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser("render", help="render the camera view from H metres above the landing site")
     _add_scenario_args(p)

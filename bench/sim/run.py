@@ -36,7 +36,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import reduce
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -44,19 +44,17 @@ from scipy.spatial.transform import Rotation
 from bench.evaluation.consistency import NEES_BLOCKS, block_nees, run_consistency
 from bench.scenario import NS_PER_S, Scenario
 from bench.scenario.seeding import component_rng
+from bench.sim.flight_build import build_flight_software, handover_estimate, onboard_knowledge
 from bench.sim.truth_tracker import TruthTracker
 from bench.sim.world_builder import SensorSuite, build_sensors, build_terrain, build_world
-from gnc.control import Controller, VehicleParams
-from gnc.estimator import IDX_BA, IDX_R, IDX_V, make_estimator
-from gnc.flight import FlightSoftware, OnboardKnowledge
-from gnc.guidance import PHASE_TERMINAL, make_guidance
-from gnc.messages import ContactMessage, ImageMessage
+from gnc.estimator import IDX_BA, IDX_R, IDX_V
+from gnc.flight import FlightSoftware
+from gnc.guidance import PHASE_TERMINAL
+from gnc.messages import AltimeterMessage, AttitudeMessage, ContactMessage, ImageMessage, ImuMessage
 from gnc.navstate import NavState
 from models.camera import R_BC
-from vision.tracker import Tracker
 from vision.tracks import Tracks
-from models.camera import intrinsics
-from models.lander import LanderConfig, altimeter_position_B, camera_position_B, footpad_positions_B
+from models.lander import LanderConfig, footpad_positions_B
 from models.terrain import Terrain
 from models.world import PhysicsDivergedError, TruthState, World
 
@@ -65,6 +63,30 @@ PHASE_TOUCHDOWN = "touchdown"
 
 FrameSink = Callable[[int, np.ndarray, TruthState, "Tracks | None"], None]
 """Called with (t_ns, frame (H, W) uint8, truth, tracks or None) for every camera frame."""
+
+
+class Recorder(Protocol):
+    """Receives everything the flight software is given, in the order given (``landbench record``).
+
+    The closed loop calls it only to hand over copies-to-be; it never feeds
+    anything back, so a run with a recorder flies exactly as one without.
+
+    Attributes:
+        want_depth: Also render the z-depth image at every camera frame (for
+            truth correspondences later); a second render that the flight
+            software never sees.
+    """
+
+    want_depth: bool
+
+    def message(self, kind: str, msg: ImuMessage | AttitudeMessage | AltimeterMessage | ImageMessage) -> None:
+        """A sensor message (``kind``: imu, attitude, altimeter, image), called just before the flight software gets it."""
+
+    def camera_truth(self, t_ns: int, R_LC: np.ndarray, r_CL_L: np.ndarray, depth: np.ndarray | None) -> None:
+        """The truth camera pose (and depth) at a camera frame, after the frame's message."""
+
+    def control_tick(self, t_ns: int, contact: ContactMessage, truth: TruthState, accel_bias_B: np.ndarray) -> None:
+        """A control tick: the contact message the flight software gets, and the truth at the tick."""
 TRUTH_TRACK_POINTS = 80  # points the truth tracker keeps in view (about the paper tracker's count)
 VEL_RMS_BELOW_M = 100.0  # vel_err_rms_mps is taken below this altitude
 
@@ -82,36 +104,6 @@ class RunResult:
     summary: dict[str, Any]
     telemetry: dict[str, np.ndarray]
     terrain: Terrain = field(repr=False)
-
-
-def onboard_knowledge(scenario: Scenario) -> OnboardKnowledge:
-    """The flight software's knowledge of its vehicle: the nominal lander and camera plus the knowledge errors.
-
-    Never the truth of a campaign case: the nominal lander and camera are
-    ``scenario.knowledge.lander`` / ``.camera`` (pinned by the campaign before
-    it draws), else the scenario's own. The mounts come from the same geometry
-    functions the world's MJCF is built with (one calibration source).
-    """
-    k = scenario.knowledge
-    lander = scenario.nominal_lander()
-    vehicle = VehicleParams(
-        thrust_min_N=lander.engine.thrust_min_N,
-        thrust_max_N=lander.engine.thrust_max_N,
-        rcs_torque_max_Nm=lander.rcs_torque_max_Nm,
-        dry_mass_kg=lander.dry_mass_kg + k.dry_mass_error_kg,
-        dry_inertia_B_kgm2=tuple(float(x) * (1.0 + k.inertia_error_frac) for x in lander.body_inertia_kgm2()),
-        tank_radius_m=lander.tank_radius_m,
-        thrust_scale=1.0 + k.thrust_calibration_error_frac,
-    )
-    return OnboardKnowledge(
-        vehicle=vehicle,
-        wet_mass_kg=lander.wet_mass_kg + k.dry_mass_error_kg + k.propellant_error_kg,
-        isp_s=lander.engine.isp_s,
-        K=intrinsics(scenario.nominal_camera()),
-        R_BC=R_BC,
-        r_cam_B_m=camera_position_B(lander),
-        r_alt_B_m=altimeter_position_B(lander),
-    )
 
 
 def tilt_deg(q_LB: np.ndarray) -> float:
@@ -163,7 +155,8 @@ class _Telemetry:
         return cols
 
 
-def run(scenario: Scenario, frame_sink: FrameSink | None = None, progress: bool = False) -> RunResult:
+def run(scenario: Scenario, frame_sink: FrameSink | None = None, progress: bool = False,
+        recorder: Recorder | None = None) -> RunResult:
     """Fly one landing.
 
     Args:
@@ -171,6 +164,8 @@ def run(scenario: Scenario, frame_sink: FrameSink | None = None, progress: bool 
         frame_sink: Receives every camera frame (for ``camera.mp4``); frames are
             rendered at the camera rate when ``camera.enabled``.
         progress: Show a progress bar over simulated time (on a terminal).
+        recorder: Receives every message given to the flight software (see
+            :class:`Recorder`); it does not change the run.
 
     Returns:
         The summary (keys: ``outcome``, ``landed``, ``touchdown`` {``t_s``,
@@ -185,43 +180,14 @@ def run(scenario: Scenario, frame_sink: FrameSink | None = None, progress: bool 
     sensors = build_sensors(scenario)
     setup_s = time.perf_counter() - t_setup
     try:
-        return _fly(scenario, terrain, world, sensors, frame_sink, progress, setup_s)
+        return _fly(scenario, terrain, world, sensors, frame_sink, progress, setup_s, recorder)
     finally:
         world.close()
 
 
-def handover_estimate(scenario: Scenario, truth: TruthState) -> tuple[np.ndarray, np.ndarray]:
-    """The navigation state handed over at t = 0: the truth plus a draw of the hand-over error.
-
-    The error is drawn with ``estimator.init_*_sigma`` (the filter's own initial
-    covariance, so the hand-over is consistent) from the run's "estimator" stream.
-
-    Returns:
-        (r_BL_L estimate (3,) [m], v_BL_L estimate (3,) [m/s]).
-    """
-    est = scenario.estimator
-    rng = component_rng(scenario.seed, "estimator")
-    r0 = truth.r_BL_L + rng.normal(0.0, est.init_pos_sigma_m, 3)
-    v0 = truth.v_BL_L + rng.normal(0.0, est.init_vel_sigma_mps, 3)
-    return r0, v0
-
-
-def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.ndarray) -> FlightSoftware:
-    """The flight computer of the run: onboard knowledge, configuration and the hand-over estimate.
-
-    Nothing of the truth reaches it but the hand-over estimate passed in.
-    """
-    knowledge = onboard_knowledge(scenario)
-    controller = Controller(scenario.control, knowledge.vehicle)
-    guidance = make_guidance(scenario.guidance, controller.guidance_limits())
-    nav_filter = make_estimator(scenario.estimator, x0_r_L, x0_v_L, 0, altimeter_mount_B_m=knowledge.r_alt_B_m)
-    tracker = Tracker(scenario.tracker) if scenario.tracks == "vision" and scenario.vision == "on" else None
-    return FlightSoftware(guidance, controller, nav_filter, tracker, scenario.vision_nav, scenario.vision == "on",
-                          knowledge)
-
-
 def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuite,
-         frame_sink: FrameSink | None, progress: bool, setup_s: float) -> RunResult:
+         frame_sink: FrameSink | None, progress: bool, setup_s: float,
+         recorder: Recorder | None = None) -> RunResult:
     sim, cam, crit = scenario.sim, scenario.camera, scenario.landing
     dt_ns = sim.physics_dt_ns
     truth_tracks = scenario.vision == "on" and scenario.tracks == "truth"
@@ -271,12 +237,18 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
             t0 = time.perf_counter()
             if t_ns % periods["imu"] == 0:
                 imu_msg = sensors.imu.sample(t_ns, world.specific_force_B(), world.angular_rate_B())
+                if recorder is not None:
+                    recorder.message("imu", imu_msg)
                 fsw.on_imu(imu_msg)
             if t_ns % periods["star_tracker"] == 0:
                 st_msg = sensors.star_tracker.sample(t_ns, truth.q_LB)
+                if recorder is not None:
+                    recorder.message("attitude", st_msg)
                 fsw.on_attitude(st_msg)
             if t_ns % periods["altimeter"] == 0:
                 alt_msg = sensors.altimeter.sample(t_ns, world.altimeter_range_truth())
+                if recorder is not None:
+                    recorder.message("altimeter", alt_msg)
                 fsw.on_altimeter(alt_msg)
             timing["filter_s"] += time.perf_counter() - t0
             if "camera" in periods and t_ns % periods["camera"] == 0:
@@ -291,7 +263,11 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                     tracks = tracker_truth.step(*world.camera_pose())
                     fsw.on_tracks(t_ns, tracks)
                 elif frame is not None:
-                    tracks = fsw.on_image(ImageMessage(t_ns, frame, world.K, R_BC))
+                    image_msg = ImageMessage(t_ns, frame, world.K, R_BC)
+                    if recorder is not None:
+                        recorder.message("image", image_msg)
+                        t0 += _record_camera_truth(recorder, t_ns, world)  # not vision time
+                    tracks = fsw.on_image(image_msg)
                 timing["vision_s"] += time.perf_counter() - t0
                 if frame is not None and frame_sink is not None:
                     frame_sink(t_ns, frame, truth, tracks)
@@ -300,7 +276,10 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                 truth_nav = None
                 if scenario.nav == "truth":
                     truth_nav = NavState(t_ns, truth.r_BL_L, truth.v_BL_L, truth.q_LB, truth.omega_B, fsw.mass_kg)
-                act = fsw.control(t_ns, ContactMessage(t_ns, legs), truth_nav)
+                contact = ContactMessage(t_ns, legs)
+                if recorder is not None:
+                    recorder.control_tick(t_ns, contact, truth, sensors.imu.accel_bias)
+                act = fsw.control(t_ns, contact, truth_nav)
                 tel.rows.append(_row(t_ns, truth, act, fsw.last_guidance, legs, imu_msg, alt_msg, st_msg, thrust_max,
                                      world.propulsion.clamp_thrust(act.thrust_N) * thrust_gain,
                                      PHASE_TOUCHDOWN if touchdown is not None else fsw.last_guidance.phase,
@@ -356,6 +335,14 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
         "error": error,
     }
     return RunResult(summary=summary, telemetry=telemetry, terrain=terrain)
+
+
+def _record_camera_truth(recorder: Recorder, t_ns: int, world: World) -> float:
+    """Hand the truth camera pose (and depth) of this frame to the recorder; returns the seconds it took."""
+    t0 = time.perf_counter()
+    depth = world.render_depth() if recorder.want_depth else None
+    recorder.camera_truth(t_ns, *world.camera_pose(), depth)
+    return time.perf_counter() - t0
 
 
 def _nav_summary(tel: dict[str, np.ndarray], touchdown: dict | None) -> dict[str, Any]:

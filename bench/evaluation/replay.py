@@ -1,0 +1,396 @@
+"""Open-loop replay of recorded descents: did a change to the tracker, vision measurement or filter help?
+
+Inputs: a dataset written by ``landbench record`` (:mod:`bench.evaluation.record`:
+one recording, or a folder of ``seed_NNN`` recordings, each verified against
+its manifest) and ``--set`` overrides of the flight software's ``tracker``,
+``vision_nav`` and ``estimator`` sections only (everything else shaped the
+recorded world and sensors, which a replay cannot change).
+
+What happens: per recording, the flight software is built from the recorded
+(resolved) scenario with the overrides applied, exactly as the closed loop
+builds it (:func:`bench.sim.flight_build.build_flight_software` with the
+hand-over estimate drawn from the seed's "estimator" stream around the
+recorded truth at t = 0), and every recorded message is fed in recorded order
+to the same :class:`~gnc.flight.FlightSoftware` methods (``on_imu``,
+``on_attitude``, ``on_altimeter``, ``on_image``, and ``control`` at the control
+ticks, with the recorded contact flags, so the flight software's mass gauge
+and guidance state advance as in flight). No MuJoCo, no rendering: this
+module does not import the simulator. The vehicle does not respond: the
+commands are computed and dropped (open loop).
+
+Outputs (:func:`write_replay`):
+    ``DIR/metrics.json``: per sequence and over the dataset, against the
+        recorded truth: navigation (velocity error RMS, horizontal velocity
+        error at the vision cut-off, position error at the end, gate rejections
+        and mean NIS per sensor) and vision (tracks per frame, tracker and
+        vision ms per frame, measurements), and whether the replayed estimates
+        equal the recorded ones bit for bit.
+    ``DIR/frames.parquet``: per camera frame: seed, t, tracks, tracker ms,
+        measurement formed / accepted / rejected, its NIS.
+    ``DIR/nav.parquet``: per control tick: seed, t and the replayed ``nav_*``
+        telemetry columns (as the closed loop names them).
+
+With no overrides the replayed ``nav_*`` columns equal the recording's
+telemetry bit for bit (``identical_to_recording``), on the machine and
+library versions that recorded it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+
+from bench.evaluation.consistency import NEES_BLOCKS, block_nees
+from bench.evaluation.record import KINDS, Recording, find_recordings, open_recording, recorded_scenario, verify_recording
+from bench.report.io import atomic_write_text, json_safe
+from bench.scenario import NS_PER_S, Scenario, ScenarioError
+from bench.sim.flight_build import build_flight_software, handover_estimate
+from gnc.estimator import IDX_BA, IDX_R, IDX_V, KIND_ALTIMETER, KIND_VELOCITY, KIND_VISION
+from gnc.messages import AltimeterMessage, AttitudeMessage, ContactMessage, ImageMessage, ImuMessage
+from gnc.navstate import NavState
+
+REPLAYABLE_SECTIONS = ("tracker", "vision_nav", "estimator")
+METRICS = "metrics.json"
+FRAMES = "frames.parquet"
+NAV = "nav.parquet"
+VEL_RMS_BELOW_M = 100.0  # as the closed loop's vel_err_rms_mps
+UPDATE_KINDS = (KIND_ALTIMETER, KIND_VELOCITY, KIND_VISION)
+NAV_COLUMNS = (
+    "nav_r_x_m", "nav_r_y_m", "nav_r_z_m", "nav_v_x_mps", "nav_v_y_mps", "nav_v_z_mps",
+    "nav_err_r_x_m", "nav_err_r_y_m", "nav_err_r_z_m", "nav_err_v_x_mps", "nav_err_v_y_mps", "nav_err_v_z_mps",
+    "nav_sigma_r_x_m", "nav_sigma_r_y_m", "nav_sigma_r_z_m",
+    "nav_sigma_v_x_mps", "nav_sigma_v_y_mps", "nav_sigma_v_z_mps",
+    "nav_err_ba_x_mps2", "nav_err_ba_y_mps2", "nav_err_ba_z_mps2",
+    *(f"nees_{block}" for block in NEES_BLOCKS), "fsw_mass_kg",
+    "vision_tracks", "vision_measurements", "vision_rejected", "vision_v_x_mps", "vision_v_y_mps",
+)
+"""The closed loop's telemetry columns that come from the flight software (bench.sim.run._row, same order)."""
+_INT_COLUMNS = ("vision_tracks", "vision_measurements", "vision_rejected")
+_IMU, _ATTITUDE, _ALTIMETER, _IMAGE, _CONTROL = (KINDS.index(k) for k in ("imu", "attitude", "altimeter", "image",
+                                                                            "control"))
+
+
+def check_overrides(overrides: list[str] | tuple[str, ...]) -> None:
+    """Refuse any ``--set`` outside the replayable sections, with one line saying why."""
+    for assignment in overrides:
+        key = assignment.partition("=")[0].strip()
+        section = key.split(".", 1)[0].strip().strip('"').strip("'")
+        if section not in REPLAYABLE_SECTIONS:
+            raise ValueError(
+                f"--set {assignment!r}: a replay may change only the flight software's "
+                f"{', '.join(REPLAYABLE_SECTIONS)} sections; '{section}' shaped the recorded world, sensors or "
+                "vehicle, which a replay cannot change (record again with it instead)")
+
+
+@dataclass
+class SequenceReplay:
+    """What one recording's replay produced."""
+
+    seed: int
+    path: Path
+    metrics: dict[str, Any]
+    frames: dict[str, np.ndarray]
+    nav: dict[str, np.ndarray]
+
+
+class _Timed:
+    """Wraps the tracker's ``step`` to time it; the result is passed through untouched."""
+
+    def __init__(self, step):
+        self.step = step
+        self.last_s = 0.0
+
+    def __call__(self, *args, **kwargs):
+        t0 = time.perf_counter()
+        try:
+            return self.step(*args, **kwargs)
+        finally:
+            self.last_s = time.perf_counter() - t0
+
+
+def _vec(cols: dict[str, np.ndarray], names: tuple[str, ...], i: int) -> np.ndarray:
+    return np.array([cols[n][i] for n in names])
+
+
+_R = ("r_x_m", "r_y_m", "r_z_m")
+_V = ("v_x_mps", "v_y_mps", "v_z_mps")
+_Q = ("q_w", "q_x", "q_y", "q_z")
+_W = ("omega_x_radps", "omega_y_radps", "omega_z_radps")
+_BA = ("accel_bias_x_mps2", "accel_bias_y_mps2", "accel_bias_z_mps2")
+
+
+def replay_recording(rec: Recording, scenario: Scenario) -> SequenceReplay:
+    """Feed one recording's messages to a flight software built from ``scenario``; score it against the truth."""
+    truth = rec.truth
+    if int(truth["t_ns"][0]) != 0:
+        raise ValueError(f"recording {str(rec.path)!r}: its truth does not start at t = 0")
+    truth0 = SimpleNamespace(r_BL_L=_vec(truth, _R, 0), v_BL_L=_vec(truth, _V, 0))
+    fsw = build_flight_software(scenario, *handover_estimate(scenario, truth0))
+    timer = None
+    if fsw.tracker is not None:
+        timer = _Timed(fsw.tracker.step)
+        fsw.tracker.step = timer  # an instance attribute: times the call, changes nothing
+
+    s = rec.sensors
+    imu_t, imu_f, imu_w = s["imu_t_ns"].tolist(), s["imu_f_B"], s["imu_omega_B"]
+    att_t, att_q = s["attitude_t_ns"].tolist(), s["attitude_q_LB"]
+    alt_t, alt_r, alt_ok, alt_b = (s["altimeter_t_ns"].tolist(), s["altimeter_range_m"].tolist(),
+                                   s["altimeter_valid"].tolist(), s["altimeter_boresight_B"])
+    ctl_t, ctl_legs = s["control_t_ns"].tolist(), s["control_legs"]
+    frame_t = rec.frames_t_ns.tolist()
+    truth_nav = scenario.nav == "truth"
+
+    nav_rows: list[tuple] = []
+    fr: dict[str, list] = {k: [] for k in ("t_ns", "vision_active", "tracks", "tracker_ms", "vision_ms",
+                                            "measurement", "accepted", "rejected", "nis")}
+    codes, _, index = rec.events
+    wall0 = time.perf_counter()
+    for kind, i in zip(codes.tolist(), index.tolist(), strict=True):
+        if kind == _IMU:
+            fsw.on_imu(ImuMessage(imu_t[i], imu_f[i], imu_w[i]))
+        elif kind == _ATTITUDE:
+            fsw.on_attitude(AttitudeMessage(att_t[i], att_q[i]))
+        elif kind == _ALTIMETER:
+            fsw.on_altimeter(AltimeterMessage(alt_t[i], alt_r[i], alt_ok[i], alt_b[i]))
+        elif kind == _IMAGE:
+            v = fsw.vision
+            n_meas, n_rej, active = v.measurements, v.rejected, fsw.vision_active()
+            if timer is not None:
+                timer.last_s = math.nan
+            t0 = time.perf_counter()
+            tracks = fsw.on_image(ImageMessage(frame_t[i], rec.frames[i], rec.K, rec.R_BC))
+            vision_s = time.perf_counter() - t0
+            measured = v.measurements > n_meas
+            fr["t_ns"].append(frame_t[i])
+            fr["vision_active"].append(active)
+            fr["tracks"].append(len(tracks) if tracks is not None else 0)
+            fr["tracker_ms"].append(timer.last_s * 1e3 if timer is not None and tracks is not None else math.nan)
+            fr["vision_ms"].append(vision_s * 1e3)
+            fr["measurement"].append(measured)
+            fr["rejected"].append(v.rejected > n_rej)
+            fr["accepted"].append(measured and v.rejected == n_rej)
+            fr["nis"].append(float(v.last_record.nis) if measured and v.last_record is not None else math.nan)
+        elif kind == _CONTROL:
+            t_ns = ctl_t[i]
+            nav = None
+            if truth_nav:
+                nav = NavState(t_ns, _vec(truth, _R, i), _vec(truth, _V, i), _vec(truth, _Q, i),
+                               _vec(truth, _W, i), fsw.mass_kg)
+            fsw.control(t_ns, ContactMessage(t_ns, ctl_legs[i]), nav)
+            nav_rows.append(_nav_row(fsw, _vec(truth, _R, i), _vec(truth, _V, i), _vec(truth, _BA, i)))
+        else:  # pragma: no cover - open_recording checks the kinds
+            raise ValueError(f"unknown event kind {kind}")
+    wall_s = time.perf_counter() - wall0
+
+    if len(nav_rows) != len(truth["t_ns"]):
+        raise ValueError(f"recording {str(rec.path)!r}: {len(nav_rows)} control events but {len(truth['t_ns'])} "
+                         "truth rows")
+    nav = {name: np.array(col) for name, col in zip(NAV_COLUMNS, zip(*nav_rows, strict=True), strict=True)}
+    for name in _INT_COLUMNS:
+        nav[name] = nav[name].astype(np.int64)
+    nav = {"t_ns": np.asarray(truth["t_ns"], np.int64), **nav}
+    frames = {k: np.array(v) for k, v in fr.items()}
+    frames["t_ns"] = frames["t_ns"].astype(np.int64)
+    for k in ("vision_active", "measurement", "accepted", "rejected"):
+        frames[k] = frames[k].astype(bool)
+    frames["tracks"] = frames["tracks"].astype(np.int64)
+    for k in ("tracker_ms", "vision_ms", "nis"):
+        frames[k] = frames[k].astype(float)
+    metrics = _sequence_metrics(rec, scenario, fsw, nav, frames, wall_s)
+    return SequenceReplay(seed=rec.seed, path=rec.path, metrics=metrics, frames=frames, nav=nav)
+
+
+def _nav_row(fsw, r_true: np.ndarray, v_true: np.ndarray, ba_true: np.ndarray) -> tuple:
+    """The flight-software columns of one telemetry row, computed exactly as ``bench.sim.run._row`` does."""
+    x, P = fsw.filter.ekf.x, fsw.filter.ekf.P
+    e = np.concatenate([x[IDX_R] - r_true, x[IDX_V] - v_true, x[IDX_BA] - ba_true])
+    sig = np.sqrt(np.diag(P)[:6])
+    vm = fsw.vision.last
+    return (
+        *x[IDX_R], *x[IDX_V], *e[:6], *sig, *e[6:9], *block_nees(e, P), fsw.mass_kg,
+        len(fsw.vision.last_tracks) if fsw.vision.last_tracks is not None else 0,
+        fsw.vision.measurements, fsw.vision.rejected,
+        *(vm.v_L if vm is not None else (math.nan,) * 2),
+    )
+
+
+def differing_columns(replayed: dict[str, np.ndarray], recorded: dict[str, np.ndarray]) -> list[str]:
+    """The ``nav_*`` columns whose bits differ between the replay and the recorded telemetry."""
+    out = []
+    for name in NAV_COLUMNS:
+        a, b = replayed[name], recorded.get(name)
+        if b is None or a.shape != b.shape or a.astype(b.dtype).tobytes() != b.tobytes():
+            out.append(name)
+    return out
+
+
+def _f(x: Any) -> float | None:
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _sequence_metrics(rec: Recording, scenario: Scenario, fsw, nav: dict[str, np.ndarray],
+                      frames: dict[str, np.ndarray], wall_s: float) -> dict[str, Any]:
+    truth = rec.truth
+    t = truth["t_s"]
+    td = (rec.summary.get("touchdown") or {}).get("t_s")
+    flying = t < td if td is not None else np.ones(t.size, bool)
+    if not flying.any():
+        flying[0] = True
+    e_r = np.column_stack([nav[f"nav_err_r_{a}_m"] for a in "xyz"])
+    e_v = np.column_stack([nav[f"nav_err_v_{a}_mps"] for a in "xyz"])
+    k_end = int(np.flatnonzero(flying)[-1])
+    low = flying & (truth["r_z_m"] < VEL_RMS_BELOW_M)
+    cutoff_m = recorded_scenario(rec.scenario_toml).vision_nav.cutoff_altitude_m  # the recording's, so settings compare
+    below = np.flatnonzero(flying & (truth["r_z_m"] <= cutoff_m))
+    k_cut = int(below[0]) if below.size else None
+
+    updates: dict[str, Any] = {}
+    for kind in UPDATE_KINDS:
+        recs = [r for r in fsw.filter.log if r.kind == kind]
+        nis = np.array([r.nis for r in recs if math.isfinite(r.nis)])
+        dof = np.array([r.z.size for r in recs if math.isfinite(r.nis)])
+        updates[kind] = {
+            "updates": len(recs),
+            "accepted": sum(r.accepted for r in recs),
+            "gate_rejections": sum(r.reason == "gate" for r in recs),
+            "other_rejections": sum((not r.accepted) and r.reason != "gate" for r in recs),
+            "nis_mean": _f(nis.mean()) if nis.size else None,
+            "nis_per_dof_mean": _f((nis / dof).mean()) if nis.size else None,
+        }
+    tracked = frames["tracker_ms"][np.isfinite(frames["tracker_ms"])]
+    counts = frames["tracks"][np.isfinite(frames["tracker_ms"])]
+    differing = differing_columns(nav, rec.telemetry)
+    sim_s = float(t[-1] - t[0]) if t.size else 0.0
+    return {
+        "seed": rec.seed,
+        "recording": str(rec.path),
+        "control_ticks": int(t.size),
+        "touchdown_t_s": td,
+        "navigation": {
+            "vel_err_rms_mps": _f(np.sqrt(np.mean(np.sum(e_v[flying] ** 2, axis=1)))),
+            "vel_err_rms_below_100m_mps": (_f(np.sqrt(np.mean(np.sum(e_v[low] ** 2, axis=1)))) if low.any()
+                                           else None),
+            "vision_cutoff_altitude_m": cutoff_m,
+            "vel_err_horizontal_at_cutoff_mps": _f(np.hypot(*e_v[k_cut, :2])) if k_cut is not None else None,
+            "pos_err_end_m": _f(np.linalg.norm(e_r[k_end])),
+            "pos_err_end_horizontal_m": _f(np.hypot(*e_r[k_end, :2])),
+            "vel_err_end_mps": _f(np.linalg.norm(e_v[k_end])),
+            "end_t_s": float(t[k_end]),
+            "updates": updates,
+        },
+        "vision": {
+            "frames": int(frames["t_ns"].size),
+            "frames_tracked": int(tracked.size),
+            "tracks_per_frame_mean": _f(counts.mean()) if counts.size else None,
+            "tracks_per_frame_median": _f(np.median(counts)) if counts.size else None,
+            "tracker_ms_per_frame_mean": _f(tracked.mean()) if tracked.size else None,
+            "tracker_ms_per_frame_median": _f(np.median(tracked)) if tracked.size else None,
+            "vision_ms_per_frame_mean": _f(frames["vision_ms"].mean()) if frames["vision_ms"].size else None,
+            "measurements": fsw.vision.measurements,
+            "rejected": fsw.vision.rejected,
+            "unusable_pairs": fsw.vision.unusable,
+        },
+        "replay_wall_s": wall_s,
+        "replay_realtime_factor": sim_s / wall_s if wall_s > 0 else None,
+        "identical_to_recording": not differing,
+        "differing_nav_columns": differing,
+    }
+
+
+def _scalars(d: dict[str, Any], prefix: str = "") -> dict[str, float]:
+    out: dict[str, float] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_scalars(v, f"{prefix}{k}."))
+        elif isinstance(v, (int, float)) and not isinstance(v, bool) and k != "seed":
+            out[prefix + k] = float(v)
+    return out
+
+
+def dataset_metrics(seqs: list[SequenceReplay]) -> dict[str, Any]:
+    """Over the dataset: the mean of every per-sequence figure (sequences where it is defined) and the sums of counts."""
+    flat = [_scalars({"navigation": s.metrics["navigation"], "vision": s.metrics["vision"]}) for s in seqs]
+    keys = sorted({k for f in flat for k in f})
+    mean = {k: float(np.mean([f[k] for f in flat if k in f])) for k in keys}
+    sums = {k: float(sum(f.get(k, 0.0) for f in flat)) for k in keys
+            if k.rsplit(".", 1)[-1] in ("updates", "accepted", "gate_rejections", "other_rejections", "frames",
+                                       "frames_tracked", "measurements", "rejected", "unusable_pairs")}
+    return {"sequences": len(seqs), "mean": mean, "sum": sums,
+            "identical_to_recording": all(s.metrics["identical_to_recording"] for s in seqs),
+            "replay_wall_s": float(sum(s.metrics["replay_wall_s"] for s in seqs))}
+
+
+def prepare_replay(dataset: Path, overrides: list[str] | tuple[str, ...]) -> list[tuple[Path, Scenario]]:
+    """Check everything before anything runs: the overrides, every recording's manifest and checksums, the scenarios."""
+    check_overrides(overrides)
+    paths = find_recordings(dataset)
+    out = []
+    for p in paths:
+        manifest = verify_recording(p)
+        try:
+            out.append((p, recorded_scenario(manifest["scenario_toml"], overrides)))
+        except ScenarioError as exc:
+            raise ScenarioError(f"recording {str(p)!r}: {exc}") from None
+    return out
+
+
+def replay_dataset(dataset: Path, overrides: list[str] | tuple[str, ...] = ()) -> tuple[list[SequenceReplay], dict]:
+    """Replay every recording of ``dataset`` with ``overrides``; returns (per sequence, the metrics document)."""
+    prepared = prepare_replay(dataset, overrides)
+    seqs = [replay_recording(open_recording(p), scenario) for p, scenario in prepared]
+    doc = {
+        "dataset": str(dataset),
+        "overrides": list(overrides),
+        "sequences": [s.metrics for s in seqs],
+        "dataset_metrics": dataset_metrics(seqs),
+    }
+    return seqs, json_safe(doc)
+
+
+def write_replay(seqs: list[SequenceReplay], doc: dict[str, Any], out: Path) -> dict[str, Path]:
+    """Write ``metrics.json``, ``frames.parquet`` and ``nav.parquet`` into ``out`` (each atomically)."""
+    from bench.report.report import write_telemetry_parquet
+
+    def joined(part: str) -> dict[str, np.ndarray]:
+        cols: dict[str, list[np.ndarray]] = {}
+        for s in seqs:
+            table = getattr(s, part)
+            t_ns = table["t_ns"]
+            cols.setdefault("seed", []).append(np.full(t_ns.size, s.seed, np.int64))
+            cols.setdefault("t_s", []).append(t_ns / NS_PER_S)
+            for k, v in table.items():
+                cols.setdefault(k, []).append(v)
+        return {k: np.concatenate(v) for k, v in cols.items()}
+
+    written = {"metrics": out / METRICS}
+    frames = joined("frames")
+    if frames["t_s"].size:
+        written["frames"] = write_telemetry_parquet(frames, out / FRAMES)
+    written["nav"] = write_telemetry_parquet(joined("nav"), out / NAV)
+    atomic_write_text(out / METRICS, json.dumps(doc, indent=2) + "\n")
+    return written
+
+
+def format_replay(doc: dict[str, Any]) -> str:
+    """A short terminal table of a replay."""
+    lines = [f"{'seed':>6} {'vel rms':>9} {'v_h@cut':>9} {'pos end':>9} {'trk/frm':>8} {'ms/frm':>7} "
+             f"{'vis rej':>8} {'identical':>9}"]
+
+    def fmt(x: Any, spec: str = "9.3f") -> str:
+        return format(x, spec) if isinstance(x, (int, float)) else format("-", ">" + spec.split(".")[0])
+
+    for m in doc["sequences"]:
+        n, v = m["navigation"], m["vision"]
+        lines.append(f"{m['seed']:>6} {fmt(n['vel_err_rms_mps'])} {fmt(n['vel_err_horizontal_at_cutoff_mps'])} "
+                     f"{fmt(n['pos_err_end_m'])} {fmt(v['tracks_per_frame_mean'], '8.1f')} "
+                     f"{fmt(v['tracker_ms_per_frame_mean'], '7.2f')} "
+                     f"{n['updates'][KIND_VISION]['gate_rejections']:>8} {str(m['identical_to_recording']):>9}")
+    return "\n".join(lines)

@@ -1,0 +1,93 @@
+"""Building the flight software of a landing, free of the simulator.
+
+Inputs: a :class:`~bench.scenario.Scenario` (its onboard knowledge and the
+``estimator``, ``tracker``, ``vision_nav``, ``guidance`` and ``control``
+sections) and, for the hand-over, the truth position and velocity at t = 0.
+Outputs: the :class:`~gnc.flight.FlightSoftware` of the run, exactly as the
+closed loop (:mod:`bench.sim.run`) builds it.
+
+This module imports neither MuJoCo nor the world, so an open-loop replay of a
+recorded descent (:mod:`bench.evaluation.replay`) builds the very same flight
+software without the simulator. :mod:`bench.sim.run` re-exports these names.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from bench.scenario import Scenario
+from bench.scenario.seeding import component_rng
+from gnc.control import Controller, VehicleParams
+from gnc.estimator import make_estimator
+from gnc.flight import FlightSoftware, OnboardKnowledge
+from gnc.guidance import make_guidance
+from models.camera import R_BC, intrinsics
+from models.lander import altimeter_position_B, camera_position_B
+from vision.tracker import Tracker
+
+
+def onboard_knowledge(scenario: Scenario) -> OnboardKnowledge:
+    """The flight software's knowledge of its vehicle: the nominal lander and camera plus the knowledge errors.
+
+    Never the truth of a campaign case: the nominal lander and camera are
+    ``scenario.knowledge.lander`` / ``.camera`` (pinned by the campaign before
+    it draws), else the scenario's own. The mounts come from the same geometry
+    functions the world's MJCF is built with (one calibration source).
+    """
+    k = scenario.knowledge
+    lander = scenario.nominal_lander()
+    vehicle = VehicleParams(
+        thrust_min_N=lander.engine.thrust_min_N,
+        thrust_max_N=lander.engine.thrust_max_N,
+        rcs_torque_max_Nm=lander.rcs_torque_max_Nm,
+        dry_mass_kg=lander.dry_mass_kg + k.dry_mass_error_kg,
+        dry_inertia_B_kgm2=tuple(float(x) * (1.0 + k.inertia_error_frac) for x in lander.body_inertia_kgm2()),
+        tank_radius_m=lander.tank_radius_m,
+        thrust_scale=1.0 + k.thrust_calibration_error_frac,
+    )
+    return OnboardKnowledge(
+        vehicle=vehicle,
+        wet_mass_kg=lander.wet_mass_kg + k.dry_mass_error_kg + k.propellant_error_kg,
+        isp_s=lander.engine.isp_s,
+        K=intrinsics(scenario.nominal_camera()),
+        R_BC=R_BC,
+        r_cam_B_m=camera_position_B(lander),
+        r_alt_B_m=altimeter_position_B(lander),
+    )
+
+
+def handover_estimate(scenario: Scenario, truth: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The navigation state handed over at t = 0: the truth plus a draw of the hand-over error.
+
+    The error is drawn with ``estimator.init_*_sigma`` (the filter's own initial
+    covariance, so the hand-over is consistent) from the run's "estimator" stream.
+
+    Args:
+        scenario: The scenario (seed and estimator section).
+        truth: The truth at t = 0: anything with ``r_BL_L`` and ``v_BL_L`` (3,)
+            (a :class:`models.world.TruthState`, or a recorded one).
+
+    Returns:
+        (r_BL_L estimate (3,) [m], v_BL_L estimate (3,) [m/s]).
+    """
+    est = scenario.estimator
+    rng = component_rng(scenario.seed, "estimator")
+    r0 = truth.r_BL_L + rng.normal(0.0, est.init_pos_sigma_m, 3)
+    v0 = truth.v_BL_L + rng.normal(0.0, est.init_vel_sigma_mps, 3)
+    return r0, v0
+
+
+def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.ndarray) -> FlightSoftware:
+    """The flight computer of the run: onboard knowledge, configuration and the hand-over estimate.
+
+    Nothing of the truth reaches it but the hand-over estimate passed in.
+    """
+    knowledge = onboard_knowledge(scenario)
+    controller = Controller(scenario.control, knowledge.vehicle)
+    guidance = make_guidance(scenario.guidance, controller.guidance_limits())
+    nav_filter = make_estimator(scenario.estimator, x0_r_L, x0_v_L, 0, altimeter_mount_B_m=knowledge.r_alt_B_m)
+    tracker = Tracker(scenario.tracker) if scenario.tracks == "vision" and scenario.vision == "on" else None
+    return FlightSoftware(guidance, controller, nav_filter, tracker, scenario.vision_nav, scenario.vision == "on",
+                          knowledge)

@@ -14,8 +14,9 @@ recorded truth at t = 0), and every recorded message is fed in recorded order
 to the same :class:`~gnc.flight.FlightSoftware` methods (``on_imu``,
 ``on_attitude``, ``on_altimeter``, ``on_image``, and ``control`` at the control
 ticks, with the recorded contact flags, so the flight software's mass gauge
-and guidance state advance as in flight). No MuJoCo, no rendering: this
-module does not import the simulator. The vehicle does not respond: the
+and guidance state advance as in flight). No MuJoCo model is built, stepped
+or rendered (the simulator's modules are imported only because the scenario
+schema names the world's settings). The vehicle does not respond: the
 commands are computed and dropped (open loop).
 
 Outputs (:func:`write_replay`):

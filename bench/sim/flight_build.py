@@ -6,7 +6,7 @@ sections) and, for the hand-over, the truth position and velocity at t = 0.
 Outputs: the :class:`~gnc.flight.FlightSoftware` of the run, exactly as the
 closed loop (:mod:`bench.sim.run`) builds it.
 
-This module imports neither MuJoCo nor the world, so an open-loop replay of a
+Nothing here builds, steps or renders a world, so an open-loop replay of a
 recorded descent (:mod:`bench.evaluation.replay`) builds the very same flight
 software without the simulator. :mod:`bench.sim.run` re-exports these names.
 """

@@ -1,0 +1,188 @@
+"""Recorded descents and open-loop replay (``landbench record`` / ``landbench replay``).
+
+One short descent (150 m, 6 s, camera + tracker + filter in the loop) is
+recorded once per module; every test replays or inspects that recording.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from bench.cli import main
+from bench.evaluation import record as rec_mod
+from bench.evaluation.record import MANIFEST, open_recording, parse_seeds
+from bench.evaluation.replay import NAV_COLUMNS, replay_dataset
+from bench.report.io import json_safe
+from bench.report.report import read_telemetry_parquet
+from bench.scenario import load_scenario
+from bench.sim.run import run
+
+SEGMENT = ["initial.r_BL_L_m=[20.0,-10.0,150.0]", "initial.v_BL_L_mps=[1.0,-1.0,-6.0]", "sim.t_max_ns=6_000_000_000"]
+SEED = 1
+WALL_CLOCK_KEYS = ("wall_time_s", "setup_time_s", "realtime_factor", "time_split_s")
+
+
+def _sets(assignments: list[str]) -> list[str]:
+    return [a for s in assignments for a in ("--set", s)]
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    ds = tmp_path_factory.mktemp("rr") / "ds"
+    # --depth: the second (depth) render must not disturb the run either.
+    assert main(["record", *_sets(SEGMENT), "--seeds", str(SEED), "--out", str(ds), "--depth"]) == 0
+    return ds
+
+
+@pytest.fixture(scope="module")
+def seq(dataset) -> Path:
+    return dataset / f"seed_{SEED:03d}"
+
+
+def _copy(seq: Path, tmp_path: Path) -> Path:
+    dst = tmp_path / "ds" / seq.name
+    shutil.copytree(seq, dst)
+    return dst
+
+
+def _assert_refused(capsys, argv: list[str], out: Path, needle: str) -> None:
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("landbench: error:") and "\n" not in err, err
+    assert needle in err, err
+    assert not out.exists()
+
+
+# --------------------------------------------------------------------------- recording
+def test_parse_seeds():
+    assert parse_seeds("1-3") == [1, 2, 3]
+    assert parse_seeds("1,4,7") == [1, 4, 7]
+    assert parse_seeds("0-1,5") == [0, 1, 5]
+    for bad in ("", "a", "3-1", "1,1", "-2", "1-2-3"):
+        with pytest.raises(ValueError, match="--seeds"):
+            parse_seeds(bad)
+
+
+def test_recording_does_not_change_the_run(seq):
+    # The same descent without a recorder: telemetry and summary identical to the recorded ones, bit for bit.
+    plain = run(load_scenario(None, [*SEGMENT, f"seed={SEED}"]))
+    recorded = read_telemetry_parquet(seq / "telemetry.parquet")
+    assert plain.telemetry.keys() == recorded.keys()
+    for k, col in plain.telemetry.items():
+        assert col.dtype == recorded[k].dtype and col.tobytes() == recorded[k].tobytes(), k
+    summary = json.loads(json.dumps(json_safe(plain.summary)))
+    rec_summary = json.loads((seq / "summary.json").read_text())
+    for k in WALL_CLOCK_KEYS:
+        summary.pop(k), rec_summary.pop(k)
+    assert summary == rec_summary
+
+
+def test_dataset_layout(seq):
+    manifest = json.loads((seq / MANIFEST).read_text())
+    assert manifest["format"] == "landbench-recording" and manifest["format_version"] == 1
+    assert manifest["seed"] == SEED and "[initial]" in manifest["scenario_toml"]
+    assert set(manifest["packages"]) >= {"numpy", "mujoco", "opencv", "filterpy"}
+    assert set(manifest["files"]) == set(rec_mod.REQUIRED_FILES)
+    for name, entry in manifest["files"].items():
+        assert rec_mod.sha256_file(seq / name) == entry["sha256"]
+    r = open_recording(seq)
+    kinds = pq.read_table(seq / "messages.parquet").column("kind").to_pylist()
+    counts = {k: kinds.count(k) for k in rec_mod.KINDS}
+    assert counts == {k: manifest["counts"][k] for k in rec_mod.KINDS}
+    assert counts["image"] == 61 and counts["control"] == 301  # 10 Hz camera, 50 Hz control over 6 s
+    assert r.frames.dtype == np.uint8 and r.frames.shape == (61, 256, 256)
+    assert r.camera["R_LC"].shape == (61, 3, 3) and r.camera["depth"].shape == (61, 256, 256)
+    assert np.all(np.diff(r.events[1]) >= 0)  # the events are in time order
+    assert r.truth["t_ns"].tolist() == r.sensors["control_t_ns"].tolist()
+    np.testing.assert_array_equal(r.truth["r_z_m"], r.telemetry["r_z_m"])
+
+
+def test_record_refuses_truth_tracks_and_bad_seeds(tmp_path, capsys):
+    out = tmp_path / "ds"
+    _assert_refused(capsys, ["record", "--set", "tracks=truth", "--seeds", "1", "--out", str(out)], out, "truth")
+    _assert_refused(capsys, ["record", "--seeds", "3-1", "--out", str(out)], out, "--seeds")
+
+
+# --------------------------------------------------------------------------- replay
+def test_replay_reproduces_the_recorded_estimates_bit_for_bit(dataset, tmp_path):
+    out = tmp_path / "replay"
+    assert main(["replay", str(dataset), "--out", str(out)]) == 0
+    recorded = read_telemetry_parquet(dataset / f"seed_{SEED:03d}" / "telemetry.parquet")
+    nav = read_telemetry_parquet(out / "nav.parquet")
+    assert nav["t_s"].tobytes() == recorded["t_s"].tobytes()
+    for k in NAV_COLUMNS:
+        assert nav[k].dtype == recorded[k].dtype and nav[k].tobytes() == recorded[k].tobytes(), k
+    metrics = json.loads((out / "metrics.json").read_text())
+    (m,) = metrics["sequences"]
+    assert m["identical_to_recording"] and metrics["dataset_metrics"]["identical_to_recording"]
+    assert m["navigation"]["updates"]["vision"]["accepted"] >= 50  # vision was in the replayed loop
+    assert m["vision"]["tracks_per_frame_mean"] > 20
+    frames = read_telemetry_parquet(out / "frames.parquet")
+    assert frames["t_s"].size == 61 and frames["measurement"].sum() == m["vision"]["measurements"]
+
+
+def test_a_changed_estimator_setting_changes_the_replayed_estimates(dataset):
+    seqs, doc = replay_dataset(dataset, ["estimator.accel_noise_density=0.01"])
+    (m,) = doc["sequences"]
+    assert not m["identical_to_recording"]
+    assert {"nav_v_x_mps", "nav_r_x_m", "nav_sigma_v_x_mps"} <= set(m["differing_nav_columns"])
+    recorded = open_recording(dataset / f"seed_{SEED:03d}").telemetry
+    assert not np.array_equal(seqs[0].nav["nav_sigma_v_x_mps"], recorded["nav_sigma_v_x_mps"])
+
+
+def test_a_changed_tracker_setting_changes_the_tracks(dataset):
+    _, base = replay_dataset(dataset)
+    _, fewer = replay_dataset(dataset, ["tracker.n_templates=2"])
+    n_base = base["sequences"][0]["vision"]["tracks_per_frame_mean"]
+    assert fewer["sequences"][0]["vision"]["tracks_per_frame_mean"] < n_base
+    assert not fewer["sequences"][0]["identical_to_recording"]
+
+
+def test_a_tampered_file_is_refused(seq, tmp_path, capsys):
+    copy = _copy(seq, tmp_path)
+    data = bytearray((copy / "sensors.npz").read_bytes())
+    data[len(data) // 2] ^= 0x01
+    (copy / "sensors.npz").write_bytes(bytes(data))
+    out = tmp_path / "replay"
+    _assert_refused(capsys, ["replay", str(copy.parent), "--out", str(out)], out, "sensors.npz does not match")
+
+
+def test_an_unknown_format_version_is_refused(seq, tmp_path, capsys):
+    copy = _copy(seq, tmp_path)
+    manifest = json.loads((copy / MANIFEST).read_text())
+    manifest["format_version"] = 99
+    (copy / MANIFEST).write_text(json.dumps(manifest))
+    out = tmp_path / "replay"
+    _assert_refused(capsys, ["replay", str(copy), "--out", str(out)], out, "format version 99 is unknown")
+
+
+@pytest.mark.parametrize("assignment", ["sensors.imu.accel_noise_density=0.01", "seed=2", "camera.width_px=128",
+                                        "guidance.law=\"zem\""])
+def test_a_forbidden_override_is_refused(dataset, tmp_path, capsys, assignment):
+    out = tmp_path / "replay"
+    _assert_refused(capsys, ["replay", str(dataset), "--set", assignment, "--out", str(out)], out,
+                    "may change only the flight software's tracker, vision_nav, estimator")
+
+
+def test_a_bad_override_value_is_refused(dataset, tmp_path, capsys):
+    out = tmp_path / "replay"
+    _assert_refused(capsys, ["replay", str(dataset), "--set", "estimator.gate_prob=2.0", "--out", str(out)], out,
+                    "gate_prob")
+
+
+def test_replay_builds_no_model_and_renders_nothing(dataset, monkeypatch):
+    import mujoco
+
+    def forbidden(*_a, **_k):
+        raise AssertionError("the replay touched MuJoCo")
+
+    for name in ("MjModel", "MjData", "Renderer", "mj_step", "mj_forward"):
+        monkeypatch.setattr(mujoco, name, forbidden)
+    _, doc = replay_dataset(dataset)
+    assert doc["dataset_metrics"]["identical_to_recording"]

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-import bench.sim.run as bench_run
+import bench.sim.flight_build as flight_build
 from bench.sim.run import run
 from bench.scenario import load_scenario
 from vision.tracker import Tracker
@@ -109,7 +109,7 @@ def _rejections_in_burst(tel) -> tuple[int, int]:
 
 
 def test_gating_rejects_wrong_and_missing_vision_and_the_run_still_lands(monkeypatch, default_nav_run):
-    monkeypatch.setattr(bench_run, "Tracker", _FaultyTracker)
+    monkeypatch.setattr(flight_build, "Tracker", _FaultyTracker)  # the flight software builds its tracker there
     result = run(load_scenario())
     s = result.summary
     _meets_criteria(s)

@@ -167,12 +167,13 @@ IDX_BF = slice(17, 19)  # slowly varying bias of the vision flow measurement
 IDX_G = 19  # mean height of the ground the camera tracks, relative to the target's elevation
 IDX_S = slice(20, 22)  # slope of the terrain at the altimeter footprint, (dh/dx, dh/dy) [-]
 IDX_SV = slice(22, 24)  # slope of the ground the camera tracks, (dh/dx, dh/dy) [-]
-_IDX_TERRAIN = np.array([IDX_H, 20, 21])  # the terrain's height and slope, stepped together
+_IDX_TERRAIN = np.array([IDX_H, *range(IDX_S.start, IDX_S.stop)])  # the terrain's height and slope, stepped together
 # Vision's consider states: the vertical channel (height, vertical velocity and accelerometer bias,
 # the clone's height) and the altimeter's terrain. The flow depends on them (through the camera's
 # vertical displacement and height), but they are left to the altimeter: the flow's divergence
 # would read terrain slope in view as vertical velocity.
-_VISION_CONSIDER = np.array([IDX_RZ, IDX_VZ, 8, IDX_H, 12, 20, 21])
+_VISION_CONSIDER = np.array([IDX_RZ, IDX_VZ, IDX_BA.start + 2, IDX_H, IDX_C.start + 2,
+                             *range(IDX_S.start, IDX_S.stop)])
 
 KIND_ALTIMETER = "altimeter"
 KIND_VELOCITY = "velocity"

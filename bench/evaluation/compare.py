@@ -147,7 +147,7 @@ def read_input(path: str | Path, role: str) -> PairedInput:
     if (path / "summary.json").is_file():
         raise CompareInputError(f"{role} {path} is a single run (summary.json), not a campaign or a replay; "
                                 "give two landbench mc folders or two landbench replay folders")
-    raise CompareInputError(f"{role} {path} is neither a campaign folder (no {mc.CAMPAIGN}) nor a replay folder "
+    raise CompareInputError(f"{role} {path} is not a campaign folder (no {mc.CAMPAIGN}) nor a replay folder "
                             f"(no {REPLAY_METRICS}); give a folder written by landbench mc --out DIR or "
                             "landbench replay --out DIR")
 

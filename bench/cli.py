@@ -283,13 +283,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_mc)
 
     p = sub.add_parser(
-        "compare", help="paired A/B comparison of two Monte Carlo campaigns, case by case",
+        "compare", help="paired A/B comparison of two Monte Carlo campaigns (case by case) or two replays "
+                        "(sequence by sequence)",
         description="Compare CAND against BASE case by case (same case index and seed): success rates with "
                     "Wilson intervals, exact McNemar, the cases that flipped, and paired differences of every "
-                    "metric (bootstrap interval, Wilcoxon, Holm). Exit status: 0 all gates pass, 1 a gate "
+                    "metric (bootstrap interval, Wilcoxon, Holm). Two landbench replay folders of the same "
+                    "recorded dataset compare sequence by sequence (and frame by frame), without the success "
+                    "rate. Exit status: 0 all gates pass, 1 a gate "
                     "failed (named on the last line), 2 bad or unpaired input (nothing written).")
-    p.add_argument("base", metavar="BASE", help="baseline campaign folder (landbench mc --out)")
-    p.add_argument("cand", metavar="CAND", help="candidate campaign folder: same --runs, --seed and dispersions")
+    p.add_argument("base", metavar="BASE", help="baseline campaign folder (landbench mc --out) or replay folder "
+                                                "(landbench replay --out)")
+    p.add_argument("cand", metavar="CAND", help="candidate folder of the same kind: a campaign with the same --runs, "
+                                                "--seed and dispersions, or a replay of the same recordings")
     p.add_argument("--gate", dest="gates", action="append", default=[], metavar="SPEC",
                    help="pass/fail gate (repeatable): success_rate:-2pp, METRIC:p95:+0.05, METRIC:+10%% "
                         "(statistics: mean (default), median, p95, max; + bounds a rise, - a fall)")

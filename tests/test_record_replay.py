@@ -186,3 +186,119 @@ def test_replay_builds_no_model_and_renders_nothing(dataset, monkeypatch):
         monkeypatch.setattr(mujoco, name, forbidden)
     _, doc = replay_dataset(dataset)
     assert doc["dataset_metrics"]["identical_to_recording"]
+
+
+# --------------------------------------------------------------------------- tracker endpoint error
+@pytest.fixture(scope="module")
+def replayed(dataset, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("rr_replay") / "base"
+    assert main(["replay", str(dataset), "--out", str(out)]) == 0
+    return out
+
+
+def test_replayed_endpoint_error_equals_tracking_eval_on_the_recorded_frames(dataset, replayed):
+    from bench.evaluation.record import recorded_scenario
+    from bench.evaluation.tracking_eval import track_metrics
+    from vision import Tracker
+
+    r = open_recording(dataset / f"seed_{SEED:03d}")
+    frames = read_telemetry_parquet(replayed / "frames.parquet")
+    (m,) = json.loads((replayed / "metrics.json").read_text())["sequences"]
+    v = m["vision"]
+    assert v["truth_depth"] and v["epe_count"] > 1000 and v["frames_tracked"] == frames["t_s"].size  # all tracked
+    # Independently: the recorded scenario's tracker on the recorded frames, scored by tracking_eval.
+    tracker = Tracker(recorded_scenario(r.scenario_toml).tracker)
+    tracks = [tracker.step(img) for img in r.frames]
+    poses = list(zip(r.camera["R_LC"], r.camera["r_CL_L"]))
+    depths = list(r.camera["depth"])
+    k = 30
+    pair = track_metrics(tracks[k - 1:k + 1], depths[k - 1:k + 1], r.K, poses[k - 1:k + 1])
+    assert pair["n_errors"] == frames["epe_count"][k] > 0
+    assert frames["epe_median_px"][k] == pytest.approx(pair["epe_median_px"], rel=1e-12)
+    assert frames["epe_count"][0] == 0 and np.isnan(frames["epe_median_px"][0])  # no previous frame
+    whole = track_metrics(tracks, depths, r.K, poses)
+    for key in ("epe_median_px", "epe_p95_px", "within_1px_frac"):
+        assert v[key] == pytest.approx(whole[key], rel=1e-12), key
+    assert v["epe_count"] == whole["n_errors"] == frames["epe_count"].sum()
+
+
+def test_a_worse_tracker_has_a_larger_endpoint_error(dataset, replayed):
+    _, worse = replay_dataset(dataset, ["tracker.lk_window=3"])  # a 3 px LK window: ~2x the median EPE here
+    base = json.loads((replayed / "metrics.json").read_text())
+    assert worse["sequences"][0]["vision"]["epe_median_px"] > 1.5 * base["sequences"][0]["vision"]["epe_median_px"]
+    assert worse["dataset_metrics"]["epe_pooled"]["epe_median_px"] > base["dataset_metrics"]["epe_pooled"][
+        "epe_median_px"]
+
+
+def test_without_depth_the_endpoint_error_is_null(seq, tmp_path):
+    copy = _copy(seq, tmp_path)
+    with np.load(copy / rec_mod.CAMERA_TRUTH) as z:
+        cam = {k: z[k] for k in z.files if k != "depth"}
+    np.savez(copy / rec_mod.CAMERA_TRUTH, **cam)
+    manifest = json.loads((copy / MANIFEST).read_text())
+    manifest["files"][rec_mod.CAMERA_TRUTH]["sha256"] = rec_mod.sha256_file(copy / rec_mod.CAMERA_TRUTH)
+    (copy / MANIFEST).write_text(json.dumps(manifest))
+    out = tmp_path / "replay"
+    assert main(["replay", str(copy.parent), "--out", str(out)]) == 0
+    doc = json.loads((out / "metrics.json").read_text())
+    v = doc["sequences"][0]["vision"]
+    assert v["truth_depth"] is False and all(v[k] is None for k in ("epe_median_px", "epe_p95_px", "within_1px_frac"))
+    assert doc["dataset_metrics"]["epe_pooled"] is None
+    assert "epe_median_px" not in read_telemetry_parquet(out / "frames.parquet")
+
+
+# --------------------------------------------------------------------------- landbench compare on replays
+def _last_line(capsys) -> str:
+    return capsys.readouterr().out.strip().splitlines()[-1]
+
+
+def test_the_same_replay_twice_compares_identical(dataset, replayed, tmp_path, capsys):
+    again = tmp_path / "again"
+    assert main(["replay", str(dataset), "--out", str(again)]) == 0
+    capsys.readouterr()
+    out = tmp_path / "cmp"
+    assert main(["compare", str(replayed), str(again), "--gate", "epe_median_px:+0", "--out", str(out)]) == 0
+    assert _last_line(capsys) == "all 1 gates passed"
+    doc = json.loads((out / "compare.json").read_text())
+    assert doc["kind"] == "replay" and doc["success"] is None and doc["flipped"] == [] and doc["n_cases"] == 1
+    assert {"epe_median_px", "vel_err_rms_mps", "vision_gate_rejections", "tracks_per_frame_mean"} <= set(doc["metrics"])
+    assert not {"tracker_ms_per_frame_mean", "replay_wall_s"} & set(doc["metrics"])  # wall-clock: not compared
+    assert all(m["identical"] for m in doc["metrics"].values())
+    fr = doc["frames"]
+    assert fr["n_frames"] == 61 and {"epe_median_px", "tracks", "nis"} <= set(fr["metrics"])
+    assert all(m["identical"] for m in fr["metrics"].values())
+
+
+def test_a_worse_tracker_replay_fails_an_epe_gate(dataset, replayed, tmp_path, capsys):
+    worse = tmp_path / "worse"
+    assert main(["replay", str(dataset), "--set", "tracker.lk_window=3", "--out", str(worse)]) == 0
+    capsys.readouterr()
+    out = tmp_path / "cmp"
+    assert main(["compare", str(replayed), str(worse), "--gate", "epe_median_px:+10%", "--out", str(out)]) == 1
+    last = _last_line(capsys)
+    assert last.startswith("FAILED gates:") and "epe_median_px:+10%" in last
+    doc = json.loads((out / "compare.json").read_text())
+    assert doc["metrics"]["epe_median_px"]["diff"]["mean"] > 0 and not doc["frames"]["metrics"]["tracks"]["identical"]
+
+
+def test_compare_refuses_a_replay_against_a_campaign_or_other_recordings(dataset, replayed, seq, tmp_path, capsys):
+    from tests.test_compare import write_campaign
+
+    campaign = write_campaign(tmp_path / "camp", [{"case": 0, "seed": SEED, "outcome": "landed",
+                                                   "touchdown_miss_distance_m": 1.0}])
+    out = tmp_path / "cmp"
+    _assert_refused(capsys, ["compare", str(replayed), str(campaign), "--out", str(out)], out,
+                    "is a replay folder, CAND")
+    # The same seed, but a different recording (tampered copy, re-signed): refused, the sequence named.
+    other = _copy(seq, tmp_path)
+    (other / "summary.json").write_text((other / "summary.json").read_text() + " ")
+    manifest = json.loads((other / MANIFEST).read_text())
+    manifest["files"]["summary.json"]["sha256"] = rec_mod.sha256_file(other / "summary.json")
+    (other / MANIFEST).write_text(json.dumps(manifest))
+    cand = tmp_path / "other"
+    assert main(["replay", str(other.parent), "--out", str(cand)]) == 0
+    capsys.readouterr()
+    _assert_refused(capsys, ["compare", str(replayed), str(cand), "--out", str(out)], out,
+                    "sequence 0 (seed 1)")
+    _assert_refused(capsys, ["compare", str(replayed), str(replayed), "--gate", "success_rate:-2pp", "--out",
+                             str(out)], out, "no success rate")

@@ -41,9 +41,19 @@ Output: :func:`compare_campaigns` returns one JSON-ready dict (schema
 :func:`format_compare` is the terminal table. An HTML report is not written
 yet: it would be drawn from the same dict (see ``write_compare``).
 
-Only campaign folders are read today. A second input kind (replay folders)
-plugs in through :func:`read_input`: it returns a :class:`PairedInput` for
-any kind, and the statistics only ever see paired rows.
+Replay folders (``landbench replay --out DIR``: ``metrics.json`` +
+``frames.parquet``) are the second input kind (:func:`read_input`): one row
+per replayed sequence, the metrics being every numeric per-sequence figure of
+``metrics.json`` (navigation, vision and the tracker's endpoint error, flattened
+to their leaf names, e.g. ``epe_median_px``, ``vel_err_rms_mps``,
+``vision_gate_rejections``; the wall-clock timings are left out as
+machine-dependent). Two replays pair when they replayed the same recordings:
+the same seeds in the same order and the same recording manifests (their
+sha256, which ``landbench replay`` writes per sequence). The success rate,
+McNemar and flipped cases do not apply to open-loop replays (``success`` is
+null, a ``success_rate`` gate is refused). A replay is never paired with a
+campaign. Per frame, the numeric columns of ``frames.parquet`` are compared
+too (``frames``: paired on (seed, t_ns), same statistics, not gated).
 """
 
 from __future__ import annotations
@@ -80,6 +90,14 @@ DISPERSION_PREFIX = "disp_"
 # when gated or significant after Holm, and are all in compare.json.
 HEADLINE_METRICS = ("touchdown_miss_distance_m", "touchdown_v_vertical_mps", "touchdown_v_horizontal_mps",
                     "touchdown_tilt_deg", "fuel_used_kg", "nav_pos_err_touchdown_m")
+REPLAY_HEADLINE_METRICS = ("epe_median_px", "epe_p95_px", "within_1px_frac", "tracks_per_frame_mean",
+                           "vel_err_rms_mps", "vel_err_horizontal_at_cutoff_mps", "pos_err_end_m")
+REPLAY_METRICS = "metrics.json"
+REPLAY_FRAMES = "frames.parquet"
+REPLAY_FORMAT = "landbench-replay"
+# Wall-clock figures of a replay: they differ between two runs of the same replay, so they are not compared.
+REPLAY_RUN_DEPENDENT_KEYS = ("tracker_ms_per_frame_mean", "tracker_ms_per_frame_median", "vision_ms_per_frame_mean",
+                             "replay_wall_s", "replay_realtime_factor", "tracker_ms", "vision_ms")
 FLIPPED_SHOWN = 20  # flipped cases listed on the terminal; all are in compare.json
 GATE_FORMS = ("success_rate:-Npp (CAND's success rate at most N percentage points below BASE's); "
               "METRIC[:mean|median|p95|max]:+X or :-X (absolute, in the metric's unit) or :+X% / :-X% "
@@ -108,26 +126,30 @@ class PairedInput:
         """The command that reruns ``case`` of this input with telemetry and video into ``out``."""
         if self.kind == "campaign":
             return shlex.join(["landbench", "mc", "--replay", str(self.path), "--case", str(case), "--out", out])
-        raise NotImplementedError(self.kind)  # pragma: no cover - one kind so far
+        raise NotImplementedError(self.kind)  # pragma: no cover - replays have no success, so no flipped case
 
 
 def read_input(path: str | Path, role: str) -> PairedInput:
-    """Read one side (``role``: BASE or CAND); only campaign folders so far.
+    """Read one side (``role``: BASE or CAND): a campaign folder or a replay folder.
 
     Raises:
-        CompareInputError: Not a folder, not a campaign, or an unfinished campaign.
+        CompareInputError: Not a folder, neither a campaign nor a replay, an unfinished campaign, or an
+            unreadable replay.
     """
     path = Path(path)
     if not path.is_dir():
         raise CompareInputError(f"{role} {path}: no such folder; give a campaign folder written by "
-                                "landbench mc --out DIR")
+                                "landbench mc --out DIR or a replay folder written by landbench replay --out DIR")
     if (path / mc.CAMPAIGN).is_file():
         return _read_campaign(path, role)
+    if (path / REPLAY_METRICS).is_file():
+        return _read_replay(path, role)
     if (path / "summary.json").is_file():
-        raise CompareInputError(f"{role} {path} is a single run (summary.json), not a campaign; comparing "
-                                "replay/run folders is not supported yet: give two landbench mc folders")
-    raise CompareInputError(f"{role} {path} is not a campaign folder (no {mc.CAMPAIGN}); give a folder "
-                            "written by landbench mc --out DIR")
+        raise CompareInputError(f"{role} {path} is a single run (summary.json), not a campaign or a replay; "
+                                "give two landbench mc folders or two landbench replay folders")
+    raise CompareInputError(f"{role} {path} is not a campaign folder (no {mc.CAMPAIGN}) nor a replay folder "
+                            f"(no {REPLAY_METRICS}); give a folder written by landbench mc --out DIR or "
+                            "landbench replay --out DIR")
 
 
 def _read_campaign(path: Path, role: str) -> PairedInput:
@@ -147,6 +169,99 @@ def _read_campaign(path: Path, role: str) -> PairedInput:
     return PairedInput("campaign", path, rows, {"campaign_seed": seed, "runs": runs})
 
 
+def replay_row(seq: Mapping[str, Any]) -> dict[str, Any]:
+    """One replayed sequence's numeric figures, flattened to leaf names (updates as ``KIND_FIELD``)."""
+    row: dict[str, Any] = {}
+
+    def put(key: str, value: Any) -> None:
+        if key in row:  # pragma: no cover - the replay's names are distinct
+            raise CompareInputError(f"replay metric {key!r} appears twice")
+        if key not in REPLAY_RUN_DEPENDENT_KEYS and isinstance(value, (int, float, type(None))) \
+                and not isinstance(value, bool):
+            row[key] = math.nan if value is None else value
+
+    for section in ("navigation", "vision"):
+        for k, v in (seq.get(section) or {}).items():
+            if k == "updates" and isinstance(v, dict):
+                for kind, fields in v.items():
+                    for fk, fv in (fields or {}).items():
+                        put(f"{kind}_{fk}", fv)
+            else:
+                put(k, v)
+    for k in ("touchdown_t_s", "control_ticks"):
+        put(k, seq.get(k))
+    return row
+
+
+def _read_replay(path: Path, role: str) -> PairedInput:
+    fix = "give a folder written by landbench replay --out DIR (re-run the replay with this landbench)"
+    try:
+        doc = json.loads((path / REPLAY_METRICS).read_text())
+        if not isinstance(doc, dict) or doc.get("format") != REPLAY_FORMAT:
+            raise ValueError(f"not a {REPLAY_FORMAT} document")
+        seqs = doc["sequences"]
+        rows = [{"case": i, "seed": int(m["seed"]), **replay_row(m)} for i, m in enumerate(seqs)]
+        manifests = [m["recording_manifest_sha256"] for m in seqs]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise CompareInputError(f"{role} {path}: {REPLAY_METRICS} is not a landbench replay's "
+                                f"({type(exc).__name__}: {exc}); {fix}") from None
+    if not (path / REPLAY_FRAMES).is_file() and any(m.get("vision", {}).get("frames") for m in seqs):
+        raise CompareInputError(f"{role} {path}: {REPLAY_FRAMES} is missing; {fix}")
+    if not rows:
+        raise CompareInputError(f"{role} {path}: the replay holds no sequence; {fix}")
+    return PairedInput("replay", path, rows, {"dataset": doc.get("dataset"), "overrides": doc.get("overrides"),
+                                              "seeds": [r["seed"] for r in rows], "recording_manifests_sha256":
+                                              manifests})
+
+
+def _check_replays_paired(base: PairedInput, cand: PairedInput) -> None:
+    fix = "replay the same recorded dataset on both sides (landbench replay DS ... --out DIR)"
+    nb, nc = len(base.rows), len(cand.rows)
+    if nb != nc:
+        raise CompareInputError(f"BASE {base.path} replays {nb} sequences, CAND {cand.path} {nc}; {fix}")
+    for i, (rb, rc) in enumerate(zip(base.rows, cand.rows)):
+        if rb["seed"] != rc["seed"]:
+            raise CompareInputError(f"sequence {i}: seed {rb['seed']} in BASE {base.path}, {rc['seed']} in "
+                                    f"CAND {cand.path}; {fix}")
+        mb, mc_ = base.info["recording_manifests_sha256"][i], cand.info["recording_manifests_sha256"][i]
+        if mb != mc_:
+            raise CompareInputError(f"sequence {i} (seed {rb['seed']}): BASE {base.path} and CAND {cand.path} "
+                                    f"replayed different recordings (manifest sha256 {str(mb)[:12]}… vs "
+                                    f"{str(mc_)[:12]}…); {fix}")
+
+
+def _read_frames(path: Path) -> dict[str, np.ndarray] | None:
+    from bench.report.report import read_telemetry_parquet
+
+    f = path / REPLAY_FRAMES
+    return read_telemetry_parquet(f) if f.is_file() else None
+
+
+def _frame_metrics(base: PairedInput, cand: PairedInput) -> dict[str, Any] | None:
+    """Per frame, the numeric columns of both replays' frames.parquet, paired on (seed, t_ns)."""
+    fb, fc = _read_frames(base.path), _read_frames(cand.path)
+    if fb is None or fc is None:
+        return None
+
+    def rows(f: dict[str, np.ndarray]) -> dict[tuple[int, int], dict[str, Any]]:
+        keys = [k for k, v in f.items() if k not in ("seed", "t_ns", "t_s") and k not in REPLAY_RUN_DEPENDENT_KEYS
+                and v.dtype.kind in "iuf"]
+        return {(int(s), int(t)): {k: f[k][i].item() for k in keys}
+                for i, (s, t) in enumerate(zip(f["seed"].tolist(), f["t_ns"].tolist()))}
+
+    rb, rc = rows(fb), rows(fc)
+    if rb.keys() != rc.keys():
+        first = sorted(rb.keys() ^ rc.keys())[0]
+        raise CompareInputError(f"frame (seed {first[0]}, t_ns {first[1]}) is in "
+                                f"{'BASE' if first in rb else 'CAND'} {REPLAY_FRAMES} only; replay the same "
+                                "recorded dataset on both sides")
+    order = sorted(rb)
+    b_rows, c_rows = [rb[k] for k in order], [rc[k] for k in order]
+    names = metric_names(b_rows, c_rows)
+    return {"n_frames": len(order), "paired_on": ["seed", "t_ns"],
+            "metrics": {k: _metric(b_rows, c_rows, k) for k in names}}
+
+
 def _same(a: Any, b: Any) -> bool:
     """Equal values; two NaN/None numbers are equal."""
     fa, fb = row_float(a), row_float(b)
@@ -161,6 +276,12 @@ def check_paired(base: PairedInput, cand: PairedInput) -> None:
     Raises:
         CompareInputError: Different case counts, a seed mismatch, or different drawn dispersions.
     """
+    if base.kind != cand.kind:
+        raise CompareInputError(f"BASE {base.path} is a {base.kind} folder, CAND {cand.path} a {cand.kind} folder; "
+                                "compare two campaigns (landbench mc) or two replays (landbench replay)")
+    if base.kind == "replay":
+        _check_replays_paired(base, cand)
+        return
     fix = "run both campaigns with the same --runs, --seed and [dispersions] table"
     nb, nc = len(base.rows), len(cand.rows)
     if nb != nc:
@@ -418,14 +539,22 @@ def compare_inputs(base: PairedInput, cand: PairedInput, gates: Sequence[str | G
     parsed = [g if isinstance(g, Gate) else parse_gate(g) for g in gates]
     check_paired(base, cand)
     names = metric_names(base.rows, cand.rows)
+    replay = base.kind == "replay"
+    headline = REPLAY_HEADLINE_METRICS if replay else HEADLINE_METRICS
     for g in parsed:
+        if g.metric == SUCCESS_GATE and replay:
+            raise CompareInputError(f"--gate {g.spec!r}: open-loop replays have no success rate (the vehicle does "
+                                    "not respond); gate a replay metric instead, e.g. epe_median_px:+10%")
         if g.metric != SUCCESS_GATE and g.metric not in names:
             raise CompareInputError(f"--gate {g.spec!r}: no numeric metric {g.metric!r} on both sides (e.g. "
-                                    f"{', '.join(n for n in HEADLINE_METRICS if n in names) or ', '.join(names[:4])}); "
+                                    f"{', '.join(n for n in headline if n in names) or ', '.join(names[:4])}); "
                                     f"allowed forms: {GATE_FORMS}")
-    base_ok = np.array([_landed(r) for r in base.rows], bool)
-    cand_ok = np.array([_landed(r) for r in cand.rows], bool)
-    success = _success(base_ok, cand_ok)
+    success = None
+    base_ok = cand_ok = np.zeros(0, bool)
+    if not replay:
+        base_ok = np.array([_landed(r) for r in base.rows], bool)
+        cand_ok = np.array([_landed(r) for r in cand.rows], bool)
+        success = _success(base_ok, cand_ok)
     root = Path(replay_root)
     flipped = []
     for i in np.flatnonzero(base_ok != cand_ok):
@@ -453,6 +582,9 @@ def compare_inputs(base: PairedInput, cand: PairedInput, gates: Sequence[str | G
         "success": success, "flipped": flipped, "metrics": metrics,
         "gates": gate_results, "passed": all(g["passed"] for g in gate_results),
     }
+    if replay:
+        doc["success_applicable"] = False  # open loop: nothing lands
+        doc["frames"] = _frame_metrics(base, cand)
     return json_safe(doc)
 
 
@@ -492,16 +624,21 @@ def format_compare(doc: Mapping[str, Any], written: str | Path | None = None) ->
     ``written``: the path of compare.json, listed just above that last line.
     """
     s = doc["success"]
-    lines = [f"compare: BASE {doc['base']['path']} vs CAND {doc['cand']['path']}: {doc['n_cases']} paired cases"]
-    for name in ("base", "cand"):
+    replay = doc.get("kind") == "replay"
+    unit = "paired sequences (open-loop replays)" if replay else "paired cases"
+    lines = [f"compare: BASE {doc['base']['path']} vs CAND {doc['cand']['path']}: {doc['n_cases']} {unit}"]
+    if s is None:
+        lines.append("  success rate: not applicable to open-loop replays")
+    for name in (("base", "cand") if s is not None else ()):
         side = s[name]
         lo, hi = side["wilson95"]
         lines.append(f"  success {name.upper():4s} {side['landed']:>5d}/{side['n']:<5d} {100 * side['rate']:5.1f} %  "
                      f"Wilson 95 % [{100 * lo:.1f}, {100 * hi:.1f}] %")
-    mcn = s["mcnemar"]
-    lines.append(f"  difference {s['difference_pp']:+.1f} pp; exact McNemar: {mcn['lost']} lost, {mcn['gained']} gained, "
-                 f"p = {mcn['pvalue']:.3g}")
-    lines.append(f"  {s['verdict']}")
+    if s is not None:
+        mcn = s["mcnemar"]
+        lines.append(f"  difference {s['difference_pp']:+.1f} pp; exact McNemar: {mcn['lost']} lost, "
+                     f"{mcn['gained']} gained, p = {mcn['pvalue']:.3g}")
+        lines.append(f"  {s['verdict']}")
     if doc["flipped"]:
         lines.append(f"flipped cases ({len(doc['flipped'])}):")
         for f in doc["flipped"][:FLIPPED_SHOWN]:
@@ -512,7 +649,8 @@ def format_compare(doc: Mapping[str, Any], written: str | Path | None = None) ->
             lines.append(f"  ... {len(doc['flipped']) - FLIPPED_SHOWN} more in {COMPARE_JSON}")
     metrics = doc["metrics"]
     gated = {g["metric"] for g in doc["gates"]}
-    shown = [k for k in metrics if k in HEADLINE_METRICS or k in gated
+    headline = REPLAY_HEADLINE_METRICS if replay else HEADLINE_METRICS
+    shown = [k for k in metrics if k in headline or k in gated
              or (metrics[k]["holm_p"] is not None and metrics[k]["holm_p"] < ALPHA)]
     if shown:
         w = max(len(k) for k in shown)
@@ -530,6 +668,11 @@ def format_compare(doc: Mapping[str, Any], written: str | Path | None = None) ->
         same = sum(metrics[k]["identical"] for k in rest)
         lines.append(f"{len(rest)} other metric{'s' if len(rest) != 1 else ''} ({same} identical), none significant "
                      f"after Holm: see {COMPARE_JSON}")
+    fr = doc.get("frames")
+    if fr:
+        changed = [k for k, m in fr["metrics"].items() if not m["identical"]]
+        lines.append(f"per frame ({fr['n_frames']} paired frames, {COMPARE_JSON} 'frames'): "
+                     + (f"{len(changed)} column(s) differ: {', '.join(changed)}" if changed else "all identical"))
     for g in doc["gates"]:
         lines.append(f"gate {'PASS' if g['passed'] else 'FAIL'} {g['spec']}: {g['reason']}")
     if written is not None:

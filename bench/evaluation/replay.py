@@ -41,7 +41,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -49,7 +49,9 @@ from typing import Any
 import numpy as np
 
 from bench.evaluation.consistency import NEES_BLOCKS, block_nees
-from bench.evaluation.record import KINDS, Recording, find_recordings, open_recording, recorded_scenario, verify_recording
+from bench.evaluation.record import (KINDS, MANIFEST, Recording, find_recordings, open_recording, recorded_scenario,
+                                     sha256_file, verify_recording)
+from bench.evaluation.tracking_eval import endpoint_error_stats, pair_endpoint_errors
 from bench.report.io import atomic_write_text, json_safe
 from bench.scenario import NS_PER_S, Scenario, ScenarioError
 from bench.sim.flight_build import build_flight_software, handover_estimate
@@ -58,6 +60,9 @@ from gnc.messages import AltimeterMessage, AttitudeMessage, ContactMessage, Imag
 from gnc.navstate import NavState
 
 REPLAYABLE_SECTIONS = ("tracker", "vision_nav", "estimator")
+FORMAT = "landbench-replay"
+FORMAT_VERSION = 1
+EPE_KEYS = ("epe_median_px", "epe_p95_px", "within_1px_frac")  # as landbench track-eval names them
 METRICS = "metrics.json"
 FRAMES = "frames.parquet"
 NAV = "nav.parquet"
@@ -99,6 +104,7 @@ class SequenceReplay:
     metrics: dict[str, Any]
     frames: dict[str, np.ndarray]
     nav: dict[str, np.ndarray]
+    epe: np.ndarray | None = field(default=None, repr=False)  # every endpoint error [px]; None without depth
 
 
 class _Timed:
@@ -151,6 +157,7 @@ def replay_recording(rec: Recording, scenario: Scenario) -> SequenceReplay:
     nav_rows: list[tuple] = []
     fr: dict[str, list] = {k: [] for k in ("t_ns", "vision_active", "tracks", "tracker_ms", "vision_ms",
                                             "measurement", "accepted", "rejected", "nis")}
+    frame_tracks: list = []  # the tracker's output per frame (None where vision was off)
     codes, _, index = rec.events
     wall0 = time.perf_counter()
     for kind, i in zip(codes.tolist(), index.tolist(), strict=True):
@@ -169,6 +176,7 @@ def replay_recording(rec: Recording, scenario: Scenario) -> SequenceReplay:
             tracks = fsw.on_image(ImageMessage(frame_t[i], rec.frames[i], rec.K, rec.R_BC))
             vision_s = time.perf_counter() - t0
             measured = v.measurements > n_meas
+            frame_tracks.append(tracks)
             fr["t_ns"].append(frame_t[i])
             fr["vision_active"].append(active)
             fr["tracks"].append(len(tracks) if tracks is not None else 0)
@@ -204,8 +212,48 @@ def replay_recording(rec: Recording, scenario: Scenario) -> SequenceReplay:
     frames["tracks"] = frames["tracks"].astype(np.int64)
     for k in ("tracker_ms", "vision_ms", "nis"):
         frames[k] = frames[k].astype(float)
-    metrics = _sequence_metrics(rec, scenario, fsw, nav, frames, wall_s)
-    return SequenceReplay(seed=rec.seed, path=rec.path, metrics=metrics, frames=frames, nav=nav)
+    epe = None
+    if "depth" in rec.camera:
+        epe, frames["epe_median_px"], frames["epe_count"] = endpoint_errors(rec, frame_tracks)
+    metrics = _sequence_metrics(rec, scenario, fsw, nav, frames, wall_s, epe)
+    return SequenceReplay(seed=rec.seed, path=rec.path, metrics=metrics, frames=frames, nav=nav, epe=epe)
+
+
+def endpoint_errors(rec: Recording, frame_tracks: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The tracker's endpoint errors against the recorded truth (the recording must hold depth).
+
+    For each frame k whose tracker output and frame k-1's both exist, the
+    tracks of k-1 are back-projected through k-1's depth image and truth
+    camera pose and projected into k (:func:`bench.evaluation.tracking_eval.pair_endpoint_errors`,
+    what ``landbench track-eval`` scores).
+
+    Returns:
+        (every error [px], per frame the median error [px] (NaN where none), per frame the number of errors).
+    """
+    cam = rec.camera
+    depth, R_LC, r_CL_L = cam["depth"], cam["R_LC"], cam["r_CL_L"]
+    n = len(frame_tracks)
+    if depth.shape[0] != n or R_LC.shape[0] != n:
+        raise ValueError(f"recording {str(rec.path)!r}: {depth.shape[0]} depth images for {n} frames")
+    med, count, errs = np.full(n, math.nan), np.zeros(n, np.int64), []
+    for k in range(1, n):
+        a, b = frame_tracks[k - 1], frame_tracks[k]
+        if a is None or b is None:
+            continue
+        e = pair_endpoint_errors(a, b, depth[k - 1], depth[k], rec.K, (R_LC[k - 1], r_CL_L[k - 1]),
+                                 (R_LC[k], r_CL_L[k]))
+        count[k] = e.size
+        if e.size:
+            med[k] = float(np.median(e))
+            errs.append(e)
+    return (np.concatenate(errs) if errs else np.zeros(0)), med, count
+
+
+def _epe_metrics(epe: np.ndarray | None) -> dict[str, Any]:
+    if epe is None:
+        return {"truth_depth": False, "epe_count": None, **{k: None for k in EPE_KEYS}}
+    st = endpoint_error_stats(epe)
+    return {"truth_depth": True, "epe_count": st["n_errors"], **{k: _f(st[k]) if epe.size else None for k in EPE_KEYS}}
 
 
 def _nav_row(fsw, r_true: np.ndarray, v_true: np.ndarray, ba_true: np.ndarray) -> tuple:
@@ -238,7 +286,7 @@ def _f(x: Any) -> float | None:
 
 
 def _sequence_metrics(rec: Recording, scenario: Scenario, fsw, nav: dict[str, np.ndarray],
-                      frames: dict[str, np.ndarray], wall_s: float) -> dict[str, Any]:
+                      frames: dict[str, np.ndarray], wall_s: float, epe: np.ndarray | None = None) -> dict[str, Any]:
     truth = rec.truth
     t = truth["t_s"]
     td = (rec.summary.get("touchdown") or {}).get("t_s")
@@ -273,6 +321,7 @@ def _sequence_metrics(rec: Recording, scenario: Scenario, fsw, nav: dict[str, np
     return {
         "seed": rec.seed,
         "recording": str(rec.path),
+        "recording_manifest_sha256": sha256_file(rec.path / MANIFEST),  # it lists every file's sha256
         "control_ticks": int(t.size),
         "touchdown_t_s": td,
         "navigation": {
@@ -298,6 +347,7 @@ def _sequence_metrics(rec: Recording, scenario: Scenario, fsw, nav: dict[str, np
             "measurements": fsw.vision.measurements,
             "rejected": fsw.vision.rejected,
             "unusable_pairs": fsw.vision.unusable,
+            **_epe_metrics(epe),
         },
         "replay_wall_s": wall_s,
         "replay_realtime_factor": sim_s / wall_s if wall_s > 0 else None,
@@ -323,8 +373,13 @@ def dataset_metrics(seqs: list[SequenceReplay]) -> dict[str, Any]:
     mean = {k: float(np.mean([f[k] for f in flat if k in f])) for k in keys}
     sums = {k: float(sum(f.get(k, 0.0) for f in flat)) for k in keys
             if k.rsplit(".", 1)[-1] in ("updates", "accepted", "gate_rejections", "other_rejections", "frames",
-                                       "frames_tracked", "measurements", "rejected", "unusable_pairs")}
+                                       "frames_tracked", "measurements", "rejected", "unusable_pairs",
+                                       "epe_count")}
+    pooled = None
+    if seqs and all(s.epe is not None for s in seqs):
+        pooled = _epe_metrics(np.concatenate([s.epe for s in seqs]))
     return {"sequences": len(seqs), "mean": mean, "sum": sums,
+            "epe_pooled": pooled,  # over every track of every sequence; None unless every recording has depth
             "identical_to_recording": all(s.metrics["identical_to_recording"] for s in seqs),
             "replay_wall_s": float(sum(s.metrics["replay_wall_s"] for s in seqs))}
 
@@ -348,7 +403,10 @@ def replay_dataset(dataset: Path, overrides: list[str] | tuple[str, ...] = ()) -
     prepared = prepare_replay(dataset, overrides)
     seqs = [replay_recording(open_recording(p), scenario) for p, scenario in prepared]
     doc = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
         "dataset": str(dataset),
+        "seeds": [s.seed for s in seqs],
         "overrides": list(overrides),
         "sequences": [s.metrics for s in seqs],
         "dataset_metrics": dataset_metrics(seqs),
@@ -361,14 +419,16 @@ def write_replay(seqs: list[SequenceReplay], doc: dict[str, Any], out: Path) -> 
     from bench.report.report import write_telemetry_parquet
 
     def joined(part: str) -> dict[str, np.ndarray]:
-        cols: dict[str, list[np.ndarray]] = {}
+        names = ["seed", "t_s"]
+        for s in seqs:
+            names += [k for k in getattr(s, part) if k not in names]
+        cols: dict[str, list[np.ndarray]] = {k: [] for k in names}
         for s in seqs:
             table = getattr(s, part)
             t_ns = table["t_ns"]
-            cols.setdefault("seed", []).append(np.full(t_ns.size, s.seed, np.int64))
-            cols.setdefault("t_s", []).append(t_ns / NS_PER_S)
-            for k, v in table.items():
-                cols.setdefault(k, []).append(v)
+            extra = {"seed": np.full(t_ns.size, s.seed, np.int64), "t_s": t_ns / NS_PER_S}
+            for k in names:  # a column only some sequences have (epe_*: recorded with depth) is NaN in the others
+                cols[k].append(extra[k] if k in extra else table.get(k, np.full(t_ns.size, math.nan)))
         return {k: np.concatenate(v) for k, v in cols.items()}
 
     written = {"metrics": out / METRICS}

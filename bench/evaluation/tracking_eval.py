@@ -329,28 +329,44 @@ def track_metrics(
         ``within_1px_frac`` and ``mean_lifetime_frames`` (frames each track id
         was reported, tracks still alive at the end included).
     """
-    errs = []
-    for k in range(len(tracks) - 1):
-        a, b = tracks[k], tracks[k + 1]
-        _, ia, ib = np.intersect1d(a.ids, b.ids, assume_unique=True, return_indices=True)
-        if ia.size == 0:
-            continue
-        truth, valid = truth_flow(a.xy[ia], depths[k], K, *poses[k], *poses[k + 1], depth_k1=depths[k + 1])
-        errs.append(np.linalg.norm(b.xy[ib][valid] - truth[valid], axis=1))
+    errs = [pair_endpoint_errors(tracks[k], tracks[k + 1], depths[k], depths[k + 1], K, poses[k], poses[k + 1])
+            for k in range(len(tracks) - 1)]
     err = np.concatenate(errs) if errs else np.zeros(0)
     counts = np.array([len(t) for t in tracks])
     all_ids = np.concatenate([t.ids for t in tracks]) if tracks else np.zeros(0, np.int64)
     _, life = np.unique(all_ids, return_counts=True)
-    nan = float("nan")
     return {
         "tracks_per_frame_mean": float(counts.mean()),
         "tracks_per_frame_median": float(np.median(counts)),
+        **endpoint_error_stats(err),
+        "mean_lifetime_frames": float(life.mean()) if life.size else float("nan"),
+    }
+
+
+def pair_endpoint_errors(a: Tracks, b: Tracks, depth_k: np.ndarray, depth_k1: np.ndarray, K: np.ndarray,
+                         pose_k: Pose, pose_k1: Pose) -> np.ndarray:
+    """Endpoint errors [px] of the tracks present in both frame k (``a``) and frame k+1 (``b``).
+
+    ``|xy_{k+1} - truth_flow(xy_k)|`` over the points with valid truth
+    (occlusion-checked with ``depth_k1``); empty when no track id is shared.
+    """
+    _, ia, ib = np.intersect1d(a.ids, b.ids, assume_unique=True, return_indices=True)
+    if ia.size == 0:
+        return np.zeros(0)
+    truth, valid = truth_flow(a.xy[ia], depth_k, K, *pose_k, *pose_k1, depth_k1=depth_k1)
+    return np.linalg.norm(b.xy[ib][valid] - truth[valid], axis=1)
+
+
+def endpoint_error_stats(err: np.ndarray) -> dict[str, float]:
+    """``n_errors``, ``epe_median_px``, ``epe_p95_px``, ``epe_max_px``, ``within_1px_frac`` of endpoint errors (NaN if none)."""
+    err = np.asarray(err, dtype=np.float64)
+    nan = float("nan")
+    return {
         "n_errors": int(err.size),
         "epe_median_px": float(np.median(err)) if err.size else nan,
         "epe_p95_px": float(np.percentile(err, 95)) if err.size else nan,
         "epe_max_px": float(err.max()) if err.size else nan,
         "within_1px_frac": float((err <= 1.0).mean()) if err.size else nan,
-        "mean_lifetime_frames": float(life.mean()) if life.size else nan,
     }
 
 

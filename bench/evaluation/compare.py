@@ -73,6 +73,7 @@ import numpy as np
 from bench.campaign import mc
 from bench.campaign.rows import column, row_float
 from bench.report.io import atomic_write_text, json_safe
+from bench.report.mc_report import wilson_interval  # one Wilson interval for every report
 
 SCHEMA = "landbench.compare"
 VERSION = 1
@@ -377,14 +378,6 @@ def _evaluate_gate(gate: Gate, success: Mapping[str, Any], metrics: Mapping[str,
 
 
 # ================================================================= statistics
-def wilson(successes: int, n: int) -> tuple[float, float]:
-    """Wilson score interval (CONFIDENCE) of successes/n: statsmodels' ``proportion_confint``."""
-    from statsmodels.stats.proportion import proportion_confint
-
-    low, high = proportion_confint(successes, n, alpha=ALPHA, method="wilson")
-    return float(low), float(high)
-
-
 def mcnemar_exact(base_ok: Sequence[bool], cand_ok: Sequence[bool]) -> dict[str, Any]:
     """Exact McNemar test on paired successes: a binomial test on the discordant pairs.
 
@@ -511,7 +504,7 @@ def _success(base_ok: np.ndarray, cand_ok: np.ndarray) -> dict[str, Any]:
     sides = {}
     for name, ok in (("base", base_ok), ("cand", cand_ok)):
         k = int(ok.sum())
-        sides[name] = {"landed": k, "n": n, "rate": k / n, "wilson95": list(wilson(k, n))}
+        sides[name] = {"landed": k, "n": n, "rate": k / n, "wilson95": list(wilson_interval(k, n, CONFIDENCE))}
     mcn = mcnemar_exact(base_ok, cand_ok)
     diff_pp = 100.0 * (sides["cand"]["rate"] - sides["base"]["rate"])
     (bl, bh), (cl, ch) = sides["base"]["wilson95"], sides["cand"]["wilson95"]

@@ -101,8 +101,10 @@ class VisionNavConfig(BaseModel):
         64.0, gt=0.0, description="image cells whose tracks are taken to err together (cluster-robust covariance) [px]"
     )
     rotation_error_frac: float = Field(
-        0.005, ge=0.0,
-        description="1-sigma error of the flow per radian of rotation between the frames (tracking under slews) [-]",
+        0.0, ge=0.0,
+        description="1-sigma error of the flow per radian of rotation between the frames (tracking under slews) "
+                    "[-]. 0 by default: on rendered descents the tracker's mean error does not grow with the "
+                    "rotation (4.4e-5 rad below 2 mrad of rotation, 3.5e-5 rad at 10-50 mrad)",
     )
     frame_pixel_sigma_px: float = Field(
         0.042, ge=0.0,

@@ -64,6 +64,7 @@ SIM_SPEC = {
     "attitude_sigma_arcsec": 10.0,
     "altimeter_noise_sigma_m": ALT_FLOOR_M,
     "terrain_relief_sigma_m": TERRAIN_SIGMA_M,
+    "site_radius_m": 0.0,  # this world's relief is stationary: no cleared landing site (tested on its own below)
 }
 
 
@@ -466,7 +467,7 @@ def test_covariance_and_rotating_prediction_match_an_explicit_loop():
     # State: r, v, b_a, h_terrain, then the position clone (r0), two image offsets, the flow bias,
     # the viewed ground's height, the terrain's slope and the viewed ground's slope.
     x = np.concatenate([r0, v0, np.zeros(4), r0, np.zeros(11)])
-    P = initial_covariance(cfg, 300.0)
+    P = initial_covariance(cfg, 300.0, r0[:2])  # the site map's relief where the filter starts
     assert x.shape == (24,) and P.shape == (24, 24)
     att_psd = cfg.accel_noise_density**2 + (math.radians(cfg.attitude_sigma_arcsec / 3600)
                                              * np.linalg.norm(f_B)) ** 2 * cfg.attitude_period_s
@@ -768,3 +769,58 @@ def test_relative_update_is_a_consider_update_that_leaves_the_vertical_channel_a
     H_h = H.copy()
     H_h[:, [2, 12]] = 0.0
     assert np.all(np.diag(H_h @ P @ H_h.T + R) < np.diag(S))
+
+
+# --------------------------------------------------------------------------- the site map
+def test_site_relief_factor_follows_the_map():
+    from gnc.estimator import site_relief_factor
+
+    cfg = EstimatorConfig(terrain_relief_sigma_m=4.0, site_relief_sigma_m=1.0, site_radius_m=70.0,
+                          site_relief_ramp_m=30.0)
+    rho = np.array([0.0, 69.9, 70.0, 85.0, 100.0, 500.0])
+    np.testing.assert_allclose(site_relief_factor(cfg, rho), [0.25, 0.25, 0.25, 0.625, 1.0, 1.0])
+    no_map = cfg.model_copy(update={"site_radius_m": 0.0})
+    np.testing.assert_array_equal(site_relief_factor(no_map, rho), np.ones(rho.size))
+
+
+@pytest.mark.parametrize("r_xy, sigma_m", [((0.0, 0.0), 20.0), ((60.0, 30.0), 20.0), ((90.0, 0.0), 10.0),
+                                           ((300.0, 0.0), 20.0), ((75.0, -5.0), 1e-6)])
+def test_relief_scale_is_the_rms_factor_over_the_position_uncertainty(r_xy, sigma_m):
+    """The 3x3 Gauss-Hermite mix against a Monte Carlo average of k(|p|)^2 over p ~ N(r, C)."""
+    from gnc.estimator import relief_scale, site_relief_factor
+
+    cfg = EstimatorConfig()
+    C = np.array([[1.0, 0.3], [0.3, 0.6]]) * sigma_m**2
+    p = np.random.default_rng(5).multivariate_normal(r_xy, C, 400_000)
+    mc = math.sqrt(float(np.mean(site_relief_factor(cfg, np.hypot(p[:, 0], p[:, 1])) ** 2)))
+    assert relief_scale(cfg, np.array(r_xy), C) == pytest.approx(mc, rel=0.03)
+
+
+def test_terrain_step_keeps_the_relief_stationary_at_the_new_amplitude():
+    """From the stationary covariance at the old footprint's amplitude, one step gives the new one's exactly."""
+    from gnc.estimator import terrain_slope_sigma
+
+    cfg = EstimatorConfig()
+    nav = make(cfg, [150.0, 0.0, 400.0], [0.0, 0.0, -10.0], 0)
+    sigma, slope = cfg.terrain_relief_sigma_m, terrain_slope_sigma(cfg)
+
+    def stationary(k):
+        return np.diag([sigma**2, slope**2, slope**2]) * k * k
+
+    nav._footprint_L = np.array([110.0, 0.0])
+    nav._k_terrain = 0.8
+    F, Q = nav._terrain_step(np.array([95.0, 4.0]), 0.5)
+    np.testing.assert_allclose(F @ stationary(0.8) @ F.T + Q, stationary(0.5), rtol=1e-12, atol=1e-15)
+
+
+def test_scaled_gauss_markov_step_reaches_the_new_amplitude():
+    """_decay with a change of amplitude: a stationary state at sigma0 steps to exactly sigma1."""
+    from gnc.estimator import _decay, vision_bias_sigma
+
+    cfg = EstimatorConfig()
+    s0, s1 = vision_bias_sigma(cfg, 300.0), vision_bias_sigma(cfg, 120.0)
+    assert s1 == pytest.approx(s0 * 2.5) and s0 == pytest.approx(cfg.vision_bias_ground_m / 300.0)
+    x, P = np.array([2e-6, -1e-6]), np.eye(2) * s0**2
+    _decay(x, P, slice(0, 2), 0.4, s1, s1 / s0)
+    np.testing.assert_allclose(P, np.eye(2) * s1**2, rtol=1e-12)
+    np.testing.assert_allclose(x, np.array([2e-6, -1e-6]) * 0.4 * 2.5, rtol=1e-12)

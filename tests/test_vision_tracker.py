@@ -302,3 +302,21 @@ def test_vision_never_imports_simulator_or_bench():
             for n in names:
                 root = n.split(".")[0]
                 assert root not in {"mujoco", "bench", "models"}, f"{path.name} imports {n}"
+
+
+def test_block_matching_on_a_block_averaged_frame_follows_known_translation():
+    # match_subsample=2 matches the templates on the frame block-averaged by 2
+    # (eq. 2.1); LK still refines on the full frame.
+    step = (2.4, -1.3)
+    frames = translated_frames(8, step)
+    tr = Tracker(TrackerConfig(match_subsample=2))
+    errors = []
+    for img in frames:
+        out = tr.step(img)
+        old = ~np.isnan(out.prev_xy[:, 0])
+        errors.append(np.linalg.norm(out.xy[old] - out.prev_xy[old] - step, axis=1))
+    err = np.concatenate(errors)
+    assert err.size > 200
+    assert np.median(err) < 0.05 and (err < 0.5).all()
+    with pytest.raises(ValidationError, match=r"template_size \(30\) must be a multiple of match_subsample \(4\)"):
+        TrackerConfig(match_subsample=4)

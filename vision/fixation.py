@@ -197,8 +197,10 @@ def select_templates(
         score[r0:r1, c0:c1][d2 < min_sep2] = -np.inf
 
     if occupied_xy is not None and len(occupied_xy):
-        for x, y in np.asarray(occupied_xy, dtype=np.float64).reshape(-1, 2).tolist():
-            rule_out_near(x, y)
+        # All templates in use at once: (rows, cols, K) squared distances.
+        occ = np.asarray(occupied_xy, dtype=np.float64).reshape(-1, 2)
+        d2 = (cy[:, None, None] - occ[None, None, :, 1]) ** 2 + (cx[None, :, None] - occ[None, None, :, 0]) ** 2
+        score[(d2 < min_sep2).any(axis=2)] = -np.inf
     chosen: list[tuple[int, int]] = []
     # Greedy in decreasing variance (np.argmax: first in raster order on ties):
     # take the best free candidate, then rule out every candidate within the

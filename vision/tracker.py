@@ -565,7 +565,9 @@ class Tracker:
         if new.shape[0] == 0:
             return
         # New areas most likely move with the rest of the image.
-        guess = np.median(self._tpl_sub, axis=0) if self._tpl_sub.shape[0] else np.zeros(2)
+        n_old = self._tpl_sub.shape[0]
+        # The median displacement (sorted columns: np.median's overhead is ~20 us here).
+        guess = np.sort(self._tpl_sub, axis=0)[[(n_old - 1) // 2, n_old // 2]].mean(axis=0) if n_old else np.zeros(2)
         first = self._tpl_xy.shape[0]
         self._tpl_xy = np.concatenate([self._tpl_xy, new])
         pred = np.rint(guess / cfg.match_subsample).astype(np.int64)

@@ -320,3 +320,22 @@ def test_block_matching_on_a_block_averaged_frame_follows_known_translation():
     assert np.median(err) < 0.05 and (err < 0.5).all()
     with pytest.raises(ValidationError, match=r"template_size \(30\) must be a multiple of match_subsample \(4\)"):
         TrackerConfig(match_subsample=4)
+
+
+def test_forward_backward_check_variant_follows_known_translation():
+    # fb_check=True validates each track by a second, backward LK pass instead
+    # of the block-matching seed; both variants must track a known motion.
+    step = (1.7, 2.2)
+    frames = translated_frames(8, step)
+    results = {}
+    for fb in (True, False):
+        tr = Tracker(TrackerConfig(fb_check=fb))
+        errors = []
+        for img in frames:
+            out = tr.step(img)
+            old = ~np.isnan(out.prev_xy[:, 0])
+            errors.append(np.linalg.norm(out.xy[old] - out.prev_xy[old] - step, axis=1))
+        results[fb] = np.concatenate(errors)
+    for fb, err in results.items():
+        assert err.size > 200, fb
+        assert np.median(err) < 0.05 and (err < 0.5).all(), fb

@@ -26,7 +26,8 @@ Outputs (:func:`write_replay`):
         and mean NIS per sensor) and vision (tracks per frame, tracker and
         vision ms per frame, measurements), and whether the replayed estimates
         equal the recorded ones bit for bit.
-    ``DIR/frames.parquet``: per camera frame: seed, t, tracks, tracker ms,
+    ``DIR/frames.parquet``: per camera frame: seed, frame index in its
+        recording, t, tracks, tracker ms,
         measurement formed / accepted / rejected, its NIS.
     ``DIR/nav.parquet``: per control tick: seed, t and the replayed ``nav_*``
         telemetry columns (as the closed loop names them).
@@ -155,7 +156,7 @@ def replay_recording(rec: Recording, scenario: Scenario) -> SequenceReplay:
     truth_nav = scenario.nav == "truth"
 
     nav_rows: list[tuple] = []
-    fr: dict[str, list] = {k: [] for k in ("t_ns", "vision_active", "tracks", "tracker_ms", "vision_ms",
+    fr: dict[str, list] = {k: [] for k in ("frame", "t_ns", "vision_active", "tracks", "tracker_ms", "vision_ms",
                                             "measurement", "accepted", "rejected", "nis")}
     frame_tracks: list = []  # the tracker's output per frame (None where vision was off)
     codes, _, index = rec.events
@@ -177,6 +178,7 @@ def replay_recording(rec: Recording, scenario: Scenario) -> SequenceReplay:
             vision_s = time.perf_counter() - t0
             measured = v.measurements > n_meas
             frame_tracks.append(tracks)
+            fr["frame"].append(i)
             fr["t_ns"].append(frame_t[i])
             fr["vision_active"].append(active)
             fr["tracks"].append(len(tracks) if tracks is not None else 0)
@@ -207,6 +209,7 @@ def replay_recording(rec: Recording, scenario: Scenario) -> SequenceReplay:
     nav = {"t_ns": np.asarray(truth["t_ns"], np.int64), **nav}
     frames = {k: np.array(v) for k, v in fr.items()}
     frames["t_ns"] = frames["t_ns"].astype(np.int64)
+    frames["frame"] = frames["frame"].astype(np.int64)
     for k in ("vision_active", "measurement", "accepted", "rejected"):
         frames[k] = frames[k].astype(bool)
     frames["tracks"] = frames["tracks"].astype(np.int64)

@@ -188,6 +188,21 @@ def test_replay_builds_no_model_and_renders_nothing(dataset, monkeypatch):
     assert doc["dataset_metrics"]["identical_to_recording"]
 
 
+def test_replay_imports_no_mujoco_and_no_renderer(dataset):
+    # In a fresh process: the replay path (scenario schema included) never imports MuJoCo or the world.
+    import subprocess
+    import sys
+
+    code = ("import sys; from pathlib import Path; from bench.evaluation.replay import replay_dataset; "
+            f"_, doc = replay_dataset(Path({str(dataset)!r})); "
+            "assert doc['dataset_metrics']['identical_to_recording']; "
+            "print(sorted(m for m in ('mujoco', 'models.world', 'models.gl', 'bench.sim.run') if m in sys.modules))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.strip() == "[]"
+
+
 # --------------------------------------------------------------------------- tracker endpoint error
 @pytest.fixture(scope="module")
 def replayed(dataset, tmp_path_factory) -> Path:

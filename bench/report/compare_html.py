@@ -143,7 +143,7 @@ def scatter_html(name: str, base: Sequence[Any], cand: Sequence[Any], labels: Se
         width=380, height=400, margin={"l": 60, "r": 15, "t": 60, "b": 50}, showlegend=False,
         template="plotly_white")
     return fig.to_html(full_html=False, include_plotlyjs=False, div_id=div_id,
-                       config={"displaylogo": False, "responsive": False})
+                       config={"displaylogo": False, "displayModeBar": False, "responsive": False})
 
 
 def _plotted_metrics(doc: Mapping[str, Any]) -> list[str]:

@@ -288,6 +288,9 @@ def test_the_same_replay_twice_compares_identical(dataset, replayed, tmp_path, c
     fr = doc["frames"]
     assert fr["n_frames"] == 61 and {"epe_median_px", "tracks", "nis"} <= set(fr["metrics"])
     assert all(m["identical"] for m in fr["metrics"].values())
+    assert fr["paired_on"] == ["seed", "frame"] and {"accepted", "rejected", "measurement"} <= set(fr["booleans"])
+    assert all(b["identical"] and b["flipped"] == 0 for b in fr["booleans"].values())
+    assert (out / "report.html").is_file()
 
 
 def test_a_worse_tracker_replay_fails_an_epe_gate(dataset, replayed, tmp_path, capsys):

@@ -31,6 +31,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
+from scipy.stats import chi2
 
 from bench.campaign.rows import column
 
@@ -100,8 +101,6 @@ def block_nees_many(e: np.ndarray, P: np.ndarray) -> np.ndarray:
 
 def chi2_band(n_samples: int, dof: int, prob: float = BAND_PROB) -> list[float] | None:
     """Two-sided ``prob`` band of the mean of ``n_samples`` chi-square(``dof``) variables."""
-    from scipy.stats import chi2  # here, not at import: replay uses block_nees and must start fast
-
     if n_samples <= 0:
         return None
     k = n_samples * dof

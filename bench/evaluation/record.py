@@ -435,8 +435,7 @@ def open_recording(path: Path) -> Recording:
     from bench.report.report import read_telemetry_parquet
 
     manifest = verify_recording(path)
-    with pq.ParquetFile(path / MESSAGES) as f:  # not pq.read_table: its dataset layer imports pandas
-        table = f.read()
+    table = pq.read_table(path / MESSAGES)
     kinds = table.column("kind").to_pylist()
     code = {k: i for i, k in enumerate(KINDS)}
     if set(kinds) - set(code):

@@ -5,7 +5,7 @@ LB := $(VENV)/bin/landbench
 PYTEST := $(VENV)/bin/python -m pytest
 OUT ?= out/demo
 
-.PHONY: all bootstrap demo test test-slow test-all perf clean
+.PHONY: all bootstrap demo test test-slow test-all snapshots perf clean
 
 all: test
 
@@ -32,6 +32,11 @@ test-slow: bootstrap
 
 test-all: bootstrap
 	$(PYTEST) -q -m "slow or not slow"
+
+## snapshots: rewrite the replay metric snapshot (tests/snapshots/replay_segment.json) after an intended change;
+## the tolerances (tests/snapshots/*.tolerances.json) are kept. Review the diff before committing it.
+snapshots: bootstrap
+	$(PYTEST) -q tests/test_record_replay.py -k snapshot --regen-snapshots
 
 ## perf: benchmark figures quoted in the README
 perf: bootstrap

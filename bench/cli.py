@@ -213,14 +213,17 @@ EXIT_GATE_FAILED = 1
 
 def cmd_compare(args: argparse.Namespace) -> int:
     from bench.evaluation.compare import compare_campaigns, format_compare, parse_gate, write_compare
+    from bench.report.compare_html import render_compare_html, write_compare_report
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {args.out!r} is a file; give a folder")
     gates = [parse_gate(g) for g in args.gates]  # every gate checked before the inputs are read
     doc = compare_campaigns(args.base, args.cand, gates, replay_root=out / "replay")
-    written = write_compare(doc, out)  # only once every input was accepted (HTML report: later, beside it)
-    print(format_compare(doc, written=written))
+    html = render_compare_html(doc)  # rendered before anything is written
+    written = write_compare(doc, out)  # only once every input was accepted
+    report = write_compare_report(doc, out, html)
+    print(format_compare(doc, written=f"{written}, {report}"))
     return 0 if doc["passed"] else EXIT_GATE_FAILED
 
 
@@ -310,7 +313,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gate", dest="gates", action="append", default=[], metavar="SPEC",
                    help="pass/fail gate (repeatable): success_rate:-2pp, METRIC:p95:+0.05, METRIC:+10%% "
                         "(statistics: mean (default), median, p95, max; + bounds a rise, - a fall)")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder: DIR/compare.json")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder: DIR/compare.json and DIR/report.html")
     p.set_defaults(func=cmd_compare)
 
     p = sub.add_parser(

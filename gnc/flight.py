@@ -210,14 +210,20 @@ class FlightSoftware:
         return float(self.filter.ekf.x[2]) > self.vision_cfg.cutoff_altitude_m
 
     # ------------------------------------------------------------------ control
-    def control(self, t_ns: int, contact: ContactMessage, nav: NavState | None = None) -> ActuatorCommand:
-        """One control step; ``nav`` overrides the filter (perfect navigation)."""
+    def control(self, t_ns: int, contact: ContactMessage, nav: NavState | None = None,
+                attitude: bool = True) -> ActuatorCommand:
+        """One control step; ``nav`` overrides the filter (perfect navigation).
+
+        ``attitude=False`` (open-loop replay): guidance, thrust and the mass gauge
+        advance exactly as with True, the attitude command and torque are skipped
+        (:meth:`gnc.control.Controller.update`).
+        """
         if self._last_cmd_t_ns is not None:
             dt = (t_ns - self._last_cmd_t_ns) / NS_PER_S
             self.mass_kg -= self._last_thrust_N * self._thrust_scale / self._isp_g0 * dt
         nav = nav if nav is not None else self.filter.nav_state(self.mass_kg)
         cmd = self.guidance.update(nav, self.target)
-        act = self.controller.update(nav, cmd, contact)
+        act = self.controller.update(nav, cmd, contact, attitude=attitude)
         self.last_guidance = cmd
         self._last_cmd_t_ns = t_ns
         self._last_thrust_N = act.thrust_N if act.engine_on else 0.0

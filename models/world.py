@@ -23,7 +23,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from models.gl import ensure_gl_backend
 
@@ -44,6 +43,7 @@ from models.lander import (  # noqa: E402
     sensor_mjcf,
 )
 from models.terrain import Terrain  # noqa: E402
+from bench.scenario.sun import SunConfig  # noqa: E402,F401  (the scenario's type; re-exported)
 
 NS_PER_S = 1_000_000_000
 logger = logging.getLogger(__name__)
@@ -74,23 +74,6 @@ _DIVERGENCE_WARNINGS = (
 
 class PhysicsDivergedError(RuntimeError):
     """The physics state became invalid; the run must not continue."""
-
-
-class SunConfig(BaseModel):
-    """Direction of the sun and shadow rendering."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    elevation_deg: float = Field(30.0, gt=0.0, le=90.0, description="sun elevation above the horizon [deg]")
-    azimuth_deg: float = Field(
-        120.0, ge=0.0, lt=360.0, description="sun azimuth, from north (+y) clockwise toward east (+x) [deg]"
-    )
-    shadows: bool = Field(False, description="render cast shadows (costly on a CPU renderer; see README)")
-
-    def direction_L(self) -> np.ndarray:
-        """Unit vector from the surface toward the sun, in L (3,)."""
-        el, az = math.radians(self.elevation_deg), math.radians(self.azimuth_deg)
-        return np.array([math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)])
 
 
 @dataclass(frozen=True)

@@ -1,13 +1,15 @@
 #!/usr/bin/env bash
 # Bootstrap landbench on a fresh Debian/Ubuntu machine:
-#   1. system packages: a Python >= 3.11 with venv, and Mesa's headless OpenGL
-#      (EGL + OSMesa software rendering), installed through apt when missing;
+#   1. system packages: a Python >= 3.11 with venv, Mesa's headless OpenGL
+#      (EGL + OSMesa software rendering) and Chromium (the HTML report's browser
+#      test), installed through apt when missing;
 #   2. .venv with landbench installed (editable) with its test and Ray extras.
 # Idempotent: re-running does nothing when everything is in place.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 GL_PKGS=(libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6)
+BROWSER_PKGS=(chromium)  # headless Chromium: the test that opens landbench compare's report.html
 VENV=.venv
 STAMP=$VENV/.landbench-installed
 
@@ -54,7 +56,7 @@ if [ ! -x "$VENV/bin/python" ] && ! "$PY" -c 'import ensurepip, venv' >/dev/null
   apt_install "python${ver}-venv"
 fi
 
-# --- Mesa headless OpenGL ------------------------------------------------------
+# --- Mesa headless OpenGL, and Chromium for the report test ---------------------
 if command -v dpkg-query >/dev/null 2>&1; then
   missing=()
   for p in "${GL_PKGS[@]}"; do have_pkg "$p" || missing+=("$p"); done
@@ -62,8 +64,14 @@ if command -v dpkg-query >/dev/null 2>&1; then
     echo "landbench: installing Mesa headless OpenGL: ${missing[*]}"
     apt_install "${missing[@]}"
   fi
+  # Debian's chromium for the report's browser test (tests/test_compare_report.py). Not fatal when it cannot be
+  # installed: that test is then skipped locally, and fails under CI (CI set), which must run it.
+  if [ ! -x /usr/bin/chromium ] && ! have_pkg chromium; then
+    echo "landbench: installing headless Chromium for the report test: ${BROWSER_PKGS[*]}"
+    ( apt_install "${BROWSER_PKGS[@]}" ) || echo "landbench: chromium was not installed; the browser test will be skipped (and fail under CI)" >&2
+  fi
 else
-  echo "landbench: not a Debian/Ubuntu system; make sure Mesa EGL or OSMesa is installed." >&2
+  echo "landbench: not a Debian/Ubuntu system; make sure Mesa EGL or OSMesa is installed (and chromium for the report test)." >&2
 fi
 
 # --- virtual environment ---------------------------------------------------------

@@ -27,3 +27,9 @@ def make_terrain(height_m: np.ndarray, size_m: float, texture_px: int = 512, see
 @pytest.fixture
 def flat_terrain() -> Terrain:
     return make_terrain(np.zeros((33, 33)), 256.0)
+
+
+def pytest_addoption(parser):
+    parser.addoption("--regen-snapshots", action="store_true", default=False,
+                     help="rewrite the replay metric snapshots (tests/snapshots/*.json, not the tolerance files) "
+                          "from this run instead of checking them; `make snapshots` runs it")

@@ -283,3 +283,67 @@ def test_two_tiny_real_campaigns_of_the_same_scenario_compare_identical(tmp_path
     assert "touchdown_miss_distance_m" in doc["metrics"] and "case_wall_time_s" not in doc["metrics"]
     assert all(m["identical"] and m["diff"]["mean"] == 0.0 for m in doc["metrics"].values())
     assert _stdout_lines(capsys)[-1] == "all 2 gates passed"
+
+
+# ============================================================= replays, per sequence and per frame
+def test_replays_pair_per_sequence_and_per_frame_with_booleans(tmp_path):
+    from tests.replay_synth import FRAMES_PER_SEQ, replay_pair
+
+    base, cand, arrays = replay_pair(tmp_path)
+    doc = cmp.compare_campaigns(base, cand, ["epe_median_px:+10%"])
+    assert doc["kind"] == "replay" and doc["n_cases"] == 3 and not doc["passed"]
+    e = doc["metrics"]["epe_median_px"]
+    assert e["diff"]["mean"] == pytest.approx(np.mean([0.07 + 0.001 * s for s in (1, 2, 3)]), abs=1e-12)
+    assert doc["values"]["metrics"]["epe_median_px"]["cand"] == pytest.approx([0.142, 0.144, 0.146])
+    fr = doc["frames"]
+    assert fr["n_frames"] == 3 * FRAMES_PER_SEQ and fr["paired_on"] == ["seed", "frame"]
+    # Numeric columns, against independent computations on the arrays written.
+    for key in ("tracks", "nis"):
+        b, c = (np.asarray(a, float) for a in arrays[key])
+        m = fr["metrics"][key]
+        assert m["n_used"] == b.size and m["diff"]["mean"] == pytest.approx(np.mean(c - b), abs=1e-12)
+        assert m["wilcoxon_p"] == pytest.approx(wilcoxon(c - b).pvalue, rel=1e-12)
+    assert not {"seed", "frame", "t_ns", "t_s", "tracker_ms"} & set(fr["metrics"])  # identity and wall clock
+    # Boolean columns: rates, Wilson intervals and an exact McNemar test (a binomial test on the discordant pairs).
+    acc_b, acc_c = arrays["accepted"]
+    a = fr["booleans"]["accepted"]
+    only_b, only_c = int(np.sum(acc_b & ~acc_c)), int(np.sum(~acc_b & acc_c))
+    assert (a["mcnemar"]["true_base_only"], a["mcnemar"]["true_cand_only"]) == (only_b, only_c)
+    assert a["flipped"] == only_b + only_c == 9 and not a["identical"]
+    assert a["mcnemar"]["pvalue"] == pytest.approx(binomtest(min(only_b, only_c), only_b + only_c, 0.5).pvalue)
+    assert a["base"]["true"] == acc_b.sum() and np.allclose(a["base"]["wilson95"], wilson_interval(acc_b.sum(), acc_b.size))
+    assert fr["booleans"]["measurement"]["identical"] and fr["booleans"]["measurement"]["mcnemar"]["pvalue"] == 1.0
+    # Holm over the frame family (numeric Wilcoxon and boolean McNemar p-values), against the step-down loop.
+    names = [("m", k) for k in fr["metrics"]] + [("b", k) for k in fr["booleans"]]
+    raw = np.array([fr["metrics"][k]["wilcoxon_p"] if t == "m" else fr["booleans"][k]["mcnemar"]["pvalue"]
+                    for t, k in names])
+    got = [fr["metrics"][k]["holm_p"] if t == "m" else fr["booleans"][k]["holm_p"] for t, k in names]
+    assert np.allclose(got, _holm_stepdown(raw), rtol=0, atol=1e-12) and fr["holm_family"] == len(names)
+    # The per-frame values are kept, in (seed, frame) order, for the report's scatter plots.
+    v = fr["values"]
+    assert v["seed"][:2] == [1, 1] and v["frame"][:2] == [0, 1] and v["metrics"]["tracks"]["base"][:3] == \
+        arrays["tracks"][0][:3].tolist()
+
+
+def test_replay_frames_without_a_frame_column_pair_by_their_order_in_each_sequence(tmp_path):
+    from tests.replay_synth import replay_pair
+
+    with_col = cmp.compare_campaigns(*replay_pair(tmp_path / "a")[:2])["frames"]
+    without = cmp.compare_campaigns(*replay_pair(tmp_path / "b", with_frame=False)[:2])["frames"]
+    assert without["metrics"] == with_col["metrics"] and without["booleans"] == with_col["booleans"]
+
+
+def test_replay_frames_at_different_times_are_refused(tmp_path, capsys):
+    from bench.report.report import read_telemetry_parquet, write_telemetry_parquet
+    from tests.replay_synth import replay_pair
+
+    base, cand, _ = replay_pair(tmp_path)
+    f = read_telemetry_parquet(cand / "frames.parquet")
+    f["t_ns"] = f["t_ns"].copy()
+    f["t_ns"][33] += 1
+    write_telemetry_parquet(f, cand / "frames.parquet")
+    out = tmp_path / "cmp"
+    assert main(["compare", str(base), str(cand), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("landbench: error: frame 3 of seed 2 is at t_ns") and "\n" not in err
+    assert not out.exists()

@@ -98,3 +98,19 @@ def test_a_case_that_starts_below_an_altitude_has_no_value_there():
     rng = np.random.default_rng(3)
     out = run_consistency(_telemetry(rng, z0=495.0), {"t_s": 59.0}, [])
     assert out["nees_at"]["500"] is None and out["nees_at"]["300"] is not None
+
+
+def test_block_nees_many_equals_block_nees_bit_for_bit():
+    from bench.evaluation.consistency import block_nees, block_nees_many
+
+    rng = np.random.default_rng(11)
+    A = rng.normal(size=(300, 24, 24))
+    P = A @ A.transpose(0, 2, 1) + 1e-3 * np.eye(24)
+    e = rng.normal(size=(300, 9)) * rng.uniform(0.01, 30.0, (300, 1))
+    one_by_one = np.array([block_nees(e[i], P[i]) for i in range(300)])
+    assert block_nees_many(e, P).tobytes() == one_by_one.tobytes()
+    P[7, 3:5, 3:5] = 0.0  # a singular v_h block: NaN there, as block_nees gives, the rest unchanged
+    one_by_one = np.array([block_nees(e[i], P[i]) for i in range(300)])
+    many = block_nees_many(e, P)
+    assert np.isnan(many[7, 2]) and np.isnan(one_by_one[7, 2])
+    assert np.array_equal(many, one_by_one, equal_nan=True)

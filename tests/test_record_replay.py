@@ -188,6 +188,21 @@ def test_replay_builds_no_model_and_renders_nothing(dataset, monkeypatch):
     assert doc["dataset_metrics"]["identical_to_recording"]
 
 
+def test_replay_imports_no_mujoco_and_no_renderer(dataset):
+    # In a fresh process: the replay path (scenario schema included) never imports MuJoCo or the world.
+    import subprocess
+    import sys
+
+    code = ("import sys; from pathlib import Path; from bench.evaluation.replay import replay_dataset; "
+            f"_, doc = replay_dataset(Path({str(dataset)!r})); "
+            "assert doc['dataset_metrics']['identical_to_recording']; "
+            "print(sorted(m for m in ('mujoco', 'models.world', 'models.gl', 'bench.sim.run') if m in sys.modules))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.strip() == "[]"
+
+
 # --------------------------------------------------------------------------- tracker endpoint error
 @pytest.fixture(scope="module")
 def replayed(dataset, tmp_path_factory) -> Path:
@@ -222,8 +237,14 @@ def test_replayed_endpoint_error_equals_tracking_eval_on_the_recorded_frames(dat
     assert v["epe_count"] == whole["n_errors"] == frames["epe_count"].sum()
 
 
-def test_a_worse_tracker_has_a_larger_endpoint_error(dataset, replayed):
-    _, worse = replay_dataset(dataset, ["tracker.lk_window=3"])  # a 3 px LK window: ~2x the median EPE here
+@pytest.fixture(scope="module")
+def worse_tracker(dataset) -> dict:
+    """The replay document with a 3 px LK window: about twice the median endpoint error here."""
+    return replay_dataset(dataset, ["tracker.lk_window=3"])[1]
+
+
+def test_a_worse_tracker_has_a_larger_endpoint_error(worse_tracker, replayed):
+    worse = worse_tracker
     base = json.loads((replayed / "metrics.json").read_text())
     assert worse["sequences"][0]["vision"]["epe_median_px"] > 1.5 * base["sequences"][0]["vision"]["epe_median_px"]
     assert worse["dataset_metrics"]["epe_pooled"]["epe_median_px"] > base["dataset_metrics"]["epe_pooled"][
@@ -267,6 +288,9 @@ def test_the_same_replay_twice_compares_identical(dataset, replayed, tmp_path, c
     fr = doc["frames"]
     assert fr["n_frames"] == 61 and {"epe_median_px", "tracks", "nis"} <= set(fr["metrics"])
     assert all(m["identical"] for m in fr["metrics"].values())
+    assert fr["paired_on"] == ["seed", "frame"] and {"accepted", "rejected", "measurement"} <= set(fr["booleans"])
+    assert all(b["identical"] and b["flipped"] == 0 for b in fr["booleans"].values())
+    assert (out / "report.html").is_file()
 
 
 def test_a_worse_tracker_replay_fails_an_epe_gate(dataset, replayed, tmp_path, capsys):
@@ -302,3 +326,69 @@ def test_compare_refuses_a_replay_against_a_campaign_or_other_recordings(dataset
                     "sequence 0 (seed 1)")
     _assert_refused(capsys, ["compare", str(replayed), str(replayed), "--gate", "success_rate:-2pp", "--out",
                              str(out)], out, "no success rate")
+
+
+# --------------------------------------------------------------------------- the pytest tier: metric snapshots
+SNAPSHOT = Path(__file__).with_name("snapshots") / "replay_segment.json"
+TOLERANCES = Path(__file__).with_name("snapshots") / "replay_segment.tolerances.json"
+REGEN = "make snapshots (pytest tests/test_record_replay.py -k snapshot --regen-snapshots)"
+
+
+def snapshot_metrics(doc: dict) -> dict:
+    """The replayed segment's per-sequence metrics under their leaf names, as compare reads them (NaN -> None)."""
+    from bench.evaluation.compare import replay_row
+
+    (seq,) = doc["sequences"]
+    return json_safe({k: v for k, v in replay_row(seq).items()})
+
+
+def snapshot_violations(values: dict, snapshot: dict, tolerances: dict) -> list[str]:
+    """One line per metric outside its tolerance (|new - old| > abs + rel |old|), missing, new, or null on one side."""
+    out = []
+    for key in sorted(values.keys() | snapshot.keys()):
+        if key not in snapshot:
+            out.append(f"{key}: new metric ({values[key]!r}), not in the snapshot")
+            continue
+        if key not in values:
+            out.append(f"{key}: in the snapshot ({snapshot[key]!r}), no longer reported")
+            continue
+        new, old = values[key], snapshot[key]
+        if new is None or old is None:
+            if new is not old:
+                out.append(f"{key}: {new!r}, snapshot {old!r}")
+            continue
+        tol = tolerances["metrics"].get(key, tolerances["default"])
+        allowed = tol["abs"] + tol["rel"] * abs(old)
+        if abs(new - old) > allowed:
+            out.append(f"{key}: {new:.6g}, snapshot {old:.6g}: moved {new - old:+.3g}, allowed +-{allowed:.3g}")
+    return out
+
+
+def test_snapshot_violations_apply_the_tolerances():
+    tol = {"default": {"abs": 0.0, "rel": 0.0}, "metrics": {"a": {"abs": 0.1, "rel": 0.1}}}
+    assert snapshot_violations({"a": 2.29, "b": 3, "c": None}, {"a": 2.0, "b": 3, "c": None}, tol) == []
+    bad = snapshot_violations({"a": 2.31, "b": 4, "c": 1.0, "d": 0.0}, {"a": 2.0, "b": 3, "c": None, "e": 1}, tol)
+    assert [line.split(":")[0] for line in bad] == ["a", "b", "c", "d", "e"]
+
+
+def test_replay_metrics_stay_within_their_snapshot_tolerances(replayed, request):
+    values = snapshot_metrics(json.loads((replayed / "metrics.json").read_text()))
+    if request.config.getoption("--regen-snapshots"):
+        doc = {"about": f"Replay metrics of the 150 m test segment (tests/test_record_replay.py, seed {SEED}, "
+                        f"recorded with --depth, replayed with its own settings). Regenerate: {REGEN}; the "
+                        f"tolerances are in {TOLERANCES.name}.",
+               "recording": {"overrides": SEGMENT, "seed": SEED, "depth": True}, "metrics": values}
+        SNAPSHOT.write_text(json.dumps(doc, indent=1, sort_keys=False) + "\n")
+        pytest.skip(f"snapshot regenerated: {SNAPSHOT}")
+    snap = json.loads(SNAPSHOT.read_text())
+    assert snap["recording"] == {"overrides": SEGMENT, "seed": SEED, "depth": True}, \
+        f"the snapshot was taken of another recording; regenerate it: {REGEN}"
+    bad = snapshot_violations(values, snap["metrics"], json.loads(TOLERANCES.read_text()))
+    assert not bad, ("replay metrics moved outside their tolerances (" + TOLERANCES.name + "):\n  "
+                     + "\n  ".join(bad) + f"\nIf the change is intended, regenerate: {REGEN}")
+
+
+def test_a_worse_tracker_breaks_the_snapshot(worse_tracker):
+    snap = json.loads(SNAPSHOT.read_text())
+    bad = snapshot_violations(snapshot_metrics(worse_tracker), snap["metrics"], json.loads(TOLERANCES.read_text()))
+    assert any(line.startswith("epe_median_px:") for line in bad), bad

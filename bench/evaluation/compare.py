@@ -38,8 +38,8 @@ Output: :func:`compare_campaigns` returns one JSON-ready dict (schema
     * ``gates`` and ``passed``: each gate's numbers and outcome.
 
 :func:`write_compare` writes it as ``DIR/compare.json`` atomically;
-:func:`format_compare` is the terminal table. An HTML report is not written
-yet: it would be drawn from the same dict (see ``write_compare``).
+:func:`format_compare` is the terminal table; the HTML report is drawn from the
+same dict by :func:`bench.report.compare_html.write_compare_report`.
 
 Replay folders (``landbench replay --out DIR``: ``metrics.json`` +
 ``frames.parquet``) are the second input kind (:func:`read_input`): one row
@@ -52,8 +52,15 @@ the same seeds in the same order and the same recording manifests (their
 sha256, which ``landbench replay`` writes per sequence). The success rate,
 McNemar and flipped cases do not apply to open-loop replays (``success`` is
 null, a ``success_rate`` gate is refused). A replay is never paired with a
-campaign. Per frame, the numeric columns of ``frames.parquet`` are compared
-too (``frames``: paired on (seed, t_ns), same statistics, not gated).
+campaign. Per frame, ``frames.parquet`` is compared too (``frames``: paired on
+(seed, frame index), checked to be at the same ``t_ns``): every numeric column
+with the same statistics, every boolean column (measurement formed / accepted /
+rejected, vision active) with each side's rate, its Wilson interval and the
+exact McNemar test, Holm over the frame family; reported, not gated.
+
+``values`` (and ``frames.values``) hold the paired per-case (per-frame)
+values themselves, which the HTML report (:mod:`bench.report.compare_html`,
+``DIR/report.html``) plots against each other.
 """
 
 from __future__ import annotations
@@ -238,29 +245,93 @@ def _read_frames(path: Path) -> dict[str, np.ndarray] | None:
     return read_telemetry_parquet(f) if f.is_file() else None
 
 
+FRAME_KEYS = ("seed", "frame")  # a replayed frame's identity: the recording's seed, the frame's index in it
+FRAME_NOT_METRICS = ("seed", "frame", "t_ns", "t_s")
+
+
+def _frame_index(f: Mapping[str, np.ndarray]) -> np.ndarray:
+    """Each row's frame index within its sequence: the ``frame`` column, or the row's order within its seed."""
+    if "frame" in f:
+        return np.asarray(f["frame"], np.int64)
+    seeds = np.asarray(f["seed"], np.int64)
+    out = np.zeros(seeds.size, np.int64)
+    for s in np.unique(seeds):
+        at = np.flatnonzero(seeds == s)
+        out[at] = np.arange(at.size)
+    return out
+
+
+def _bool_metric(b: np.ndarray, c: np.ndarray) -> dict[str, Any]:
+    """Paired booleans (one per frame on both sides): each side's count and rate with its Wilson interval,
+    the exact McNemar test on the discordant pairs, and whether every pair agrees."""
+    n = int(b.size)
+    sides = {}
+    for name, v in (("base", b), ("cand", c)):
+        k = int(v.sum())
+        sides[name] = {"true": k, "n": n, "rate": k / n if n else None,
+                       "wilson95": list(wilson_interval(k, n, CONFIDENCE)) if n else None}
+    mcn = mcnemar_exact(b, c)
+    return {**sides, "mcnemar": {"true_base_only": mcn["lost"], "true_cand_only": mcn["gained"],
+                                 "pvalue": mcn["pvalue"], "exact": True},
+            "flipped": int(np.sum(b != c)), "identical": bool(np.array_equal(b, c)), "holm_p": None}
+
+
 def _frame_metrics(base: PairedInput, cand: PairedInput) -> dict[str, Any] | None:
-    """Per frame, the numeric columns of both replays' frames.parquet, paired on (seed, t_ns)."""
+    """Per frame, both replays' frames.parquet paired on (seed, frame index).
+
+    Numeric columns get the per-case treatment (:func:`_metric`), boolean
+    columns (``measurement``, ``accepted``, ``rejected``, ``vision_active``)
+    :func:`_bool_metric`; Holm runs over the frame family (Wilcoxon and McNemar
+    p-values). A frame pairs only with the frame of the same index in the same
+    sequence at the same ``t_ns``. Frames of one descent are not independent
+    draws, so these p-values are a screen, not a test: reported, not gated.
+    """
     fb, fc = _read_frames(base.path), _read_frames(cand.path)
     if fb is None or fc is None:
         return None
 
-    def rows(f: dict[str, np.ndarray]) -> dict[tuple[int, int], dict[str, Any]]:
-        keys = [k for k, v in f.items() if k not in ("seed", "t_ns", "t_s") and k not in REPLAY_RUN_DEPENDENT_KEYS
-                and v.dtype.kind in "iuf"]
-        return {(int(s), int(t)): {k: f[k][i].item() for k in keys}
-                for i, (s, t) in enumerate(zip(f["seed"].tolist(), f["t_ns"].tolist()))}
+    def table(f: dict[str, np.ndarray]) -> tuple[dict[tuple[int, int], int], dict[str, np.ndarray]]:
+        idx = _frame_index(f)
+        keys = {(int(s), int(k)): i for i, (s, k) in enumerate(zip(f["seed"].tolist(), idx.tolist()))}
+        return keys, f
 
-    rb, rc = rows(fb), rows(fc)
-    if rb.keys() != rc.keys():
-        first = sorted(rb.keys() ^ rc.keys())[0]
-        raise CompareInputError(f"frame (seed {first[0]}, t_ns {first[1]}) is in "
-                                f"{'BASE' if first in rb else 'CAND'} {REPLAY_FRAMES} only; replay the same "
-                                "recorded dataset on both sides")
-    order = sorted(rb)
-    b_rows, c_rows = [rb[k] for k in order], [rc[k] for k in order]
-    names = metric_names(b_rows, c_rows)
-    return {"n_frames": len(order), "paired_on": ["seed", "t_ns"],
-            "metrics": {k: _metric(b_rows, c_rows, k) for k in names}}
+    (kb, fb), (kc, fc) = table(fb), table(fc)
+    if kb.keys() != kc.keys():
+        first = sorted(kb.keys() ^ kc.keys())[0]
+        raise CompareInputError(f"frame {first[1]} of seed {first[0]} is in {'BASE' if first in kb else 'CAND'} "
+                                f"{REPLAY_FRAMES} only; replay the same recorded dataset on both sides")
+    order = sorted(kb)
+    ib = np.array([kb[k] for k in order], np.int64)
+    ic = np.array([kc[k] for k in order], np.int64)
+    tb, tc = np.asarray(fb["t_ns"], np.int64)[ib], np.asarray(fc["t_ns"], np.int64)[ic]
+    if not np.array_equal(tb, tc):
+        j = int(np.flatnonzero(tb != tc)[0])
+        raise CompareInputError(f"frame {order[j][1]} of seed {order[j][0]} is at t_ns {tb[j]} in BASE, {tc[j]} in "
+                                f"CAND; replay the same recorded dataset on both sides")
+
+    def columns(f: dict[str, np.ndarray], kinds: str) -> list[str]:
+        return [k for k, v in f.items() if k not in FRAME_NOT_METRICS and k not in REPLAY_RUN_DEPENDENT_KEYS
+                and v.dtype.kind in kinds]
+
+    numeric = [k for k in columns(fb, "iuf") if k in set(columns(fc, "iuf"))]
+    numeric = [k for k in numeric if np.isfinite(fb[k][ib].astype(float)).any()
+               and np.isfinite(fc[k][ic].astype(float)).any()]
+    booleans = [k for k in columns(fb, "b") if k in set(columns(fc, "b"))]
+    b_rows = [{k: fb[k][i].item() for k in numeric} for i in ib.tolist()]
+    c_rows = [{k: fc[k][i].item() for k in numeric} for i in ic.tolist()]
+    metrics = {k: _metric(b_rows, c_rows, k) for k in numeric}
+    flags = {k: _bool_metric(np.asarray(fb[k], bool)[ib], np.asarray(fc[k], bool)[ic]) for k in booleans}
+    family = {**{("m", k): m["wilcoxon_p"] for k, m in metrics.items()},
+              **{("b", k): f["mcnemar"]["pvalue"] for k, f in flags.items()}}
+    for (kind, k), p in holm(family).items():
+        (metrics if kind == "m" else flags)[k]["holm_p"] = p
+    return {"n_frames": len(order), "paired_on": list(FRAME_KEYS),
+            "metrics": metrics, "booleans": flags,
+            "holm_family": sum(p is not None for p in family.values()),
+            "values": {"seed": [k[0] for k in order], "frame": [k[1] for k in order],
+                       "t_s": (tb / 1e9).tolist(),
+                       "metrics": {k: {"base": column(b_rows, k).tolist(), "cand": column(c_rows, k).tolist()}
+                                   for k in numeric}}}
 
 
 def _same(a: Any, b: Any) -> bool:
@@ -454,12 +525,12 @@ def wilcoxon_p(diff: np.ndarray) -> tuple[float | None, bool]:
         return float(wilcoxon(diff).pvalue), False
 
 
-def holm(pvalues: Mapping[str, float | None]) -> dict[str, float | None]:
+def holm(pvalues: Mapping[Any, float | None]) -> dict[Any, float | None]:
     """Holm step-down adjusted p-values over the metrics that have a p-value (None stays None)."""
     from statsmodels.stats.multitest import multipletests
 
     names = [k for k, p in pvalues.items() if p is not None]
-    out: dict[str, float | None] = {k: None for k in pvalues}
+    out: dict[Any, float | None] = {k: None for k in pvalues}
     if names:
         adjusted = multipletests([pvalues[k] for k in names], alpha=ALPHA, method="holm")[1]
         out.update({k: float(p) for k, p in zip(names, adjusted)})
@@ -574,11 +645,26 @@ def compare_inputs(base: PairedInput, cand: PairedInput, gates: Sequence[str | G
                      "percentile": "p95: numpy linear interpolation over the paired cases"},
         "success": success, "flipped": flipped, "metrics": metrics,
         "gates": gate_results, "passed": all(g["passed"] for g in gate_results),
+        "values": paired_values(base.rows, cand.rows, names),
     }
     if replay:
         doc["success_applicable"] = False  # open loop: nothing lands
         doc["frames"] = _frame_metrics(base, cand)
     return json_safe(doc)
+
+
+def paired_values(base_rows: Sequence[Mapping[str, Any]], cand_rows: Sequence[Mapping[str, Any]],
+                  names: Sequence[str]) -> dict[str, Any]:
+    """Every compared metric's value per case on both sides (what the report's scatter plots draw).
+
+    Returns:
+        ``case`` and ``seed`` (BASE's rows, in case order) and, per metric,
+        ``base`` and ``cand`` lists of the same length (None where a side has no finite value).
+    """
+    return {"case": [int(r.get("case", i)) for i, r in enumerate(base_rows)],
+            "seed": [r.get("seed") for r in base_rows],
+            "metrics": {k: {"base": column(base_rows, k).tolist(), "cand": column(cand_rows, k).tolist()}
+                        for k in names}}
 
 
 def compare_campaigns(base_dir: str | Path, cand_dir: str | Path, gates: Sequence[str | Gate] = (),
@@ -598,7 +684,7 @@ def compare_campaigns(base_dir: str | Path, cand_dir: str | Path, gates: Sequenc
 
 
 def write_compare(doc: Mapping[str, Any], out: str | Path) -> Path:
-    """Write ``out/compare.json`` atomically. (An HTML report, drawn from ``doc``, would be written here too.)"""
+    """Write ``out/compare.json`` atomically (the HTML report beside it: :mod:`bench.report.compare_html`)."""
     return atomic_write_text(Path(out) / COMPARE_JSON, json.dumps(json_safe(doc), indent=1) + "\n")
 
 

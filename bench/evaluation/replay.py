@@ -26,7 +26,8 @@ Outputs (:func:`write_replay`):
         and mean NIS per sensor) and vision (tracks per frame, tracker and
         vision ms per frame, measurements), and whether the replayed estimates
         equal the recorded ones bit for bit.
-    ``DIR/frames.parquet``: per camera frame: seed, t, tracks, tracker ms,
+    ``DIR/frames.parquet``: per camera frame: seed, frame index in its
+        recording, t, tracks, tracker ms,
         measurement formed / accepted / rejected, its NIS.
     ``DIR/nav.parquet``: per control tick: seed, t and the replayed ``nav_*``
         telemetry columns (as the closed loop names them).
@@ -48,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.evaluation.consistency import NEES_BLOCKS, block_nees
+from bench.evaluation.consistency import NEES_BLOCKS, block_nees_many
 from bench.evaluation.record import (KINDS, MANIFEST, Recording, find_recordings, open_recording, recorded_scenario,
                                      sha256_file, verify_recording)
 from bench.evaluation.tracking_eval import endpoint_error_stats, pair_endpoint_errors
@@ -155,7 +156,10 @@ def replay_recording(rec: Recording, scenario: Scenario) -> SequenceReplay:
     truth_nav = scenario.nav == "truth"
 
     nav_rows: list[tuple] = []
-    fr: dict[str, list] = {k: [] for k in ("t_ns", "vision_active", "tracks", "tracker_ms", "vision_ms",
+    nees_e: list[np.ndarray] = []  # per control tick: the NEES error and covariance, evaluated after the loop
+    nees_P: list[np.ndarray] = []
+    true_r, true_v, true_ba = (np.column_stack([truth[n] for n in names]).astype(float) for names in (_R, _V, _BA))
+    fr: dict[str, list] = {k: [] for k in ("frame", "t_ns", "vision_active", "tracks", "tracker_ms", "vision_ms",
                                             "measurement", "accepted", "rejected", "nis")}
     frame_tracks: list = []  # the tracker's output per frame (None where vision was off)
     codes, _, index = rec.events
@@ -177,6 +181,7 @@ def replay_recording(rec: Recording, scenario: Scenario) -> SequenceReplay:
             vision_s = time.perf_counter() - t0
             measured = v.measurements > n_meas
             frame_tracks.append(tracks)
+            fr["frame"].append(i)
             fr["t_ns"].append(frame_t[i])
             fr["vision_active"].append(active)
             fr["tracks"].append(len(tracks) if tracks is not None else 0)
@@ -192,8 +197,8 @@ def replay_recording(rec: Recording, scenario: Scenario) -> SequenceReplay:
             if truth_nav:
                 nav = NavState(t_ns, _vec(truth, _R, i), _vec(truth, _V, i), _vec(truth, _Q, i),
                                _vec(truth, _W, i), fsw.mass_kg)
-            fsw.control(t_ns, ContactMessage(t_ns, ctl_legs[i]), nav)
-            nav_rows.append(_nav_row(fsw, _vec(truth, _R, i), _vec(truth, _V, i), _vec(truth, _BA, i)))
+            fsw.control(t_ns, ContactMessage(t_ns, ctl_legs[i]), nav, attitude=False)  # nothing flies the torque
+            nav_rows.append(_nav_row(fsw, true_r[i], true_v[i], true_ba[i], nees_e, nees_P))
         else:  # pragma: no cover - open_recording checks the kinds
             raise ValueError(f"unknown event kind {kind}")
     wall_s = time.perf_counter() - wall0
@@ -201,12 +206,17 @@ def replay_recording(rec: Recording, scenario: Scenario) -> SequenceReplay:
     if len(nav_rows) != len(truth["t_ns"]):
         raise ValueError(f"recording {str(rec.path)!r}: {len(nav_rows)} control events but {len(truth['t_ns'])} "
                          "truth rows")
-    nav = {name: np.array(col) for name, col in zip(NAV_COLUMNS, zip(*nav_rows, strict=True), strict=True)}
+    nees = block_nees_many(np.array(nees_e), np.array(nees_P)) if nav_rows else np.zeros((0, len(NEES_BLOCKS)))
+    cols = list(zip(*nav_rows, strict=True))
+    k = NAV_COLUMNS.index(f"nees_{next(iter(NEES_BLOCKS))}")
+    cols[k:k] = [nees[:, j] for j in range(len(NEES_BLOCKS))]  # in NAV_COLUMNS order
+    nav = {name: np.array(col) for name, col in zip(NAV_COLUMNS, cols, strict=True)}
     for name in _INT_COLUMNS:
         nav[name] = nav[name].astype(np.int64)
     nav = {"t_ns": np.asarray(truth["t_ns"], np.int64), **nav}
     frames = {k: np.array(v) for k, v in fr.items()}
     frames["t_ns"] = frames["t_ns"].astype(np.int64)
+    frames["frame"] = frames["frame"].astype(np.int64)
     for k in ("vision_active", "measurement", "accepted", "rejected"):
         frames[k] = frames[k].astype(bool)
     frames["tracks"] = frames["tracks"].astype(np.int64)
@@ -256,14 +266,22 @@ def _epe_metrics(epe: np.ndarray | None) -> dict[str, Any]:
     return {"truth_depth": True, "epe_count": st["n_errors"], **{k: _f(st[k]) if epe.size else None for k in EPE_KEYS}}
 
 
-def _nav_row(fsw, r_true: np.ndarray, v_true: np.ndarray, ba_true: np.ndarray) -> tuple:
-    """The flight-software columns of one telemetry row, computed exactly as ``bench.sim.run._row`` does."""
+def _nav_row(fsw, r_true: np.ndarray, v_true: np.ndarray, ba_true: np.ndarray, nees_e: list, nees_P: list) -> tuple:
+    """The flight-software columns of one telemetry row, computed exactly as ``bench.sim.run._row`` does.
+
+    The ``nees_*`` columns are left out: the error and the covariance block are
+    appended to ``nees_e`` / ``nees_P`` and the NEES of every row is computed
+    at once after the replay (:func:`block_nees_many`, the same values as
+    ``block_nees``).
+    """
     x, P = fsw.filter.ekf.x, fsw.filter.ekf.P
     e = np.concatenate([x[IDX_R] - r_true, x[IDX_V] - v_true, x[IDX_BA] - ba_true])
     sig = np.sqrt(np.diag(P)[:6])
     vm = fsw.vision.last
+    nees_e.append(e)
+    nees_P.append(P[:9, :9].copy())
     return (
-        *x[IDX_R], *x[IDX_V], *e[:6], *sig, *e[6:9], *block_nees(e, P), fsw.mass_kg,
+        *x[IDX_R], *x[IDX_V], *e[:6], *sig, *e[6:9], fsw.mass_kg,
         len(fsw.vision.last_tracks) if fsw.vision.last_tracks is not None else 0,
         fsw.vision.measurements, fsw.vision.rejected,
         *(vm.v_L if vm is not None else (math.nan,) * 2),

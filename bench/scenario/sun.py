@@ -1,0 +1,30 @@
+"""The sun's settings (``[sun]``): a scenario type with no simulator behind it.
+
+It lives in the scenario package so that loading a scenario (``landbench
+replay``, ``landbench scenario show``, the compare tools) needs neither MuJoCo
+nor a renderer; :mod:`models.world` imports it from here to light the world.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class SunConfig(BaseModel):
+    """Direction of the sun and shadow rendering."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    elevation_deg: float = Field(30.0, gt=0.0, le=90.0, description="sun elevation above the horizon [deg]")
+    azimuth_deg: float = Field(
+        120.0, ge=0.0, lt=360.0, description="sun azimuth, from north (+y) clockwise toward east (+x) [deg]"
+    )
+    shadows: bool = Field(False, description="render cast shadows (costly on a CPU renderer; see README)")
+
+    def direction_L(self) -> np.ndarray:
+        """Unit vector from the surface toward the sun, in L (3,)."""
+        el, az = math.radians(self.elevation_deg), math.radians(self.azimuth_deg)
+        return np.array([math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)])

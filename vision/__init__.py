@@ -39,7 +39,6 @@ from vision.lk import (
     bilinear_patches,
     forward_backward,
     forward_backward_opencv_fast,
-    forward_opencv_fast,
     lucas_kanade,
     lucas_kanade_opencv,
 )
@@ -66,7 +65,6 @@ __all__ = [
     "fixation_areas",
     "forward_backward",
     "forward_backward_opencv_fast",
-    "forward_opencv_fast",
     "gradients",
     "laplacian8",
     "lucas_kanade",

@@ -178,7 +178,6 @@ def detect_in_subimages(
     nms_radius: int = 1,
     strategy: Strategy = "exhaustive",
     rng: np.random.Generator | None = None,
-    quality: float = 0.0,
 ) -> Features:
     """Detect feature points inside equally sized sub-images (paper §3).
 
@@ -200,10 +199,6 @@ def detect_in_subimages(
             more than r pixels (Chebyshev) from earlier accepted points (random).
         strategy: ``"exhaustive"`` (default, paper) or ``"random"``.
         rng: Generator for ``"random"``; never the global NumPy state.
-        quality: Exhaustive search only: a point is also dropped when its
-            lambda_1 is below ``quality`` x the largest lambda_1 kept in its
-            sub-image (0 <= quality < 1; 0: no relative threshold). This
-            adapts eq. (3.4)'s absolute lambda_t to the sub-image's contrast.
 
     Returns:
         :class:`Features` with ``region`` indexing ``top_left``; per sub-image
@@ -213,8 +208,6 @@ def detect_in_subimages(
         ValueError: On invalid parameters or a sub-image outside the image.
     """
     _check_detector_args(window, lambda_t, max_features, nms_radius, strategy, rng)
-    if not 0.0 <= quality < 1.0:
-        raise ValueError(f"quality must be in [0, 1), got {quality!r}")
     w, h = int(size[0]), int(size[1])
     if w < 1 or h < 1:
         raise ValueError(f"size must be positive (w, h), got {size!r}")
@@ -242,7 +235,7 @@ def detect_in_subimages(
         a, b, c = structure_tensor(ix, iy, window)
         a, b, c = a[inner], b[inner], c[inner]
         keep = eigen_threshold_test(a, b, c, lambda_t)
-        t_idx, r_idx, c_idx, score = _nms_top_k(keep, a, b, c, nms_radius, max_features, quality)
+        t_idx, r_idx, c_idx, score = _nms_top_k(keep, a, b, c, nms_radius, max_features)
     else:
         assert rng is not None
         t_idx, r_idx, c_idx, score = _random_search(ix, iy, m, (h, w), window, lambda_t, max_features, nms_radius, rng)
@@ -251,8 +244,7 @@ def detect_in_subimages(
 
 
 def _nms_top_k(
-    keep: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray, nms_radius: int, max_features: int,
-    quality: float = 0.0,
+    keep: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray, nms_radius: int, max_features: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Non-maximum suppression on lambda_1 over retained pixels, then the
     ``max_features`` strongest per sub-image. Arrays are (T, h, w).
@@ -292,9 +284,6 @@ def _nms_top_k(
     first = np.searchsorted(t_idx, t_idx, side="left")
     rank = np.arange(t_idx.size) - first
     sel = rank < max_features
-    if quality > 0.0 and score.size:
-        # score[first] is the strongest point of each sub-image (sorted above).
-        sel &= score >= quality * score[first]
     return t_idx[sel], r_idx[sel], c_idx[sel], score[sel]
 
 

@@ -197,10 +197,8 @@ def select_templates(
         score[r0:r1, c0:c1][d2 < min_sep2] = -np.inf
 
     if occupied_xy is not None and len(occupied_xy):
-        # All templates in use at once: (rows, cols, K) squared distances.
-        occ = np.asarray(occupied_xy, dtype=np.float64).reshape(-1, 2)
-        d2 = (cy[:, None, None] - occ[None, None, :, 1]) ** 2 + (cx[None, :, None] - occ[None, None, :, 0]) ** 2
-        score[(d2 < min_sep2).any(axis=2)] = -np.inf
+        for x, y in np.asarray(occupied_xy, dtype=np.float64).reshape(-1, 2).tolist():
+            rule_out_near(x, y)
     chosen: list[tuple[int, int]] = []
     # Greedy in decreasing variance (np.argmax: first in raster order on ties):
     # take the best free candidate, then rule out every candidate within the
@@ -291,10 +289,6 @@ class MatchResult:
             about 2 for an unrelated patch of the same contrast.
         at_edge: True where the minimum lies on the search-window boundary (the
             true match may be outside it), (T,) bool.
-        shift_subpx: ``shift`` refined to sub-pixel by a parabola through the
-            SSD minimum and its two neighbours along each axis, (T, 2) float64
-            [px]; the refinement is clamped to +-0.5 px and is 0 along an axis
-            whose minimum lies on the border of the SSD map.
     """
 
     top_left: np.ndarray
@@ -302,7 +296,6 @@ class MatchResult:
     ssd: np.ndarray
     rel_ssd: np.ndarray
     at_edge: np.ndarray
-    shift_subpx: np.ndarray
 
 
 def match_templates(
@@ -375,18 +368,22 @@ def _match_core(
     ssd: list[float] = []
     rel: list[float] = []
     edge: list[bool] = []
-    frac: list[tuple[float, float]] = []
     # Plain Python ints and lists in the loop: NumPy scalar handling would
     # cost more than the tiny matchTemplate calls themselves.
     for (x, y), (cx, cy) in zip(top_left.tolist(), centre.tolist()):
+        x0, x1 = min(max(cx - radius, 0), xmax), min(max(cx + radius, 0), xmax)
+        y0, y1 = min(max(cy - radius, 0), ymax), min(max(cy + radius, 0), ymax)
         tpl = prev_image[y : y + wy, x : x + wx]
-        bx, by, min_val, at_edge, fx, fy = match_one(image, tpl, cx, cy, radius, xmax, ymax)
+        res = cv2.matchTemplate(image[y0 : y1 + wy, x0 : x1 + wx], tpl, cv2.TM_SQDIFF)
+        min_val, _, (mx, my), _ = cv2.minMaxLoc(res)
+        bx, by = x0 + mx, y0 + my
         best.append((bx, by))
+        min_val = max(min_val, 0.0)
         ssd.append(min_val)
         energy = cv2.meanStdDev(tpl)[1][0, 0] ** 2 * area
         rel.append(min_val / max(energy, TEMPLATE_ENERGY_FLOOR))
-        edge.append(at_edge)
-        frac.append((fx, fy))
+        # A minimum on a search limit that the image did not impose is suspect.
+        edge.append(abs(bx - cx) == radius or abs(by - cy) == radius)
     best_arr = np.array(best, dtype=np.int64).reshape(-1, 2)
     return MatchResult(
         top_left=best_arr,
@@ -394,63 +391,4 @@ def _match_core(
         ssd=np.array(ssd, dtype=np.float64),
         rel_ssd=np.array(rel, dtype=np.float64),
         at_edge=np.array(edge, dtype=bool),
-        shift_subpx=best_arr - top_left + np.array(frac, dtype=np.float64).reshape(-1, 2),
     )
-
-
-def match_one(
-    image: np.ndarray, tpl: np.ndarray, cx: int, cy: int, radius: int, xmax: int, ymax: int
-) -> tuple[int, int, float, bool, float, float]:
-    """SSD block matching of one template (§2.4), plain Python scalars in and out.
-
-    Args:
-        image: Frame k+1, (H, W), same dtype as ``tpl``.
-        tpl: Template cut from frame k, (Wy, Wx).
-        cx, cy: Predicted top-left corner in frame k+1 [px].
-        radius: Search half-width [px].
-        xmax, ymax: Largest top-left corner inside the frame, W - Wx and H - Wy [px].
-
-    Returns:
-        (bx, by, ssd, at_edge, fx, fy): best top-left corner [px], its SSD
-        [DN^2], whether it lies on a search limit that the image did not
-        impose, and the sub-pixel offsets of the SSD minimum along x and y
-        [px] (:func:`_parabola_vertex`).
-    """
-    wy, wx = tpl.shape
-    x0, x1 = min(max(cx - radius, 0), xmax), min(max(cx + radius, 0), xmax)
-    y0, y1 = min(max(cy - radius, 0), ymax), min(max(cy + radius, 0), ymax)
-    res = cv2.matchTemplate(image[y0 : y1 + wy, x0 : x1 + wx], tpl, cv2.TM_SQDIFF)
-    min_val, _, (mx, my), _ = cv2.minMaxLoc(res)
-    bx, by = x0 + mx, y0 + my
-    # A minimum on a search limit that the image did not impose is suspect.
-    at_edge = abs(bx - cx) == radius or abs(by - cy) == radius
-    h, w = res.shape
-    if 0 < mx < w - 1 and 0 < my < h - 1:
-        (_, top, _), (left, mid, right), (_, bottom, _) = res[my - 1 : my + 2, mx - 1 : mx + 2].tolist()
-        return (bx, by, max(min_val, 0.0), at_edge, _vertex(left, mid, right), _vertex(top, mid, bottom))
-    return (bx, by, max(min_val, 0.0), at_edge, _parabola_vertex(res, mx, my, 1), _parabola_vertex(res, mx, my, 0))
-
-
-def _vertex(lo: float, mid: float, hi: float) -> float:
-    """Vertex offset [px] of the parabola through (-1, lo), (0, mid), (1, hi),
-    clamped to +-0.5; 0 where the three values do not curve upwards."""
-    curv = lo - 2.0 * mid + hi
-    if curv <= 0.0:
-        return 0.0
-    return min(max(0.5 * (lo - hi) / curv, -0.5), 0.5)
-
-
-def _parabola_vertex(res: np.ndarray, mx: int, my: int, axis: int) -> float:
-    """Sub-pixel offset [px] of the SSD minimum at column ``mx``, row ``my`` of
-    ``res`` along ``axis`` (1: x, 0: y): the vertex of the parabola through
-    the minimum and its two neighbours, clamped to +-0.5; 0 on the map border
-    or a flat/degenerate neighbourhood."""
-    n = res.shape[axis]
-    i = mx if axis == 1 else my
-    if i == 0 or i == n - 1:
-        return 0.0
-    if axis == 1:
-        lo, mid, hi = float(res[my, mx - 1]), float(res[my, mx]), float(res[my, mx + 1])
-    else:
-        lo, mid, hi = float(res[my - 1, mx]), float(res[my, mx]), float(res[my + 1, mx])
-    return _vertex(lo, mid, hi)

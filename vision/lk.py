@@ -300,44 +300,6 @@ def forward_backward_opencv_fast(
     return fwd.reshape(-1, 2).astype(np.float64), err
 
 
-def forward_opencv_fast(
-    prev_image: np.ndarray,
-    image: np.ndarray,
-    xy: np.ndarray,
-    init_xy: np.ndarray,
-    window: int,
-    max_iter: int,
-    eps: float,
-    min_eig: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One lean forward OpenCV LK solve for callers that validated everything
-    already (the tracker's hot path without the forward-backward check).
-
-    Args:
-        prev_image, image: uint8 frames k and k+1.
-        xy: Points in frame k, (P, 2) [px].
-        init_xy: Initial guesses in frame k+1, (P, 2) [px].
-        window, max_iter, eps, min_eig: As in :func:`lucas_kanade`.
-
-    Returns:
-        (xy_k1 (P, 2) float64 [px], status (P,) bool, residual (P,) float64:
-        OpenCV's mean absolute intensity difference between the two windows
-        after alignment [DN]).
-    """
-    nxt, st, err = cv2.calcOpticalFlowPyrLK(
-        prev_image,
-        image,
-        xy.astype(np.float32).reshape(-1, 1, 2),
-        init_xy.astype(np.float32).reshape(-1, 1, 2),
-        winSize=(window, window),
-        maxLevel=0,
-        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, int(max_iter), float(eps)),
-        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-        minEigThreshold=float(min_eig) * OPENCV_MIN_EIG_SCALE,
-    )
-    return nxt.reshape(-1, 2).astype(np.float64), st.ravel().astype(bool), err.ravel().astype(np.float64)
-
-
 @dataclass(frozen=True, slots=True)
 class FBResult:
     """Outcome of :func:`forward_backward`.

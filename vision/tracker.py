@@ -16,24 +16,18 @@ Per frame (Step 1-3 of the paper):
    "sub-images") with the square-root-free min-eigenvalue test of eq. (3.4)
    and non-maximum suppression (:func:`vision.features.detect_in_subimages`).
 3. **Tracking** (§4). Every feature is refined to sub-pixel accuracy by
-   iterative Lucas-Kanade (eqs. 4.5-4.7) in a small window. The solve is
-   seeded by the block matching: a new feature starts at its template's
-   displacement refined to sub-pixel (parabola through the SSD minimum), an
-   older one at its own last displacement plus the change of its template's
-   displacement -- which plays the role of the image pyramid, so large motions
-   still converge, and leaves ~0.15 px for LK to find. A result is kept when
-   it lies within ``max_seed_deviation_px`` of that seed and the aligned
-   windows' mean residual is below ``max_residual_dn`` (the block matching is
-   the independent check); ``fb_check=True`` selects a forward-backward check
-   (``fb_max_px``) instead, at the cost of a second LK pass.
+   iterative Lucas-Kanade (eqs. 4.5-4.7) in a small window, starting from its
+   template's block-matching displacement -- which plays the role of the image
+   pyramid, so large motions still converge -- and is kept only if tracking it
+   back lands within ``fb_max_px`` of its start (forward-backward check).
    Tracks keep their id for life; when the live tracks fall below
    ``redetect_below_frac`` of what the templates held after their last
    detection, the templates are topped up with new points.
 
 Only image-processing happens here: no truth, no simulator.
 
-Cost: per frame, one ``cv2.matchTemplate`` per template and one
-single-level LK pass (two with ``fb_check``) over mosaics of the sub-images (not the whole frame);
+Cost: per frame, one ``cv2.matchTemplate`` per template and two
+single-level LK passes over mosaics of the sub-images (not the whole frame);
 the variance map and feature detection run only when templates are replaced
 or tracks run low. The per-frame cost therefore hardly grows with the frame
 size -- the paper's point that detecting and tracking inside sub-images saves
@@ -41,7 +35,7 @@ computation.
 
 LK backend: by default the LK iteration runs through
 ``cv2.calcOpticalFlowPyrLK(maxLevel=0, OPTFLOW_USE_INITIAL_FLOW)`` seeded by
-block matching (:func:`vision.lk.forward_opencv_fast`), because it
+block matching (:func:`vision.lk.forward_backward_opencv_fast`), because it
 measured about 3x faster than the NumPy reference :func:`vision.lk.lucas_kanade`
 for ~100 points (0.26 vs 0.80 ms per forward-backward pass on 2 cores); the
 two are tested to agree on the same inputs, and ``lk_backend="numpy"``
@@ -53,13 +47,12 @@ from __future__ import annotations
 
 from typing import Literal
 
-import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from vision.features import detect_in_subimages, detection_margin
-from vision.fixation import TEMPLATE_ENERGY_FLOOR, FixationAreas, block_average, fixation_areas, match_one
-from vision.lk import forward_backward, forward_backward_opencv_fast, forward_opencv_fast
+from vision.fixation import FixationAreas, MatchResult, _match_core, fixation_areas
+from vision.lk import forward_backward, forward_backward_opencv_fast
 from vision.tracks import Tracks, check_image
 
 FULL_SCALE_DN = 255.0
@@ -85,37 +78,29 @@ def lk_tile_margin(template_size: int, lk_window: int) -> int:
 class TrackerConfig(BaseModel):
     """Parameters of :class:`Tracker` (pixel units refer to the full frame).
 
-    Defaults follow the paper where it gives values (Sx = Sy = 5, W1 = 3) and
-    were otherwise tuned (issue 11) on the rendered default descent of
-    ``landbench track-eval`` at 256^2 and 512^2 and checked on the synthetic
-    descent of :mod:`bench.evaluation.tracking_eval` and on natural textures
-    (``landbench track-eval --imagery textures``). The endpoint error of LK is
-    set by the detector noise over the gradient energy of its window
-    (``~ sigma sqrt(2 / lambda_1(G))``), so accuracy comes from strong points
-    and a large enough window:
+    Defaults follow the paper where it gives values (Sx = Sy = 5, 20 x 20
+    templates, i.e. its 4 x 4 variance window, W1 = 3) and were otherwise
+    chosen on synthetic lunar-like descents at 256^2 and 512^2
+    (``python -m bench.tracking_eval``), trading tracks for time:
 
-    * 8 templates of 30 x 30 px (a 6 x 6 variance window) x up to 14 points:
-      a larger sub-image holds more strong points to choose from; each
-      template costs one block-matching call per frame; a separation of 15 %
-      of the shorter image side spreads them over the frame (paper §2.3 b);
-    * new templates keep 20 % of the image side to the edge (``border_frac``,
-      §2.3 a): a descent's image expands from near its centre, so areas near
-      the edge left the frame within a few frames and each replacement costs
-      a variance-map pass and a detection;
-    * lambda_t = 30 DN^2 (the paper's 1500 suits its high-contrast imagery;
-      soft, low-sun lunar texture gives lambda_1 of tens to hundreds over a
-      3 x 3 patch) plus a relative floor, ``fp_quality`` = 0.1 of the
-      strongest point of the same sub-image, which adapts to the contrast;
-    * LK window 13 px: 9 px was noise-limited (median error 0.077 px at
-      256^2), 13 px brings it to ~0.063 px, 15 px to ~0.061 px at more cost;
-    * block matching searches +-2 px around the prediction (its last
-      displacement, sub-pixel and rounded) and falls back to +-12 px;
-    * lost templates are replaced two at a time (``refill_min_missing``);
+    * 8 templates x up to 12 points (~70-100 tracks): every template costs one
+      block-matching call per frame, so fewer, well-filled sub-images are
+      cheaper than many sparse ones; a separation of 20 % of the shorter image
+      side spreads them over the frame (paper §2.3 b);
+    * lambda_t = 30 DN^2: the paper's 1500 suits its high-contrast imagery;
+      soft, low-sun lunar texture rendered at 256^2 gives lambda_1 of a few
+      tens to hundreds over a 3 x 3 patch, and ranking by lambda_1 plus the
+      forward-backward check already keep the good points;
+    * LK window 9 px: fits inside a 20 px sub-image, a few hundredths of a
+      pixel accurate on rendered texture, and cheaper than 15 or 21;
+    * search radius 12 px around the constant-velocity prediction covers the
+      frame-to-frame changes of image motion of a descent at both sizes;
+    * lost templates are replaced two at a time (``refill_min_missing``):
+      each replacement costs a variance-map pass;
     * LK stops at updates below 0.03 px: the bilinear-interpolation bias is of
       that size, and iterating further did not improve the endpoint error;
-    * a result is kept within 0.6 px of its seed and below 8 DN of mean
-      residual; the forward-backward check (0.5 px) gave the same accuracy
-      (median 0.062 vs 0.063 px at 256^2) for a second LK pass.
+    * forward-backward limit 0.5 px rejects mis-tracks well before the 1 px
+      accuracy requirement.
 
     Re-detection is adaptive: it runs when the live tracks fall below
     ``redetect_below_frac`` of what the templates held after their last
@@ -127,26 +112,20 @@ class TrackerConfig(BaseModel):
     subsample_x: int = Field(5, ge=1, le=64, description="Sx, block-averaging interval along x, eq. (2.1) [px]")
     subsample_y: int = Field(5, ge=1, le=64, description="Sy, block-averaging interval along y, eq. (2.1) [px]")
     template_size: int = Field(
-        30, ge=5, le=256, description="Wx = Wy, side of a template / sub-image [px]; a multiple of Sx and Sy"
+        20, ge=5, le=256, description="Wx = Wy, side of a template / sub-image [px]; a multiple of Sx and Sy"
     )
     n_templates: int = Field(8, ge=1, le=256, description="N, number of templates kept in track [-]")
     template_separation_frac: float = Field(
-        0.15, ge=0.0, le=1.0, description="minimum distance between template centres / shorter image side [-]"
+        0.2, ge=0.0, le=1.0, description="minimum distance between template centres / shorter image side [-]"
     )
     border_px: int = Field(
-        18,
+        16,
         ge=0,
         description="new templates keep at least this distance to the image edge [px]; >= edge_margin_px and "
         ">= ceil(template_size / 4) + lk_window // 2 + 2 (the LK tile margin)",
     )
-    border_frac: float = Field(
-        0.2, ge=0.0, lt=0.5,
-        description="new templates also keep this fraction of the shorter image side to the image edge [-]: in a "
-        "descent the image expands from near its centre, so areas placed near the edge leave the frame within a "
-        "few frames (paper §2.3 a); ignored on frames too small to hold a template that far in",
-    )
     edge_margin_px: int = Field(
-        8, ge=0, description="a template closer than this to the image edge is leaving the image and replaced [px]"
+        6, ge=0, description="a template closer than this to the image edge is leaving the image and replaced [px]"
     )
     min_template_variance: float = Field(
         1.0, ge=0.0, description="least Laplacian variance V, eq. (2.2), of a template [DN^2]; flat areas get none"
@@ -157,40 +136,21 @@ class TrackerConfig(BaseModel):
         description="lost templates are replaced once this many are missing (or tracks run low) [-]; "
         "batching replacements saves variance-map passes",
     )
-    match_subsample: int = Field(
-        1, ge=1, le=8,
-        description="block matching (§2.4) runs on the frame block-averaged by this factor (eq. 2.1) [-]; a "
-        "divisor of template_size. 2 halves the matching cost (~10 % of a frame at 256^2) but coarsens the LK "
-        "seeds: median error 0.065 against 0.063 px on the default descent",
-    )
     search_radius_px: int = Field(
         12, ge=1, le=128, description="half-width of the block-matching search window around the prediction [px]"
     )
     search_radius_near_px: int = Field(
-        2, ge=1, le=128,
-        description="first, narrow search half-width around the constant-velocity prediction [px] (at least 2 "
-        "matching pixels, so the sub-pixel parabola has neighbours); a template "
+        4, ge=1, le=128,
+        description="first, narrow search half-width around the constant-velocity prediction [px]; a template "
         "whose minimum lands on its edge or fails max_rel_ssd is searched again over search_radius_px",
     )
     max_rel_ssd: float = Field(
         0.5, gt=0.0, description="template lost if min SSD / template centred energy exceeds this [-] (~2: unrelated)"
     )
-    subpixel_seed: bool = Field(
-        True, description="seed LK with the block-matching shift refined to sub-pixel (SSD parabola) [-]"
-    )
-    seed_from_track_flow: bool = Field(
-        True, description="seed LK at the track's last LK displacement plus its template's change of "
-        "block-matching displacement (new tracks: the block-matching displacement) [-]"
-    )
     fp_window: int = Field(3, ge=1, le=15, description="W1, patch side for G, eq. (3.3) [px]; odd")
     lambda_t: float = Field(30.0, ge=0.0, description="lambda_t, min-eigenvalue threshold of eq. (3.4) [DN^2]")
-    fp_quality: float = Field(
-        0.1, ge=0.0, lt=1.0,
-        description="a feature point also needs lambda_1 >= this x the strongest one of its sub-image [-] "
-        "(0: only the absolute lambda_t); adapts to the contrast of the imagery",
-    )
     fp_nms_radius: int = Field(2, ge=0, le=10, description="non-maximum suppression radius for feature points [px]")
-    max_features_per_template: int = Field(14, ge=1, le=256, description="most feature points per sub-image [-]")
+    max_features_per_template: int = Field(12, ge=1, le=256, description="most feature points per sub-image [-]")
     fp_search: Literal["exhaustive", "random"] = Field(
         "exhaustive", description="feature search strategy (§3): exhaustive (paper's choice) or random [-]"
     )
@@ -200,7 +160,7 @@ class TrackerConfig(BaseModel):
     lk_backend: Literal["opencv", "numpy"] = Field(
         "opencv", description="LK solver: OpenCV single-level LK (fast) or the NumPy reference of eqs. (4.5)-(4.7) [-]"
     )
-    lk_window: int = Field(13, ge=3, le=31, description="LK window side [px]; odd")
+    lk_window: int = Field(9, ge=3, le=31, description="LK window side [px]; odd")
     lk_max_iter: int = Field(20, ge=1, le=100, description="LK iteration cap [-]")
     lk_eps_px: float = Field(
         0.03, gt=0.0, le=1.0, description="LK stops when the update is below this [px] (bilinear bias is ~0.03 px)"
@@ -208,9 +168,6 @@ class TrackerConfig(BaseModel):
     lk_min_eig: float = Field(
         1e-2, ge=0.0, description="least min-eigenvalue of G per window pixel for a valid LK solve [DN^2/px^2]"
     )
-    fb_check: bool = Field(False, description="forward-backward check (else seed-consistency and residual checks) [-]")
-    max_seed_deviation_px: float = Field(0.6, gt=0.0, description="without fb_check: largest |LK result - seed| [px]")
-    max_residual_dn: float = Field(8.0, gt=0.0, description="without fb_check: largest mean abs LK residual [DN]")
     fb_max_px: float = Field(0.5, gt=0.0, description="largest forward-backward round-trip error kept [px]")
     redetect_below_frac: float = Field(
         0.75,
@@ -228,10 +185,6 @@ class TrackerConfig(BaseModel):
             raise ValueError(
                 f"template_size ({self.template_size}) must be a multiple of subsample_x ({self.subsample_x}) "
                 f"and subsample_y ({self.subsample_y}) so the variance window of eq. (2.2) is whole"
-            )
-        if self.template_size % self.match_subsample:
-            raise ValueError(
-                f"template_size ({self.template_size}) must be a multiple of match_subsample ({self.match_subsample})"
             )
         if self.fp_window % 2 == 0:
             raise ValueError(f"fp_window (W1) must be odd, got {self.fp_window}")
@@ -269,9 +222,8 @@ class Tracker:
     Output: :class:`vision.tracks.Tracks` for that frame.
     State: the previous frame, the templates and the live tracks.
     Rate: camera frame rate (one call per frame, frames in time order).
-    Cost (2-core x86, single OpenCV thread, ``landbench track-eval``): about
-    0.85 ms per frame at 256^2 and 1.0 ms at 512^2 on a loaded machine,
-    1.2x and 0.5x the OpenCV baseline's time in the same process.
+    Cost (2-core x86, single OpenCV thread, synthetic descent): ~0.4-0.5 ms
+    per frame at both 256^2 and 512^2 with the default configuration.
 
     Args:
         config: A :class:`TrackerConfig` (defaults when None).
@@ -303,13 +255,11 @@ class Tracker:
         self._prev: np.ndarray | None = None
         self._prev_f32: np.ndarray | None = None  # the same frame in float32, for block matching
         self._tpl_xy = np.zeros((0, 2), np.int64)  # template top-left corners (x, y) [px]
-        self._tpl_pred = np.zeros((0, 2), np.int64)  # predicted next displacement (last one, rounded) [px]
+        self._tpl_shift = np.zeros((0, 2), np.int64)  # last block-matching displacement [px]
         self._tpl_expect = np.zeros(0, np.int64)  # tracks each template held after its last detection
         self._ids = np.zeros(0, np.int64)
         self._xy = np.zeros((0, 2), np.float64)
         self._age = np.zeros(0, np.int64)
-        self._flow = np.zeros((0, 2), np.float64)  # last LK displacement of each track (NaN: none yet) [px]
-        self._tpl_sub = np.zeros((0, 2), np.float64)  # last sub-pixel block-matching displacement [px]
         self._tpl_of = np.zeros(0, np.int64)  # index of each track's template
         self._next_id = 0
 
@@ -356,11 +306,9 @@ class Tracker:
         cfg = self.config
         prev_xy = np.full((self._ids.size, 2), np.nan)
         template_lost = False
-        # Block matching runs on the frame block-averaged by match_subsample
-        # (eq. 2.1; float32: OpenCV's float32 matchTemplate has a smaller fixed
-        # cost per call than its 8-bit one on windows this small).
-        m = cfg.match_subsample
-        img_f32 = block_average(img, m, m) if m > 1 else img.astype(np.float32)
+        # OpenCV's float32 matchTemplate has a smaller fixed cost per call than its
+        # 8-bit one on windows this small; convert each frame once and keep it.
+        img_f32 = img.astype(np.float32)
         if self._prev is not None and self._tpl_xy.shape[0]:
             prev_xy, template_lost = self._track(self._prev, img, self._prev_f32, img_f32)
         self._prev, self._prev_f32 = img, img_f32
@@ -381,164 +329,152 @@ class Tracker:
 
     def _track(self, prev: np.ndarray, img: np.ndarray, prev_f32: np.ndarray, img_f32: np.ndarray
                ) -> tuple[np.ndarray, bool]:
-        """Block-match the templates (§2.4), then LK-track their features (§4)
-        inside the sub-images; returns the survivors' previous positions and
-        whether any template was lost.
+        """Block-match templates, LK-track features; returns the survivors'
+        previous positions and whether any template was lost."""
+        cfg = self.config
+        size = cfg.template_size
+        height, width = img.shape
+        m = self._block_match(prev_f32, img_f32)
+        e = cfg.edge_margin_px
+        tl = m.top_left
+        t_ok = (
+            ~m.at_edge
+            & (m.rel_ssd <= cfg.max_rel_ssd)
+            & (tl.min(axis=1) >= e)
+            & (tl[:, 0] <= width - e - size)
+            & (tl[:, 1] <= height - e - size)
+        )
+        old_xy = self._xy
+        keep = t_ok[self._tpl_of]
+        new_xy = old_xy.copy()
+        run = np.flatnonzero(keep)
+        if run.size:
+            new_xy[run], keep[run] = self._lk_in_subimages(prev, img, old_xy[run], self._tpl_of[run], tl)
+        # Re-index tracks onto the surviving templates.
+        remap = np.cumsum(t_ok) - 1
+        self._ids = self._ids[keep]
+        self._xy = new_xy[keep]
+        self._age = self._age[keep] + 1
+        self._tpl_of = remap[self._tpl_of[keep]]
+        self._tpl_xy = tl[t_ok]
+        self._tpl_shift = m.shift[t_ok]
+        self._tpl_expect = self._tpl_expect[t_ok]
+        return old_xy[keep], bool((~t_ok).any())
 
-        Block matching (SSD, :func:`vision.fixation.match_one`) first searches
-        ``search_radius_near_px`` around the prediction (the template's last
-        displacement, rounded from sub-pixel) and falls back to
-        ``search_radius_px`` when the minimum lies on that window's edge or
-        does not match well enough. A template is lost when its minimum is on
-        the search edge, its SSD exceeds ``max_rel_ssd`` of its centred
-        energy, or it comes within ``edge_margin_px`` of the image edge; its
-        tracks go with it.
+    def _block_match(self, prev: np.ndarray, img: np.ndarray) -> MatchResult:
+        """SSD block matching (§2.4), narrow window first, full window where needed.
+
+        Image motion between frames is mostly what it was a frame ago, so the
+        search starts in a small window around the constant-velocity
+        prediction (~8x fewer placements than the full window). A template
+        whose minimum lies on that window's edge, or that does not match well
+        enough, is searched again over the full ``search_radius_px``, so large
+        or sudden motions are still found.
+        """
+        cfg = self.config
+        size = cfg.template_size
+        centre = self._tpl_xy + self._tpl_shift
+        near = min(cfg.search_radius_near_px, cfg.search_radius_px)
+        m = _match_core(prev, img, self._tpl_xy, centre, size, size, near)
+        if near == cfg.search_radius_px:
+            return m
+        redo = np.flatnonzero(m.at_edge | (m.rel_ssd > cfg.max_rel_ssd))
+        if redo.size == 0:
+            return m
+        wide = _match_core(prev, img, self._tpl_xy[redo], centre[redo], size, size, cfg.search_radius_px)
+        top_left, shift, ssd = m.top_left.copy(), m.shift.copy(), m.ssd.copy()
+        rel_ssd, at_edge = m.rel_ssd.copy(), m.at_edge.copy()
+        top_left[redo], shift[redo], ssd[redo] = wide.top_left, wide.shift, wide.ssd
+        rel_ssd[redo], at_edge[redo] = wide.rel_ssd, wide.at_edge
+        return MatchResult(top_left=top_left, shift=shift, ssd=ssd, rel_ssd=rel_ssd, at_edge=at_edge)
+
+    def _lk_in_subimages(
+        self, prev: np.ndarray, img: np.ndarray, xy: np.ndarray, tpl: np.ndarray, new_tl: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Forward-backward LK of points ``xy`` (P, 2) of templates ``tpl``
+        (P,) whose new corners are ``new_tl`` (T, 2); returns the new positions
+        (P, 2) and a validity mask (P,).
 
         The LK solves run on mosaics of the sub-images only (§4: tracking
         "within each sub-image"): tile t is the neighbourhood of template t,
         cut from frame k around its old place and from frame k+1 around its
-        matched place, so the cost does not grow with the frame size. Each
-        feature's solve starts at its position plus its seed displacement
-        (:attr:`TrackerConfig.seed_from_track_flow`). A point is kept when its
-        LK window (with its derivative ring) stays inside its tile, it stays
-        within ``FP_BOX_SLACK_FRAC`` of its template's new box, and it passes
-        the validity check (:attr:`TrackerConfig.fb_check`).
-
-        Per-template work is a plain Python loop over ~8 templates; per-point
-        work is a handful of vectorised NumPy operations (the hot path).
+        matched place, so the cost does not grow with the frame size. The
+        forward solve starts at "old position + block-matching shift", the
+        backward one at "forward result - shift".
         """
         cfg = self.config
         size = cfg.template_size
-        height, width = img.shape
-        e = cfg.edge_margin_px
-        # Matching happens on frames block-averaged by m (eq. 2.1), in their pixels.
-        m = cfg.match_subsample
-        size_m = size // m
-        wide = max(2, -(-cfg.search_radius_px // m))
-        near = min(max(2, -(-cfg.search_radius_near_px // m)), wide)
-        xmax, ymax = img_f32.shape[1] - size_m, img_f32.shape[0] - size_m
-        area = float(size_m * size_m)
-        max_rel = cfg.max_rel_ssd
         half = cfg.lk_window // 2
         slack = int(np.ceil(FP_BOX_SLACK_FRAC * size))
         margin = lk_tile_margin(size, cfg.lk_window)
         tile = size + 2 * margin
+        height, width = img.shape
+        n_t = new_tl.shape[0]
         # Tiles are shifted to stay inside the frame. Invariant: templates are
         # placed only in frames of >= size + 2 border_px, and the config
         # ensures border_px >= margin, so the frame holds a tile.
         assert tile <= min(height, width)
-        tx_max, ty_max = width - tile, height - tile
-        n_t = self._tpl_xy.shape[0]
-        mos_prev = np.empty((n_t * tile, tile), prev.dtype)
-        mos_cur = np.empty((n_t * tile, tile), img.dtype)
-        lo_in, hi_in = half + 1, tile - 2 - half
-        rows: list[tuple] = []
-        for t, ((x, y), (px, py), (sx0, sy0)) in enumerate(
-            zip(self._tpl_xy.tolist(), self._tpl_pred.tolist(), self._tpl_sub.tolist())
-        ):
-            xm, ym = x // m, y // m
-            tpl = prev_f32[ym : ym + size_m, xm : xm + size_m]
-            energy = max(cv2.meanStdDev(tpl)[1][0, 0] ** 2 * area, TEMPLATE_ENERGY_FLOOR)
-            cx, cy = xm + px, ym + py
-            bx, by, ssd, at_edge, fx, fy = match_one(img_f32, tpl, cx, cy, near, xmax, ymax)
-            if near < wide and (at_edge or ssd > max_rel * energy):
-                bx, by, ssd, at_edge, fx, fy = match_one(img_f32, tpl, cx, cy, wide, xmax, ymax)
-            # Displacement in full-frame pixels; the template's new corner.
-            sx, sy = m * (bx - xm + fx), m * (by - ym + fy)
-            if m > 1:
-                bx, by = x + int(round(sx)), y + int(round(sy))
-            ok = (not at_edge and ssd <= max_rel * energy and e <= bx <= width - e - size
-                  and e <= by <= height - e - size)
-            # Tile corners in frames k and k+1, and the tiles.
-            xp, yp = min(max(x - margin, 0), tx_max), min(max(y - margin, 0), ty_max)
-            xc, yc = min(max(bx - margin, 0), tx_max), min(max(by - margin, 0), ty_max)
-            r0 = t * tile
-            mos_prev[r0 : r0 + tile] = prev[yp : yp + tile, xp : xp + tile]
-            mos_cur[r0 : r0 + tile] = img[yc : yc + tile, xc : xc + tile]
-            # Bounds of a tracked point in mosaic coordinates: window inside the
-            # tile, point within the slack of the template's new box.
-            bxt, byt = bx - xc, by - yc
-            rows.append((
-                xp, yp - r0, xc, yc - r0, sx, sy, sx - sx0, sy - sy0,
-                max(bxt - slack, lo_in), max(byt - slack, lo_in) + r0,
-                min(bxt + size - 1 + slack, hi_in), min(byt + size - 1 + slack, hi_in) + r0,
-                1.0 if ok else 0.0, bx, by,
-            ))
-        per_t = np.array(rows, dtype=np.float64).reshape(-1, 15)
-        ok_t = per_t[:, 12] > 0
-        # Per point: one gather of its template's row.
-        g = per_t[self._tpl_of]
-        xy = self._xy
-        if not cfg.subpixel_seed:
-            g[:, 4:6] = np.rint(g[:, 4:6])
-        seed = g[:, 4:6]
-        if cfg.seed_from_track_flow:
-            # Constant velocity per track, corrected by the change of its
-            # template's block-matching displacement; new tracks: the latter.
-            fl = self._flow + g[:, 6:8]
-            seed = np.where(np.isnan(fl), seed, fl)
-        p_mos = xy - g[:, 0:2]
-        guess = xy + seed - g[:, 2:4]
-        q_mos, ok = self._lk(mos_prev, mos_cur, p_mos, guess, g[:, 2:4] - g[:, 0:2] - seed)
-        ok &= ok_t[self._tpl_of] & (q_mos >= g[:, 8:10]).all(axis=1) & (q_mos <= g[:, 10:12]).all(axis=1)
-        new_xy = q_mos + g[:, 2:4]
-        # Re-index tracks onto the surviving templates.
-        remap = np.cumsum(ok_t) - 1
-        old_xy = xy[ok]
-        self._xy = new_xy[ok]
-        self._flow = self._xy - old_xy
-        self._ids = self._ids[ok]
-        self._age = self._age[ok] + 1
-        self._tpl_of = remap[self._tpl_of[ok]]
-        kept = per_t[ok_t]
-        self._tpl_xy = kept[:, 13:15].astype(np.int64)
-        self._tpl_sub = kept[:, 4:6].copy()
-        self._tpl_pred = np.rint(self._tpl_sub / m).astype(np.int64)
-        self._tpl_expect = self._tpl_expect[ok_t]
-        return old_xy, not ok_t.all()
+        lim = np.array([width - tile, height - tile])
+        # np.minimum/np.maximum: np.clip's dispatch costs ~10 us on arrays this small.
+        c_prev = np.minimum(np.maximum(self._tpl_xy - margin, 0), lim)
+        c_cur = np.minimum(np.maximum(new_tl - margin, 0), lim)
 
-    def _lk(self, mos_prev: np.ndarray, mos_cur: np.ndarray, p_mos: np.ndarray, guess: np.ndarray,
-            back: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """LK of ``p_mos`` (P, 2) from ``mos_prev`` into ``mos_cur`` starting at
-        ``guess`` (P, 2), mosaic coordinates [px]; returns the result (P, 2)
-        and its validity (P,).
+        def mosaic(image: np.ndarray, corners: np.ndarray) -> np.ndarray:
+            out = np.empty((n_t * tile, tile), image.dtype)
+            for t, (x, y) in enumerate(corners.tolist()):
+                out[t * tile : (t + 1) * tile] = image[y : y + tile, x : x + tile]
+            return out
 
-        With ``fb_check`` (or the NumPy backend) the point is tracked back
-        again, starting at "result + ``back``" (the result minus the seed
-        displacement, independent of the start point), and kept when it
-        returns within ``fb_max_px``. Without it, one forward solve is
-        validated by the paper's own structure: the result must lie within
-        ``max_seed_deviation_px`` of the seed (the block-matching displacement
-        of its fixation area, carried by the track's own last motion), and
-        the mean absolute residual of the aligned windows must stay below
-        ``max_residual_dn`` (occlusion, deformation).
-        """
-        cfg = self.config
-        if cfg.lk_backend == "opencv" and not cfg.fb_check:
-            q, st, resid = forward_opencv_fast(
-                mos_prev, mos_cur, p_mos, guess, cfg.lk_window, cfg.lk_max_iter, cfg.lk_eps_px, cfg.lk_min_eig
-            )
-            dev = q - guess
-            ok = st & (resid <= cfg.max_residual_dn) & ((dev * dev).sum(axis=1) <= cfg.max_seed_deviation_px**2)
-            return q, ok
+        row0 = (tpl * tile).astype(np.float64)
+        off_prev = c_prev[tpl].astype(np.float64)
+        off_prev[:, 1] -= row0
+        off_cur = c_cur[tpl].astype(np.float64)
+        off_cur[:, 1] -= row0
+        shift = (new_tl - self._tpl_xy)[tpl]
+        p_mos = xy - off_prev
+        guess = xy + shift - off_cur
+        back = off_cur - off_prev - shift  # backward guess = forward result + back
+        mos_prev, mos_cur = mosaic(prev, c_prev), mosaic(img, c_cur)
         if cfg.lk_backend == "opencv":
-            q, fb_err = forward_backward_opencv_fast(
+            q_mos, fb_err = forward_backward_opencv_fast(
                 mos_prev, mos_cur, p_mos, guess, back, cfg.lk_window, cfg.lk_max_iter, cfg.lk_eps_px, cfg.lk_min_eig
             )
-            return q, fb_err <= cfg.fb_max_px
-        fb = forward_backward(
-            mos_prev, mos_cur, p_mos, guess, None, cfg.fb_max_px, backend="numpy",
-            window=cfg.lk_window, max_iter=cfg.lk_max_iter, eps=cfg.lk_eps_px, min_eig=cfg.lk_min_eig,
+        else:
+            fb = forward_backward(
+                mos_prev,
+                mos_cur,
+                p_mos,
+                guess,
+                None,
+                cfg.fb_max_px,
+                backend="numpy",
+                window=cfg.lk_window,
+                max_iter=cfg.lk_max_iter,
+                eps=cfg.lk_eps_px,
+                min_eig=cfg.lk_min_eig,
+            )
+            q_mos, fb_err = fb.xy, fb.fb_error
+        out = q_mos + off_cur
+        # Window (with its derivative ring) inside its own tile; the point
+        # inside the frame and near its template's new box.
+        tx = q_mos[:, 0]
+        ty = q_mos[:, 1] - row0
+        rel = out - new_tl[tpl]
+        lo, hi = half + 1, tile - 2 - half
+        ok = (
+            (fb_err <= cfg.fb_max_px)
+            & (tx >= lo)
+            & (tx <= hi)
+            & (ty >= lo)
+            & (ty <= hi)
+            & (out[:, 0] >= half + 1)
+            & (out[:, 1] >= half + 1)
+            & (out[:, 0] <= width - 2 - half)
+            & (out[:, 1] <= height - 2 - half)
+            & (rel.min(axis=1) >= -slack)
+            & (rel.max(axis=1) <= size - 1 + slack)
         )
-        return fb.xy, fb.ok
-
-    def _border(self, shape: tuple[int, int]) -> int:
-        """Distance [px] new templates keep to the image edge on frames of ``shape``:
-        ``border_px``, or ``border_frac`` of the shorter side where the frame holds a template that far in."""
-        cfg = self.config
-        side = min(shape)
-        wide = int(cfg.border_frac * side)
-        return wide if wide > cfg.border_px and side >= cfg.template_size + 2 * wide else cfg.border_px
+        return out, ok
 
     def fixation_areas(self, img: np.ndarray, n: int) -> FixationAreas:
         """§2 on ``img`` with this tracker's parameters: ``n`` new templates
@@ -550,7 +486,7 @@ class Tracker:
             cfg.subsample_x,
             cfg.subsample_y,
             cfg.template_size,
-            self._border(img.shape),
+            cfg.border_px,
             cfg.template_separation_frac * min(img.shape),
             cfg.min_template_variance,
             occupied_xy=self._tpl_xy + 0.5 * (cfg.template_size - 1),
@@ -568,14 +504,10 @@ class Tracker:
         if new.shape[0] == 0:
             return
         # New areas most likely move with the rest of the image.
-        n_old = self._tpl_sub.shape[0]
-        # The median displacement (sorted columns: np.median's overhead is ~20 us here).
-        guess = np.sort(self._tpl_sub, axis=0)[[(n_old - 1) // 2, n_old // 2]].mean(axis=0) if n_old else np.zeros(2)
+        guess = np.median(self._tpl_shift, axis=0) if self._tpl_shift.shape[0] else np.zeros(2)
         first = self._tpl_xy.shape[0]
         self._tpl_xy = np.concatenate([self._tpl_xy, new])
-        pred = np.rint(guess / cfg.match_subsample).astype(np.int64)
-        self._tpl_pred = np.concatenate([self._tpl_pred, np.tile(pred, (new.shape[0], 1))])
-        self._tpl_sub = np.concatenate([self._tpl_sub, np.tile(guess, (new.shape[0], 1))])
+        self._tpl_shift = np.concatenate([self._tpl_shift, np.tile(np.rint(guess).astype(np.int64), (new.shape[0], 1))])
         self._tpl_expect = np.concatenate([self._tpl_expect, np.full(new.shape[0], cfg.max_features_per_template)])
         self._detect(img, np.arange(first, self._tpl_xy.shape[0]))
         # A new area without a single feature point is of no use: free its slot.
@@ -585,10 +517,9 @@ class Tracker:
         if empty.any():
             keep = ~empty
             self._tpl_of = (np.cumsum(keep) - 1)[self._tpl_of]
-            self._tpl_sub = self._tpl_sub[keep]
-            self._tpl_xy, self._tpl_pred, self._tpl_expect = (
+            self._tpl_xy, self._tpl_shift, self._tpl_expect = (
                 self._tpl_xy[keep],
-                self._tpl_pred[keep],
+                self._tpl_shift[keep],
                 self._tpl_expect[keep],
             )
 
@@ -609,7 +540,6 @@ class Tracker:
             nms_radius=cfg.fp_nms_radius,
             strategy=cfg.fp_search,
             rng=self._rng,
-            quality=cfg.fp_quality,
         )
         xy, tpl = feats.xy, which[feats.region]
         if xy.shape[0] and self._xy.shape[0] and cfg.min_track_separation_px > 0:
@@ -628,6 +558,5 @@ class Tracker:
         self._next_id += n
         self._xy = np.concatenate([self._xy, xy])
         self._age = np.concatenate([self._age, np.zeros(n, np.int64)])
-        self._flow = np.concatenate([self._flow, np.full((n, 2), np.nan)])
         self._tpl_of = np.concatenate([self._tpl_of, tpl.astype(np.int64)])
         self._tpl_expect[which] = np.bincount(self._tpl_of, minlength=self._tpl_xy.shape[0])[which]

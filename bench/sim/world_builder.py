@@ -14,6 +14,7 @@ import numpy as np
 
 from bench.scenario import Scenario
 from bench.scenario.seeding import component_rng, component_seed
+from bench.sim.terrain_cache import cached_terrain
 from models.camera import apply_detector_noise
 from models.sensors import AltimeterModel, ImuModel, StarTrackerModel
 from models.terrain import Terrain, generate_terrain
@@ -60,10 +61,11 @@ def _terrain_bytes(terrain: Terrain) -> int:
 
 
 def build_terrain(scenario: Scenario) -> Terrain:
-    """The scenario's terrain: generated from its own stream, or the same one generated earlier in this process.
+    """The scenario's terrain: generated from its own stream, or the same one generated earlier.
 
-    Bit-identical to :func:`generate_scenario_terrain` (the cache holds only
-    procedural terrains, keyed on everything that generates them).
+    Bit-identical to :func:`generate_scenario_terrain`. Procedural terrains are
+    cached in this process and on disk (:mod:`bench.sim.terrain_cache`), keyed on
+    everything that generates them.
     """
     key = _terrain_key(scenario)
     if key is None:
@@ -73,7 +75,8 @@ def build_terrain(scenario: Scenario) -> Terrain:
         if terrain is not None:
             _terrain_cache.move_to_end(key)
             return terrain
-    terrain = generate_scenario_terrain(scenario)
+    terrain = cached_terrain(scenario.terrain, scenario.terrain_seed(), float(scenario.sun.elevation_deg),
+                             float(scenario.sun.azimuth_deg), lambda: generate_scenario_terrain(scenario))
     with _terrain_cache_lock:
         _terrain_cache[key] = terrain
         _terrain_cache.move_to_end(key)

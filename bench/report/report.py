@@ -156,7 +156,9 @@ def _to_arrow(name: str, arr: np.ndarray) -> tuple[pa.Array, np.dtype]:
     if not arr.dtype.isnative:
         arr = arr.astype(arr.dtype.newbyteorder("="))  # Arrow wants native byte order
     try:
-        if arr.dtype.kind in "US":
+        if arr.dtype.kind in "biuf" or (arr.dtype.kind in "US" and arr.ndim == 1):
+            out = _arrow_from_buffers(arr)
+        elif arr.dtype.kind in "US":
             out = pa.array(arr.tolist(), type=pa.string() if arr.dtype.kind == "U" else pa.binary())
         elif arr.dtype.kind == "O":
             out = pa.array(arr.tolist())
@@ -165,6 +167,26 @@ def _to_arrow(name: str, arr: np.ndarray) -> tuple[pa.Array, np.dtype]:
     except (pa.ArrowException, TypeError) as exc:
         raise ValueError(f"telemetry column {name!r} (dtype {arr.dtype}) cannot be stored in Parquet: {exc}") from exc
     return out, arr.dtype
+
+
+def _arrow_from_buffers(arr: np.ndarray) -> "pa.Array":
+    """A 1-D bool, int, uint, float, str or bytes column as an Arrow array, built from its buffers.
+
+    The same array as ``pa.array``, which imports pandas (about a second) to
+    ask whether its input is a pandas object.
+    """
+    n = len(arr)
+    if arr.dtype.kind in "US":
+        items = [v.encode("utf-8") for v in arr.tolist()] if arr.dtype.kind == "U" else arr.tolist()
+        offsets = np.zeros(n + 1, np.int32)
+        np.cumsum([len(b) for b in items], out=offsets[1:])
+        return pa.Array.from_buffers(pa.string() if arr.dtype.kind == "U" else pa.binary(), n,
+                                     [None, pa.py_buffer(offsets), pa.py_buffer(b"".join(items))])
+    if arr.dtype.kind == "b":
+        data = np.packbits(arr.astype(bool, copy=False), bitorder="little")
+    else:
+        data = np.ascontiguousarray(arr)
+    return pa.Array.from_buffers(pa.from_numpy_dtype(arr.dtype), n, [None, pa.py_buffer(data)])
 
 
 def write_telemetry_parquet(telemetry: Mapping[str, np.ndarray], path: str | Path) -> Path:

@@ -412,7 +412,8 @@ def _platform(world: World) -> dict[str, Any]:
     """Where the run ran: results are bit-identical on one machine and one GL build, not across them."""
     import mujoco
 
-    return {"cpu": _cpu_model(), "gl": world.gl_info(), "mujoco": mujoco.__version__}
+    # With the camera on, the GL build even when no frame was consumed (then none was rendered).
+    return {"cpu": _cpu_model(), "gl": world.gl_info(probe=world.camera_cfg.enabled), "mujoco": mujoco.__version__}
 
 
 def _vision_summary(fsw: FlightSoftware) -> dict[str, float | int | None]:

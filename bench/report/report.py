@@ -62,6 +62,7 @@ FIGURE_SIZE_IN = (14.0, 10.0)
 FIGURE_DPI = 100
 PLOT_COLUMNS_PLAIN = 3  # panels per row without navigation-error panels (3 x 3)
 PLOT_COLUMNS_NAV = 4  # with them (3 x 4)
+PLOT_MARGINS = dict(left=0.055, right=0.99, bottom=0.05, top=0.93, wspace=0.3, hspace=0.36)  # figure fractions
 SUN_ELEVATION_DEG = 30.0  # default hillshade sun for the top view [deg]
 SUN_AZIMUTH_DEG = 315.0  # from north, clockwise toward east [deg] (the cartographic north-west light)
 TOP_VIEW_MARGIN_FRAC = 0.15  # margin around the flown area, as a fraction of its larger side
@@ -468,7 +469,10 @@ def write_plots(
         phase_color.setdefault(name, PHASE_COLORS[len(phase_color) % len(PHASE_COLORS)])
     nav_r, nav_v = _nav_components(cols, "r"), _nav_components(cols, "v")
 
-    fig = Figure(figsize=FIGURE_SIZE_IN, layout="constrained")
+    # Fixed margins, not layout="constrained": the constrained layout lays the whole figure
+    # out once more before drawing it (about half of the plots' time, a few per cent of a run).
+    fig = Figure(figsize=FIGURE_SIZE_IN)
+    fig.subplots_adjust(**PLOT_MARGINS)
     ncols = PLOT_COLUMNS_NAV if (nav_r or nav_v) else PLOT_COLUMNS_PLAIN
     axes = list(fig.subplots(3, ncols).ravel())
     panels = iter(axes)

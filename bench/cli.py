@@ -262,7 +262,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Fly one landing. Exit status: 0 landed, 3 not landed, 2 bad input.")
     _add_scenario_args(p)
     p.add_argument("--out", default="out/run", help="output folder (default out/run)")
-    p.add_argument("--no-video", action="store_true", help="skip camera.mp4 (frames are still rendered if the camera is on)")
+    p.add_argument("--no-video", action="store_true", help="skip camera.mp4 (then frames that vision does not use are not rendered)")
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("mc", help="Monte Carlo campaign of dispersed landings")

@@ -47,12 +47,12 @@ from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.spatial.transform import Rotation
 
 from gnc.config import validated_config
 from gnc.guidance import LUNAR_GRAVITY_MPS2, GuidanceCommand, GuidanceLimits, TiltLimitConfig
 from gnc.messages import N_LEGS, ContactMessage
 from gnc.navstate import NavState
+from gnc.quat import quat_error, quat_from_matrix
 
 # Propellant modelled as a uniform sphere: I = SPHERE_INERTIA_FACTOR * m * r^2.
 SPHERE_INERTIA_FACTOR = 0.4
@@ -216,7 +216,7 @@ def attitude_command_LB(z_cmd_L: np.ndarray, yaw_rad: float) -> np.ndarray:
     x = h - (h @ z) / z[2] * _EZ  # x . z = 0 and x's horizontal part is h
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
-    return Rotation.from_matrix(np.column_stack([x, y, z])).as_quat(scalar_first=True)
+    return quat_from_matrix(np.column_stack([x, y, z]))
 
 
 def attitude_torque_B(
@@ -246,9 +246,7 @@ def attitude_torque_B(
     Returns:
         Torque in B, (3,) [N m], each axis within ``+-torque_max_Nm``.
     """
-    q_e = (Rotation.from_quat(q_LB_cmd, scalar_first=True).inv() * Rotation.from_quat(q_LB, scalar_first=True)).as_quat(
-        scalar_first=True
-    )
+    q_e = quat_error(q_LB_cmd, q_LB)
     e = 2.0 * np.copysign(1.0, q_e[0]) * q_e[1:]
     wn, zeta = cfg.attitude_bandwidth_radps, cfg.attitude_damping_ratio
     omega_ref = -(wn / (2.0 * zeta)) * e

@@ -148,9 +148,22 @@ class FlightSoftware:
     def on_altimeter(self, msg: AltimeterMessage) -> None:
         self.filter.update_altimeter(msg)
 
+    def wants_image(self) -> bool:
+        """Would :meth:`on_image` use a frame now (a tracker, vision enabled, above the cut-off)?
+
+        A caller that has no other use for the frame may then skip rendering
+        it and call :meth:`skip_image` instead: the same as ``on_image`` of a
+        frame it would not use.
+        """
+        return self.tracker is not None and self.vision_active()
+
+    def skip_image(self) -> None:
+        """A camera frame went by that :meth:`wants_image` said would not be used."""
+        self._end_vision()
+
     def on_image(self, msg: ImageMessage) -> Tracks | None:
         """Run the paper's tracker on a frame (above the cut-off) and use its tracks."""
-        if self.tracker is None or not self.vision_active():
+        if not self.wants_image():
             self._end_vision()
             return None
         tracks = self.tracker.step(msg.image)

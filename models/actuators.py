@@ -66,12 +66,17 @@ class PropulsionModel:
         eng = self.cfg.engine
         if self.is_cut or self.propellant_kg <= 0.0 or not thrust_cmd_N > 0.0:
             return 0.0
-        return float(np.clip(thrust_cmd_N, eng.thrust_min_N, eng.thrust_max_N))
+        return float(min(max(float(thrust_cmd_N), eng.thrust_min_N), eng.thrust_max_N))
 
     def clamp_torque(self, torque_cmd_B_Nm: np.ndarray) -> np.ndarray:
         """RCS torque after per-axis saturation (3,) [N m]."""
-        tau = self.cfg.rcs_torque_max_Nm
-        return np.clip(np.nan_to_num(np.asarray(torque_cmd_B_Nm, float)), -tau, tau)
+        tau = float(self.cfg.rcs_torque_max_Nm)
+        t = np.asarray(torque_cmd_B_Nm, float)
+        if t.shape != (3,):
+            return np.clip(np.nan_to_num(t), -tau, tau)
+        # Per-axis on floats (called every physics tick): NaN -> 0, +-inf and beyond -> +-tau,
+        # as np.clip(np.nan_to_num(t), -tau, tau).
+        return np.array([0.0 if v != v else (tau if v > tau else (-tau if v < -tau else v)) for v in t.tolist()])
 
     def apply(self, thrust_cmd_N: float, torque_cmd_B_Nm: np.ndarray, n_steps: int, dt_s: float) -> PropulsionOutput:
         """Evaluate the commands over ``n_steps`` physics steps and burn propellant.

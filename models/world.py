@@ -413,20 +413,35 @@ class World:
         r.update_scene(self.data, camera=self._cam)
         return r.render().astype(np.float32, copy=False)
 
-    def gl_info(self) -> dict[str, str] | None:
-        """The OpenGL vendor, renderer and version strings of the camera's context; None before any render.
+    def gl_info(self, probe: bool = False) -> dict[str, str] | None:
+        """The OpenGL vendor, renderer and version strings of the camera's context.
 
         Closed-loop results are bit-identical on one machine and one GL build, not across them:
         the summary records these so that a difference can be traced to the renderer.
+
+        Args:
+            probe: When nothing has been rendered yet, read them from a small bare context of
+                the same backend (no scene, no textures) instead of returning None.
         """
-        r = self._renderer if self._renderer is not None else self._depth_renderer
-        if r is None:
-            return None
         from OpenGL import GL  # PyOpenGL, MuJoCo's own dependency for EGL and OSMesa
 
-        r._gl_context.make_current()
-        return {name: GL.glGetString(code).decode("utf-8", "replace")
-                for name, code in (("vendor", GL.GL_VENDOR), ("renderer", GL.GL_RENDERER), ("version", GL.GL_VERSION))}
+        def strings() -> dict[str, str]:
+            return {name: GL.glGetString(code).decode("utf-8", "replace")
+                    for name, code in (("vendor", GL.GL_VENDOR), ("renderer", GL.GL_RENDERER),
+                                       ("version", GL.GL_VERSION))}
+
+        r = self._renderer if self._renderer is not None else self._depth_renderer
+        if r is not None:
+            r._gl_context.make_current()
+            return strings()
+        if not probe:
+            return None
+        ctx = mujoco.GLContext(64, 64)
+        try:
+            ctx.make_current()
+            return strings()
+        finally:
+            ctx.free()
 
     def close(self) -> None:
         """Free the GL contexts (also done by garbage collection)."""

@@ -43,6 +43,19 @@ def test_block_nees_matches_an_explicit_inverse():
         assert value == pytest.approx(want, rel=1e-12)
 
 
+def test_block_nees_of_a_singular_block_is_nan():
+    # The closed forms of the 1x1 and 2x2 blocks give NaN where a solve would fail, as the 3x3 one does.
+    rng = np.random.default_rng(1)
+    e = rng.normal(size=9)
+    P = np.eye(9)
+    P[2, 2] = 0.0           # r_v
+    P[3:5, 3:5] = 1.0       # v_h: rank 1
+    P[6:9, 6:9] = 0.0       # b_a
+    got = dict(zip(NEES_BLOCKS, block_nees(e, P)))
+    assert np.isnan(got["r_v"]) and np.isnan(got["v_h"]) and np.isnan(got["b_a"])
+    assert got["r_h"] == pytest.approx(e[0] ** 2 + e[1] ** 2) and got["v_v"] == pytest.approx(e[5] ** 2)
+
+
 def _telemetry(rng, z0=510.0):
     t = np.arange(0.0, 60.0, 0.02)
     z = np.maximum(z0 - 9.0 * t, 0.0)

@@ -125,3 +125,23 @@ def test_divergence_is_never_silent(flat_terrain):
     world.data.qvel[0] = 1e12  # beyond MuJoCo's mjMAXVAL: it would reset the state and carry on
     with pytest.raises(PhysicsDivergedError, match="physics_dt_ns"):
         world.step(5)
+
+
+def test_torque_and_thrust_clamps_match_numpy_on_random_and_special_inputs():
+    # The per-axis float path of clamp_torque against np.clip(np.nan_to_num(.)), the reference it replaced.
+    from bench.scenario import load_scenario
+    from models.actuators import PropulsionModel
+
+    lander = load_scenario(None, []).lander
+    prop = PropulsionModel(lander)
+    tau = lander.rcs_torque_max_Nm
+    rng = np.random.default_rng(11)
+    cases = list(rng.normal(0.0, 2.0 * tau, (500, 3)))
+    cases += [np.array([np.nan, np.inf, -np.inf]), np.array([tau, -tau, 0.0]), np.array([-0.0, 1e-300, -1e308])]
+    for t in cases:
+        got = prop.clamp_torque(t)
+        assert got.shape == (3,) and np.array_equal(got, np.clip(np.nan_to_num(t), -tau, tau))
+    eng = lander.engine
+    for thrust in [*rng.uniform(-1e4, 2e4, 200), np.inf, 1e-9, eng.thrust_min_N, eng.thrust_max_N]:
+        want = 0.0 if not thrust > 0.0 else float(np.clip(thrust, eng.thrust_min_N, eng.thrust_max_N))
+        assert prop.clamp_thrust(thrust) == want

@@ -59,15 +59,26 @@ def block_nees(e: np.ndarray, P: np.ndarray) -> tuple[float, ...]:
     Returns:
         ``e_b^T P_bb^-1 e_b`` per block (NaN where the block is singular).
     """
+    # Closed forms for the 1x1 and 2x2 blocks (every control tick calls this); a solve for the 3x3 one.
     out = []
     for block in NEES_BLOCKS:
         idx = _BLOCK_INDEX[block]
-        eb = e[idx]
-        Pb = P[np.ix_(idx, idx)]
-        try:
-            out.append(float(eb @ np.linalg.solve(Pb, eb)))
-        except np.linalg.LinAlgError:
-            out.append(math.nan)
+        if len(idx) == 1:
+            i = idx[0]
+            p = float(P[i, i])
+            out.append(float(e[i]) ** 2 / p if p != 0.0 else math.nan)
+        elif len(idx) == 2:
+            i, j = idx
+            a, b, c, d = float(P[i, i]), float(P[i, j]), float(P[j, i]), float(P[j, j])
+            det = a * d - b * c
+            ei, ej = float(e[i]), float(e[j])
+            out.append((d * ei * ei - (b + c) * ei * ej + a * ej * ej) / det if det != 0.0 else math.nan)
+        else:
+            eb = e[idx]
+            try:
+                out.append(float(eb @ np.linalg.solve(P[np.ix_(idx, idx)], eb)))
+            except np.linalg.LinAlgError:
+                out.append(math.nan)
     return tuple(out)
 
 

@@ -34,8 +34,13 @@ def component_rng(seed: int, component: str) -> np.random.Generator:
     Returns:
         A generator that depends only on (seed, component).
     """
+    return np.random.default_rng(component_seed(seed, component))
+
+
+def component_seed(seed: int, component: str) -> np.random.SeedSequence:
+    """The ``SeedSequence`` behind :func:`component_rng` (for per-item child streams of a component)."""
     try:
         index = COMPONENTS.index(component)
     except ValueError:
         raise ValueError(f"unknown random-stream component {component!r}; known: {', '.join(COMPONENTS)}") from None
-    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(index,)))
+    return np.random.SeedSequence(seed, spawn_key=(index,))

@@ -223,6 +223,7 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
     settle_ns = int(round(crit.settle_s * NS_PER_S))
     bar = _progress_bar(sim.t_max_ns, progress)
     timing = {"render_s": 0.0, "vision_s": 0.0, "filter_s": 0.0}
+    frames_rendered = 0
 
     t_ns = 0
     wall0 = time.perf_counter()
@@ -254,10 +255,14 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
             if "camera" in periods and t_ns % periods["camera"] == 0:
                 tracks = None
                 frame = None
-                if cam.enabled:
+                # Render only a frame that someone consumes: the video, a recording, or the tracker
+                # (above the cut-off). Each frame's noise is its own stream, so skipping changes nothing.
+                if cam.enabled and (frame_sink is not None or recorder is not None
+                                    or (tracker_truth is None and fsw.wants_image())):
                     t0 = time.perf_counter()
-                    frame = sensors.camera_frame(world)
+                    frame = sensors.camera_frame_at(world, t_ns // cam.period_ns)
                     timing["render_s"] += time.perf_counter() - t0
+                    frames_rendered += 1
                 t0 = time.perf_counter()
                 if tracker_truth is not None:
                     tracks = tracker_truth.step(*world.camera_pose())
@@ -268,6 +273,8 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                         recorder.message("image", image_msg)
                         t0 += _record_camera_truth(recorder, t_ns, world)  # not vision time
                     tracks = fsw.on_image(image_msg)
+                elif cam.enabled:
+                    fsw.skip_image()  # what on_image does with a frame it does not use
                 timing["vision_s"] += time.perf_counter() - t0
                 if frame is not None and frame_sink is not None:
                     frame_sink(t_ns, frame, truth, tracks)
@@ -330,7 +337,7 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
         "guidance": _guidance_summary(telemetry, scenario),
         "vision": _vision_summary(fsw),
         "consistency": run_consistency(telemetry, touchdown, fsw.filter.log),
-        "time_split_s": timing,
+        "time_split_s": {**timing, "frames_rendered": frames_rendered},  # what was rendered depends on the outputs
         "platform": _platform(world),
         "error": error,
     }
@@ -405,7 +412,8 @@ def _platform(world: World) -> dict[str, Any]:
     """Where the run ran: results are bit-identical on one machine and one GL build, not across them."""
     import mujoco
 
-    return {"cpu": _cpu_model(), "gl": world.gl_info(), "mujoco": mujoco.__version__}
+    # With the camera on, the GL build even when no frame was consumed (then none was rendered).
+    return {"cpu": _cpu_model(), "gl": world.gl_info(probe=world.camera_cfg.enabled), "mujoco": mujoco.__version__}
 
 
 def _vision_summary(fsw: FlightSoftware) -> dict[str, float | int | None]:

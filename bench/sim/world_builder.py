@@ -13,7 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from bench.scenario import Scenario
-from bench.scenario.seeding import component_rng
+from bench.scenario.seeding import component_rng, component_seed
+from bench.sim.terrain_cache import cached_terrain
 from models.camera import apply_detector_noise
 from models.sensors import AltimeterModel, ImuModel, StarTrackerModel
 from models.terrain import Terrain, generate_terrain
@@ -60,10 +61,11 @@ def _terrain_bytes(terrain: Terrain) -> int:
 
 
 def build_terrain(scenario: Scenario) -> Terrain:
-    """The scenario's terrain: generated from its own stream, or the same one generated earlier in this process.
+    """The scenario's terrain: generated from its own stream, or the same one generated earlier.
 
-    Bit-identical to :func:`generate_scenario_terrain` (the cache holds only
-    procedural terrains, keyed on everything that generates them).
+    Bit-identical to :func:`generate_scenario_terrain`. Procedural terrains are
+    cached in this process and on disk (:mod:`bench.sim.terrain_cache`), keyed on
+    everything that generates them.
     """
     key = _terrain_key(scenario)
     if key is None:
@@ -73,7 +75,8 @@ def build_terrain(scenario: Scenario) -> Terrain:
         if terrain is not None:
             _terrain_cache.move_to_end(key)
             return terrain
-    terrain = generate_scenario_terrain(scenario)
+    terrain = cached_terrain(scenario.terrain, scenario.terrain_seed(), float(scenario.sun.elevation_deg),
+                             float(scenario.sun.azimuth_deg), lambda: generate_scenario_terrain(scenario))
     with _terrain_cache_lock:
         _terrain_cache[key] = terrain
         _terrain_cache.move_to_end(key)
@@ -112,10 +115,28 @@ class SensorSuite:
     altimeter: AltimeterModel
     star_tracker: StarTrackerModel
     camera_rng: np.random.Generator
+    camera_seed: np.random.SeedSequence | None = None
 
     def camera_frame(self, world: World) -> np.ndarray:
-        """Render and corrupt one camera frame, (H, W) uint8."""
+        """Render and corrupt one camera frame, (H, W) uint8, with the next draws of the camera's stream."""
         return apply_detector_noise(world.render_signal(), world.camera_cfg, self.camera_rng)
+
+    def frame_rng(self, frame_index: int) -> np.random.Generator:
+        """The detector-noise stream of camera frame ``frame_index`` of the run.
+
+        One child stream per frame (``spawn_key`` + (index,)): a frame's noise
+        depends only on (seed, frame index), never on which earlier frames were
+        rendered, so the closed loop may skip frames that nobody consumes and
+        still fly exactly as a run that rendered them all (for a video or a
+        recording).
+        """
+        base = self.camera_seed
+        return np.random.Generator(np.random.PCG64(
+            np.random.SeedSequence(base.entropy, spawn_key=(*base.spawn_key, int(frame_index)))))
+
+    def camera_frame_at(self, world: World, frame_index: int) -> np.ndarray:
+        """Render and corrupt camera frame ``frame_index`` of the run, (H, W) uint8 (see :meth:`frame_rng`)."""
+        return apply_detector_noise(world.render_signal(), world.camera_cfg, self.frame_rng(frame_index))
 
 
 def build_sensors(scenario: Scenario) -> SensorSuite:
@@ -125,6 +146,7 @@ def build_sensors(scenario: Scenario) -> SensorSuite:
         altimeter=AltimeterModel(s.altimeter, component_rng(scenario.seed, "altimeter")),
         star_tracker=StarTrackerModel(s.star_tracker, component_rng(scenario.seed, "star_tracker")),
         camera_rng=component_rng(scenario.seed, "camera"),
+        camera_seed=component_seed(scenario.seed, "camera"),
     )
 
 

@@ -65,8 +65,8 @@ def block_nees(e: np.ndarray, P: np.ndarray) -> tuple[float, ...]:
         idx = _BLOCK_INDEX[block]
         if len(idx) == 1:
             i = idx[0]
-            p = float(P[i, i])
-            out.append(float(e[i]) ** 2 / p if p != 0.0 else math.nan)
+            p, ei = float(P[i, i]), float(e[i])
+            out.append(ei * ei / p if p != 0.0 else math.nan)
         elif len(idx) == 2:
             i, j = idx
             a, b, c, d = float(P[i, i]), float(P[i, j]), float(P[j, i]), float(P[j, j])
@@ -99,6 +99,20 @@ def block_nees_many(e: np.ndarray, P: np.ndarray) -> np.ndarray:
     out = np.empty((e.shape[0], len(NEES_BLOCKS)))
     for j, block in enumerate(NEES_BLOCKS):
         idx = _BLOCK_INDEX[block]
+        if len(idx) == 1:  # block_nees's closed form, elementwise (the same IEEE operations in the same order)
+            i = idx[0]
+            p = P[:, i, i]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                out[:, j] = np.where(p != 0.0, e[:, i] * e[:, i] / p, math.nan)
+            continue
+        if len(idx) == 2:
+            i, k = idx
+            a, b, c, d = P[:, i, i], P[:, i, k], P[:, k, i], P[:, k, k]
+            det = a * d - b * c
+            ei, ek = e[:, i], e[:, k]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                out[:, j] = np.where(det != 0.0, (d * ei * ei - (b + c) * ei * ek + a * ek * ek) / det, math.nan)
+            continue
         eb = e[:, idx]
         Pb = P[:, idx][:, :, idx]
         try:

@@ -916,7 +916,8 @@ class NavFilter:
 
     def update_relative(self, t_ns: int, z: np.ndarray, hx: np.ndarray, H_r: np.ndarray, H_c: np.ndarray,
                         R: np.ndarray, R_frame: np.ndarray | None = None, H_g: np.ndarray | None = None,
-                        H_s: np.ndarray | None = None, kind: str = KIND_VISION) -> UpdateRecord:
+                        H_s: np.ndarray | None = None, kind: str = KIND_VISION,
+                        frame_overlap: float = 1.0) -> UpdateRecord:
         """Update with a measurement of the current position relative to the clone.
 
         The measurement model is linearised by the caller at the filter's prior:
@@ -942,6 +943,12 @@ class NavFilter:
             H_g: Jacobian with respect to the viewed ground's height ``h_view``, (2,);
                 None: the measurement does not depend on it.
             kind: Record and counter name (default ``"vision"``).
+            frame_overlap: Correlation in [0, 1] between the clone frame's offset as this pair
+                sees it and as the pair before saw it. The offset is the mean error of the
+                tracked positions in that frame, over each pair's own tracks: with ``n1`` and
+                ``n2`` tracks, ``n12`` of them in both, it is ``n12 / sqrt(n1 n2)`` (1 when the
+                tracks are the same; less when templates were dropped or refilled). The known
+                offset is carried over with that factor, the rest is new (``R_frame``).
 
         Returns:
             The update's record (``accepted`` False when gated, stale, non-finite,
@@ -987,6 +994,12 @@ class NavFilter:
         R_f = 0.5 * (R_f + R_f.T)
         for idx in [IDX_DN] if self._offset_clone_known else [IDX_DN, IDX_DC]:
             _enter_independent(x, P, idx, R_f)
+        if self._offset_clone_known and frame_overlap < 1.0:
+            a = min(max(float(frame_overlap), 0.0), 1.0)
+            x[IDX_DC] *= a
+            P[IDX_DC, :] *= a
+            P[:, IDX_DC] *= a
+            P[IDX_DC, IDX_DC] += (1.0 - a * a) * R_f
         hx = hx + x[IDX_BF] + x[IDX_DN] - x[IDX_DC]
         rec = self._gated_update(int(t_ns), kind, z, hx, H, R, prior=(x, P), consider=_VISION_CONSIDER)
         if rec.accepted:

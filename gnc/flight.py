@@ -103,6 +103,25 @@ class _Frame:
     q_gyro: tuple[float, float, float, float]  # gyro-only attitude at the frame
 
 
+def frame_overlap(prev_ids: np.ndarray | None, ids: np.ndarray) -> float:
+    """Correlation of a frame's mean tracking error as two consecutive pairs see it: ``n12 / sqrt(n1 n2)``.
+
+    Args:
+        prev_ids: Track ids of the previous pair (None: no previous pair, 1 is returned).
+        ids: Track ids of this pair.
+
+    Returns:
+        The shared tracks' count over the geometric mean of the two counts, in [0, 1]
+        (each pair averages the frame's per-track errors over its own tracks).
+    """
+    if prev_ids is None:
+        return 1.0
+    if len(prev_ids) == 0 or len(ids) == 0:
+        return 0.0
+    shared = np.intersect1d(prev_ids, ids, assume_unique=True).size
+    return float(shared / math.sqrt(len(prev_ids) * len(ids)))
+
+
 class FlightSoftware:
     """Navigation + vision + guidance + control, fed by messages.
 
@@ -134,6 +153,7 @@ class FlightSoftware:
         self.target = LandingTarget()
         self.vision = VisionStats()
         self._prev_frame: _Frame | None = None
+        self._prev_pair_ids: np.ndarray | None = None  # track ids of the last measured pair
         self._last_cmd_t_ns: int | None = None
         self._last_thrust_N = 0.0
         self.last_guidance: GuidanceCommand | None = None
@@ -198,6 +218,9 @@ class FlightSoftware:
         cfg = self.filter.cfg
         sigma_rot = math.sqrt(cfg.gyro_noise_density**2 * dt_s + (cfg.gyro_bias_sigma_radps * dt_s) ** 2)
         k = self.knowledge
+        ids = tracks.ids[np.all(np.isfinite(tracks.prev_xy), axis=1)]
+        overlap = frame_overlap(self._prev_pair_ids, ids)
+        self._prev_pair_ids = ids
         m = vision_measurement(tracks, prev.t_ns, t_ns, k.K, k.R_BC, k.r_cam_B_m, R_LB0, R_LB1,
                                x[IDX_C].copy(), r1, float(x[IDX_G]), sigma_rot, self.vision_cfg,
                                s_view=x[IDX_SV].copy())
@@ -206,7 +229,8 @@ class FlightSoftware:
             return
         self.vision.measurements += 1
         self.vision.last = m
-        record = self.filter.update_relative(m.t_ns, m.z, m.hx, m.H_r, m.H_c, m.R, m.R_frame, m.H_g, m.H_s)
+        record = self.filter.update_relative(m.t_ns, m.z, m.hx, m.H_r, m.H_c, m.R, m.R_frame, m.H_g, m.H_s,
+                                             frame_overlap=overlap)
         self.vision.last_record = record
         if not record.accepted:
             self.vision.rejected += 1
@@ -214,6 +238,7 @@ class FlightSoftware:
     def _end_vision(self) -> None:
         """No vision at this frame: the next frame starts a new pair."""
         self._prev_frame = None
+        self._prev_pair_ids = None
         self.filter.drop_clone()
 
     def vision_active(self) -> bool:

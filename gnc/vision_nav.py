@@ -112,7 +112,10 @@ class VisionNavConfig(BaseModel):
                     "error that the frame shares with its neighbouring pair",
     )
     covariance_inflation: float = Field(
-        1.0, ge=1.0, description="factor on the measurement covariance for unmodelled errors [-]"
+        1.1, ge=1.0,
+        description="factor on the measurement covariance for unmodelled errors [-]. 1.1: with 1.0, three "
+                    "30-case campaigns gave vision NIS / dof 1.05-1.14 per altitude band and gated out 0.5 % "
+                    "of the measurements at a 99.9 % gate",
     )
     cutoff_altitude_m: float = Field(
         30.0, ge=0.0, description="vision is used only above this estimated altitude; below, IMU + altimeter [m]"

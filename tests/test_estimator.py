@@ -824,3 +824,58 @@ def test_scaled_gauss_markov_step_reaches_the_new_amplitude():
     _decay(x, P, slice(0, 2), 0.4, s1, s1 / s0)
     np.testing.assert_allclose(P, np.eye(2) * s1**2, rtol=1e-12)
     np.testing.assert_allclose(x, np.array([2e-6, -1e-6]) * 0.4 * 2.5, rtol=1e-12)
+
+
+def test_frame_overlap_is_the_shared_tracks_over_the_geometric_mean_of_the_counts():
+    from gnc.flight import frame_overlap
+
+    a = np.arange(10, dtype=np.int64)
+    b = np.arange(6, 20, dtype=np.int64)  # 4 shared of 10 and 14
+    assert frame_overlap(a, b) == pytest.approx(4 / math.sqrt(10 * 14))
+    assert frame_overlap(a, a) == 1.0 and frame_overlap(None, b) == 1.0
+    assert frame_overlap(a, np.arange(30, 35, dtype=np.int64)) == 0.0
+    # Independent per-track errors of one frame, averaged over each pair's own tracks: the correlation
+    # of the two means, by Monte Carlo, is the overlap.
+    e = np.random.default_rng(3).normal(size=(200_000, 20))
+    m1, m2 = e[:, a].mean(axis=1), e[:, b].mean(axis=1)
+    assert np.corrcoef(m1, m2)[0, 1] == pytest.approx(frame_overlap(a, b), abs=0.01)
+
+
+def test_relative_update_carries_the_clone_frames_offset_over_by_the_track_overlap():
+    # Two pairs: the first enters both frames' offsets; after cloning, the second pair shares the clone
+    # frame with it. With overlap a, its prior holds a * d and a^2 P_dd + (1 - a^2) R_frame.
+    nav = make(None, [5.0, -3.0, 200.0], [2.0, 1.0, -10.0], 0, q0_LB=[1, 0, 0, 0])
+    assert nav.clone_frame(0)
+    h0 = 200.0
+    H_r = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]) / h0
+    H_c = -H_r
+    R, R_frame = np.diag([3e-9, 4e-9]), np.diag([1e-9, 2e-9])
+    k = 0
+    for pair, overlap in ((1, 1.0), (2, 0.6)):
+        for _ in range(50):
+            k += 1
+            nav.propagate_imu(_imu(k, [0.05, -0.02, G]))
+        hx = np.array([1e-3, 5e-4])
+        if pair == 2:
+            x_before, P_before = nav.ekf.x.copy(), nav.ekf.P.copy()
+        rec = nav.update_relative(nav.time_ns, hx + np.array([2e-5, -1e-5]), hx, H_r, H_c, R, R_frame,
+                                  frame_overlap=overlap)
+        assert rec.accepted
+        assert nav.clone_frame(nav.time_ns)
+    # Explicit prior of the second pair: this frame's offset entered fresh, the clone frame's carried over.
+    x, P = x_before.copy(), P_before.copy()
+    dn, dc = slice(15, 17), slice(13, 15)
+    x[dn] = 0.0
+    P[dn, :] = 0.0
+    P[:, dn] = 0.0
+    P[dn, dn] = R_frame
+    x[dc] *= 0.6
+    P[dc, :] *= 0.6
+    P[:, dc] *= 0.6
+    P[dc, dc] += 0.64 * R_frame
+    H = np.zeros((2, 24))
+    H[:, 0:3], H[:, 10:13], H[:, 17:19], H[:, dn], H[:, dc] = H_r, H_c, np.eye(2), np.eye(2), -np.eye(2)
+    np.testing.assert_allclose(rec.S, H @ P @ H.T + R, rtol=1e-9)
+    hx_full = hx + x[17:19] + x[dn] - x[dc]
+    np.testing.assert_allclose(rec.y, hx + np.array([2e-5, -1e-5]) - hx_full, rtol=1e-9, atol=1e-15)
+    assert abs(x_before[dc]).max() > 0  # the first pair did estimate the clone frame's offset

@@ -879,3 +879,20 @@ def test_relative_update_carries_the_clone_frames_offset_over_by_the_track_overl
     hx_full = hx + x[17:19] + x[dn] - x[dc]
     np.testing.assert_allclose(rec.y, hx + np.array([2e-5, -1e-5]) - hx_full, rtol=1e-9, atol=1e-15)
     assert abs(x_before[dc]).max() > 0  # the first pair did estimate the clone frame's offset
+
+
+@pytest.mark.parametrize("width_m", [15.0, 60.0, 150.0, 350.0, 1000.0])
+def test_view_ground_sigma_averages_the_relief_over_the_patch(width_m):
+    """The patch mean's 1-sigma against a Monte Carlo of the Matern-3/2 correlation over a square patch:
+    never below it (conservative), at most 12 % above it."""
+    from gnc.estimator import view_ground_sigma
+
+    cfg = EstimatorConfig()
+    length = cfg.terrain_correlation_length_m
+    rng = np.random.default_rng(11)
+    p, q = rng.uniform(0, width_m, (200_000, 2)), rng.uniform(0, width_m, (200_000, 2))
+    r = np.linalg.norm(p - q, axis=1)
+    exact = cfg.view_ground_sigma_m * math.sqrt(float(np.mean((1 + r / length) * np.exp(-r / length))))
+    model = view_ground_sigma(cfg, width_m / cfg.view_width_per_height, 1.0)
+    assert 0.995 * exact <= model <= 1.12 * exact
+    assert view_ground_sigma(cfg, width_m / cfg.view_width_per_height, 0.25) == pytest.approx(0.25 * model)

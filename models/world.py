@@ -43,7 +43,7 @@ from models.lander import (  # noqa: E402
     sensor_mjcf,
 )
 from models.terrain import Terrain  # noqa: E402
-from bench.scenario.sun import SunConfig  # noqa: E402,F401  (the scenario's type; re-exported)
+from models.sun import SunConfig  # noqa: E402,F401  (the scenario's type; re-exported)
 
 NS_PER_S = 1_000_000_000
 logger = logging.getLogger(__name__)

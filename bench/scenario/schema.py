@@ -37,7 +37,7 @@ from models.camera import CameraConfig
 from models.lander import CONTACT_TIMECONST_S, LanderConfig
 from models.sensors import SensorsConfig
 from models.terrain import TerrainConfig
-from bench.scenario.sun import SunConfig  # not models.world: a scenario loads without MuJoCo
+from models.sun import SunConfig  # not models.world: a scenario loads without MuJoCo
 
 NS_PER_S = 1_000_000_000
 DEFAULT_SCENARIO = "default.toml"

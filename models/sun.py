@@ -1,8 +1,9 @@
-"""The sun's settings (``[sun]``): a scenario type with no simulator behind it.
+"""The sun's settings (``[sun]``): the truth world's lighting, with no simulator behind it.
 
-It lives in the scenario package so that loading a scenario (``landbench
-replay``, ``landbench scenario show``, the compare tools) needs neither MuJoCo
-nor a renderer; :mod:`models.world` imports it from here to light the world.
+A module of its own, importing neither MuJoCo nor a renderer, so that loading a
+scenario (``landbench replay``, ``landbench scenario show``, the compare tools)
+needs neither; :mod:`models.world` lights the world with it and
+:mod:`bench.scenario` names it in the schema (models never import bench).
 """
 
 from __future__ import annotations

@@ -883,11 +883,11 @@ def test_relative_update_carries_the_clone_frames_offset_over_by_the_track_overl
 
 @pytest.mark.parametrize("width_m", [15.0, 60.0, 150.0, 350.0, 1000.0])
 def test_view_ground_sigma_averages_the_relief_over_the_patch(width_m):
-    """The patch mean's 1-sigma against a Monte Carlo of the Matern-3/2 correlation over a square patch:
-    never below it (conservative), at most 12 % above it."""
+    """The patch mean's 1-sigma against a Monte Carlo of the Matern-3/2 correlation over a square patch
+    (a uniform average): never below it (conservative), at most 12 % above it."""
     from gnc.estimator import view_ground_sigma
 
-    cfg = EstimatorConfig()
+    cfg = EstimatorConfig(view_ground_samples=1_000_000)  # a uniform average over the patch
     length = cfg.terrain_correlation_length_m
     rng = np.random.default_rng(11)
     p, q = rng.uniform(0, width_m, (200_000, 2)), rng.uniform(0, width_m, (200_000, 2))
@@ -896,3 +896,9 @@ def test_view_ground_sigma_averages_the_relief_over_the_patch(width_m):
     model = view_ground_sigma(cfg, width_m / cfg.view_width_per_height, 1.0)
     assert 0.995 * exact <= model <= 1.12 * exact
     assert view_ground_sigma(cfg, width_m / cfg.view_width_per_height, 0.25) == pytest.approx(0.25 * model)
+    # Sampled at n places: the mean of n independent draws adds (1 - rho) sigma^2 / n.
+    few = cfg.model_copy(update={"view_ground_samples": 4})
+    big = cfg.view_ground_samples
+    rho = ((model / cfg.view_ground_sigma_m) ** 2 - 1 / big) / (1 - 1 / big)
+    assert view_ground_sigma(few, width_m / cfg.view_width_per_height, 1.0) == pytest.approx(
+        cfg.view_ground_sigma_m * math.sqrt(rho + (1 - rho) / 4))

@@ -873,13 +873,14 @@ class NavFilter:
         cfg = self.cfg
         if self._clone_t_ns is not None:
             # The view moved: its mean ground height decorrelates with the travel, and the flow
-            # bias with time (Gauss-Markov).
-            # Both carry the site map's relief amplitude over the viewed patch (``k_view``).
+            # bias with time (Gauss-Markov). The viewed ground's height and slope carry the site
+            # map's relief amplitude over the viewed patch (``k_view``).
             height_m = float(x[IDX_RZ]) - float(x[IDX_G])
+            travel_m = float(np.linalg.norm(x[IDX_R] - x[IDX_C]))
             k_view = relief_scale(cfg, x[:2], P[:2, :2] + view_spread(cfg, height_m))
             ratio = k_view / self._k_view
             self._k_view = k_view
-            phi_g = math.exp(-float(np.linalg.norm(x[IDX_R] - x[IDX_C])) / cfg.view_ground_correlation_length_m)
+            phi_g = math.exp(-travel_m / cfg.view_ground_correlation_length_m)
             sigma_g = view_ground_sigma(cfg, height_m, k_view)
             _decay(x, P, IDX_G, phi_g, sigma_g, sigma_g / self._sigma_g)
             self._sigma_g = sigma_g
@@ -890,7 +891,6 @@ class NavFilter:
             # The viewed ground's slope: a new patch after a patch width of travel, whose slope
             # 1-sigma is that of a patch of its width at the present height.
             width_m = max(cfg.view_width_per_height * height_m, 1.0)
-            travel_m = float(np.linalg.norm(x[IDX_R] - x[IDX_C]))
             _decay(x, P, IDX_SV, math.exp(-travel_m / width_m), view_slope_sigma(cfg, width_m) * k_view, ratio)
         # The frame's offset: d_clone <- d_new, with its correlations.
         row = P[IDX_DN, :].copy()

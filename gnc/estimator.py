@@ -170,6 +170,7 @@ IDX_G = 19  # mean height of the ground the camera tracks, relative to the targe
 IDX_S = slice(20, 22)  # slope of the terrain at the altimeter footprint, (dh/dx, dh/dy) [-]
 IDX_SV = slice(22, 24)  # slope of the ground the camera tracks, (dh/dx, dh/dy) [-]
 _IDX_TERRAIN = np.array([IDX_H, *range(IDX_S.start, IDX_S.stop)])  # the terrain's height and slope, stepped together
+_IX_TERRAIN = np.ix_(_IDX_TERRAIN, _IDX_TERRAIN)
 # Vision's consider states: the vertical channel (height, vertical velocity and accelerometer bias,
 # the clone's height) and the altimeter's terrain. The flow depends on them (through the camera's
 # vertical displacement and height), but they are left to the altimeter: the flow's divergence
@@ -472,8 +473,8 @@ class NavFilter:
         # Per-step matrices, rebuilt only when the IMU period changes.
         self._dt_ns = -1
         self._F = np.eye(DIM_X)
-        self._Q_bias = np.zeros((DIM_X, DIM_X))
-        self._Q_shape = np.zeros((DIM_X, DIM_X))
+        self._Q = np.zeros((DIM_X, DIM_X))
+        self._Q_shape = np.zeros((6, 6))
         self._H_vel = np.zeros((3, DIM_X))
         self._H_vel[:, IDX_V] = np.eye(3)
 
@@ -573,10 +574,10 @@ class NavFilter:
         shape[IDX_R, IDX_R] = 0.25 * dt**3 * eye3
         shape[IDX_R, IDX_V] = shape[IDX_V, IDX_R] = 0.5 * dt**2 * eye3
         shape[IDX_V, IDX_V] = dt * eye3
-        self._Q_shape = shape
-        q_bias = np.zeros((DIM_X, DIM_X))
-        q_bias[IDX_BA, IDX_BA] = self.cfg.accel_bias_walk**2 * dt * eye3
-        self._Q_bias = q_bias
+        self._Q_shape = shape[:6, :6].copy()  # it is zero outside the position / velocity block
+        q = np.zeros((DIM_X, DIM_X))
+        q[IDX_BA, IDX_BA] = self.cfg.accel_bias_walk**2 * dt * eye3
+        self._Q = q  # the step's Q; its position / velocity block is set per sample (propagate_imu)
         self._dt_ns = dt_ns
 
     def propagate_imu(self, msg: ImuMessage) -> bool:
@@ -632,13 +633,14 @@ class NavFilter:
 
         ekf = self.ekf
         F = self._F
-        F[IDX_V, IDX_BA] = R_LB * -dt
-        F[IDX_R, IDX_BA] = R_LB * (-0.5 * dt * dt)
+        np.multiply(R_LB, -dt, out=F[IDX_V, IDX_BA])
+        np.multiply(R_LB, -0.5 * dt * dt, out=F[IDX_R, IDX_BA])
         ekf.F = F
         u_L = R_LB @ np.array((fx, fy, fz)) + self._g_L  # measured specific force + gravity (bias via F)
         # Star-tracker error tilts the specific force: extra acceleration PSD sigma^2 |f|^2 T.
         psd = self._accel_psd + self._att_var_time * (fx * fx + fy * fy + fz * fz)
-        ekf.Q = self._Q_bias + psd * self._Q_shape
+        np.multiply(self._Q_shape, psd, out=self._Q[:6, :6])
+        ekf.Q = self._Q
         ekf.predict(u_L)
         self._a_L = u_L - R_LB @ ekf.x[IDX_BA]
         self._t_ns = t_ns
@@ -667,10 +669,14 @@ class NavFilter:
         P_gate = ekf.P if prior is None else prior[1]
         y = z - hx
         S = H @ P_gate @ H.T + R
-        try:
-            nis = float(y @ np.linalg.solve(S, y))
-        except np.linalg.LinAlgError:
-            nis = math.nan
+        if len(z) == 1:  # the altimeter: a scalar, no solve
+            s00 = float(S[0, 0])
+            nis = float(y[0]) ** 2 / s00 if s00 != 0.0 else math.nan
+        else:
+            try:
+                nis = float(y @ np.linalg.solve(S, y))
+            except np.linalg.LinAlgError:
+                nis = math.nan
         counts = self.counters[kind]
         if not (nis <= self._gate[len(z)]):  # NaN NIS (singular S) is rejected too
             counts["rejected"] += 1
@@ -769,7 +775,7 @@ class NavFilter:
         step = self._terrain_step(footprint_L, k_new)
         if step is not None:
             x, P = x.copy(), P.copy()
-            _apply_linear_step(x, P, _IDX_TERRAIN, *step)
+            _apply_linear_step(x, P, _IDX_TERRAIN, *step, ix=_IX_TERRAIN)
             prior = (x, P)
         height = p_alt_L[2] + x[IDX_VZ] * lag_s - x[IDX_H]  # altimeter height above the ground [m]
         rho_hat = height / cos_nadir
@@ -1108,25 +1114,39 @@ def matern32_terrain_step(d_xy: np.ndarray, sigma_m: float, length_m: float) -> 
     Returns:
         ``(F, Q)``, each (3, 3), for ``x <- F x``, ``P <- F P F^T + Q``.
     """
-    s = math.hypot(float(d_xy[0]), float(d_xy[1]))
+    dx, dy = float(d_xy[0]), float(d_xy[1])
+    s = math.hypot(dx, dy)
     lam = 1.0 / length_m
     e = math.exp(-s * lam)
-    phi = np.array([[e * (1.0 + s * lam), e * s, 0.0],
-                    [-e * s * lam * lam, e * (1.0 - s * lam), 0.0],
-                    [0.0, 0.0, e]])
-    p_inf = np.diag([sigma_m**2, (sigma_m * lam) ** 2, (sigma_m * lam) ** 2])
-    q = p_inf - phi @ p_inf @ phi.T
-    ux, uy = (float(d_xy[0]) / s, float(d_xy[1]) / s) if s > 0.0 else (1.0, 0.0)
-    T = np.array([[1.0, 0.0, 0.0], [0.0, ux, uy], [0.0, -uy, ux]])  # (h, g_x, g_y) -> (h, g_u, g_p)
-    return T.T @ phi @ T, T.T @ (0.5 * (q + q.T)) @ T
+    # Phi on (h, g_u): [[p00, p01], [p10, p11]]; e on g_p.
+    p00, p01 = e * (1.0 + s * lam), e * s
+    p10, p11 = -e * s * lam * lam, e * (1.0 - s * lam)
+    v_h, v_g = sigma_m * sigma_m, (sigma_m * lam) ** 2  # P_inf = diag(v_h, v_g, v_g)
+    q00 = v_h - (p00 * p00 * v_h + p01 * p01 * v_g)
+    q01 = -(p00 * p10 * v_h + p01 * p11 * v_g)
+    q11 = v_g - (p10 * p10 * v_h + p11 * p11 * v_g)
+    qpp = v_g - e * e * v_g
+    ux, uy = (dx / s, dy / s) if s > 0.0 else (1.0, 0.0)
+    # Back to (h, g_x, g_y): g_x = ux g_u - uy g_p, g_y = uy g_u + ux g_p.
+    F = np.array([[p00, p01 * ux, p01 * uy],
+                  [ux * p10, ux * ux * p11 + uy * uy * e, ux * uy * (p11 - e)],
+                  [uy * p10, ux * uy * (p11 - e), uy * uy * p11 + ux * ux * e]])
+    Q = np.array([[q00, ux * q01, uy * q01],
+                  [ux * q01, ux * ux * q11 + uy * uy * qpp, ux * uy * (q11 - qpp)],
+                  [uy * q01, ux * uy * (q11 - qpp), uy * uy * q11 + ux * ux * qpp]])
+    return F, Q
 
 
-def _apply_linear_step(x: np.ndarray, P: np.ndarray, idx: np.ndarray, F: np.ndarray, Q: np.ndarray) -> None:
-    """``x_i <- F x_i``, ``P <- F P F^T + Q`` on the states ``idx`` (the others unchanged), in place."""
+def _apply_linear_step(x: np.ndarray, P: np.ndarray, idx: np.ndarray, F: np.ndarray, Q: np.ndarray,
+                       ix: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+    """``x_i <- F x_i``, ``P <- F P F^T + Q`` on the states ``idx`` (the others unchanged), in place.
+
+    ``ix``: ``np.ix_(idx, idx)`` when the caller keeps it (it is the same every step).
+    """
     x[idx] = F @ x[idx]
     P[idx, :] = F @ P[idx, :]
     P[:, idx] = P[:, idx] @ F.T
-    P[np.ix_(idx, idx)] += Q
+    P[ix if ix is not None else np.ix_(idx, idx)] += Q
 
 
 # --------------------------------------------------------------------------- factory
@@ -1164,6 +1184,7 @@ def _gauss_hermite_2d(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 _GH_NODES, _GH_WEIGHTS = _gauss_hermite_2d(7)
+_GH_REACH = float(np.max(np.hypot(_GH_NODES[:, 0], _GH_NODES[:, 1])))  # the farthest node, in 1-sigmas
 
 
 def site_relief_factor(cfg: EstimatorConfig, rho_m: np.ndarray | float) -> np.ndarray:
@@ -1192,10 +1213,22 @@ def relief_scale(cfg: EstimatorConfig, r_xy_m: np.ndarray, cov_xy_m2: np.ndarray
     """
     if cfg.site_radius_m <= 0.0:
         return 1.0
-    lam, vec = np.linalg.eigh(0.5 * (cov_xy_m2 + cov_xy_m2.T))
-    axes = vec * np.sqrt(np.maximum(lam, 0.0))  # columns: 1-sigma axes [m]
-    p = np.asarray(r_xy_m[:2], dtype=float) + _GH_NODES @ axes.T
-    k = site_relief_factor(cfg, np.hypot(p[:, 0], p[:, 1]))
+    # Principal axes of the symmetric part [[a, b], [b, c]], in closed form (a 2x2 eigh).
+    a, c = float(cov_xy_m2[0, 0]), float(cov_xy_m2[1, 1])
+    b = 0.5 * (float(cov_xy_m2[0, 1]) + float(cov_xy_m2[1, 0]))
+    mid, half_gap = 0.5 * (a + c), math.hypot(0.5 * (a - c), b)
+    s1, s2 = math.sqrt(max(mid + half_gap, 0.0)), math.sqrt(max(mid - half_gap, 0.0))  # 1-sigma along the axes [m]
+    rx, ry = float(r_xy_m[0]), float(r_xy_m[1])
+    # Every node beyond the ramp, or every node inside the site: the factor is the same at all of them.
+    reach_m, dist_m = _GH_REACH * s1, math.hypot(rx, ry)
+    if dist_m - reach_m >= cfg.site_radius_m + cfg.site_relief_ramp_m or dist_m + reach_m <= cfg.site_radius_m:
+        return float(site_relief_factor(cfg, dist_m))
+    theta = 0.5 * math.atan2(2.0 * b, a - c)  # the major axis's direction
+    ct, st = math.cos(theta), math.sin(theta)
+    n1, n2 = _GH_NODES[:, 0], _GH_NODES[:, 1]
+    px = rx + (s1 * ct) * n1 - (s2 * st) * n2
+    py = ry + (s1 * st) * n1 + (s2 * ct) * n2
+    k = site_relief_factor(cfg, np.hypot(px, py))
     return math.sqrt(float(_GH_WEIGHTS @ (k * k)))
 
 

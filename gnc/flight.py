@@ -248,21 +248,38 @@ class FlightSoftware:
         return float(self.filter.ekf.x[2]) > self.vision_cfg.cutoff_altitude_m
 
     # ------------------------------------------------------------------ control
-    def control(self, t_ns: int, contact: ContactMessage, nav: NavState | None = None,
-                attitude: bool = True) -> ActuatorCommand:
-        """One control step; ``nav`` overrides the filter (perfect navigation).
+    def control(self, t_ns: int, contact: ContactMessage, nav: NavState | None = None) -> ActuatorCommand:
+        """One control step; ``nav`` overrides the filter (perfect navigation)."""
+        self._advance_mass_gauge(t_ns)
+        nav = nav if nav is not None else self.filter.nav_state(self.mass_kg)
+        cmd = self.guidance.update(nav, self.target)
+        act = self.controller.update(nav, cmd, contact)
+        self.last_guidance = cmd
+        self._hold_thrust(t_ns, act.thrust_N if act.engine_on else 0.0)
+        return act
 
-        ``attitude=False`` (open-loop replay): guidance, thrust and the mass gauge
-        advance exactly as with True, the attitude command and torque are skipped
-        (:meth:`gnc.control.Controller.update`).
+    def on_flown_command(self, t_ns: int, thrust_cmd_N: float, engine_on: bool) -> None:
+        """Open-loop replay's control tick: the mass gauge takes the command that was flown.
+
+        In an open-loop replay the vehicle does not respond, so a recomputed
+        command flies nothing; the mass gauge integrates the recorded one
+        (telemetry ``thrust_cmd_N``, ``engine_on``), exactly as :meth:`control`
+        integrated it in flight. Guidance and control are not run.
+
+        Args:
+            t_ns: the control tick [ns].
+            thrust_cmd_N: the thrust command issued at this tick [N].
+            engine_on: whether the engine was commanded on.
         """
+        self._advance_mass_gauge(t_ns)
+        self._hold_thrust(t_ns, thrust_cmd_N if engine_on else 0.0)
+
+    def _advance_mass_gauge(self, t_ns: int) -> None:
+        """Burn the held thrust command's propellant up to ``t_ns`` (rocket equation, nominal Isp)."""
         if self._last_cmd_t_ns is not None:
             dt = (t_ns - self._last_cmd_t_ns) / NS_PER_S
             self.mass_kg -= self._last_thrust_N * self._thrust_scale / self._isp_g0 * dt
-        nav = nav if nav is not None else self.filter.nav_state(self.mass_kg)
-        cmd = self.guidance.update(nav, self.target)
-        act = self.controller.update(nav, cmd, contact, attitude=attitude)
-        self.last_guidance = cmd
+
+    def _hold_thrust(self, t_ns: int, thrust_N: float) -> None:
         self._last_cmd_t_ns = t_ns
-        self._last_thrust_N = act.thrust_N if act.engine_on else 0.0
-        return act
+        self._last_thrust_N = thrust_N

@@ -673,6 +673,18 @@ def _matern32_step_reference(d_xy, sigma, length):
     return T.T @ phi @ T, T.T @ Q @ T
 
 
+@pytest.mark.parametrize("d_xy", [(10.0, 0.0), (6.0, 8.0), (-0.3, 0.05), (-40.0, -25.0), (0.0, 120.0)])
+def test_matern32_step_closed_form_equals_the_sde(d_xy):
+    """The filter's closed-form (F, Q) against the matrix exponential and Van Loan's integral of the SDE."""
+    from gnc.estimator import matern32_terrain_step
+
+    F, Q = matern32_terrain_step(np.array(d_xy), 3.0, 30.0)
+    F_ref, Q_ref = _matern32_step_reference(d_xy, 3.0, 30.0)
+    np.testing.assert_allclose(F, F_ref, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(Q, Q_ref, rtol=1e-7, atol=1e-12)
+    np.testing.assert_array_equal(Q, Q.T)
+
+
 def test_terrain_state_is_carried_between_footprints():
     # Two ranges whose footprints lie 10 m apart (east, then north-east), with a 10 m length:
     # the updates' innovation covariances use the Matern-3/2 step on the height and the slope,
@@ -794,6 +806,28 @@ def test_relief_scale_is_the_rms_factor_over_the_position_uncertainty(r_xy, sigm
     p = np.random.default_rng(5).multivariate_normal(r_xy, C, 400_000)
     mc = math.sqrt(float(np.mean(site_relief_factor(cfg, np.hypot(p[:, 0], p[:, 1])) ** 2)))
     assert relief_scale(cfg, np.array(r_xy), C) == pytest.approx(mc, rel=0.03)
+
+
+def test_relief_scale_equals_the_gauss_hermite_rule_on_eigh_axes():
+    """The closed-form principal axes and the all-inside / all-outside shortcuts against the rule done longhand:
+    numpy's eigh of the covariance, the 7x7 nodes placed on its axes by an explicit loop."""
+    from gnc.estimator import relief_scale, site_relief_factor
+
+    cfg = EstimatorConfig()
+    x, w = np.polynomial.hermite_e.hermegauss(7)
+    w = w / w.sum()
+    rng = np.random.default_rng(11)
+    for _ in range(300):
+        r = rng.uniform(-160.0, 160.0, 2)
+        A = rng.normal(size=(2, 2)) * rng.choice([0.1, 3.0, 15.0, 40.0])
+        C = A @ A.T + np.eye(2) * 1e-6
+        lam, vec = np.linalg.eigh(C)
+        total = 0.0
+        for i in range(7):
+            for j in range(7):
+                p = r + vec[:, 0] * math.sqrt(lam[0]) * x[i] + vec[:, 1] * math.sqrt(lam[1]) * x[j]
+                total += w[i] * w[j] * float(site_relief_factor(cfg, math.hypot(*p))) ** 2
+        assert relief_scale(cfg, r, C) == pytest.approx(math.sqrt(total), rel=1e-12)
 
 
 def test_terrain_step_keeps_the_relief_stationary_at_the_new_amplitude():

@@ -12,12 +12,12 @@ builds it (:func:`bench.sim.flight_build.build_flight_software` with the
 hand-over estimate drawn from the seed's "estimator" stream around the
 recorded truth at t = 0), and every recorded message is fed in recorded order
 to the same :class:`~gnc.flight.FlightSoftware` methods (``on_imu``,
-``on_attitude``, ``on_altimeter``, ``on_image``, and ``control`` at the control
-ticks, with the recorded contact flags, so the flight software's mass gauge
-and guidance state advance as in flight). No MuJoCo model is built, stepped
-or rendered (the simulator's modules are imported only because the scenario
-schema names the world's settings). The vehicle does not respond: the
-commands are computed and dropped (open loop).
+``on_attitude``, ``on_altimeter``, ``on_image``). At each control tick the
+mass gauge takes the thrust command that was flown (telemetry
+``thrust_cmd_N``, ``engine_on``; :meth:`~gnc.flight.FlightSoftware.on_flown_command`).
+Guidance and control are not run: the vehicle does not respond in an open-loop
+replay, so a recomputed command would fly nothing, and navigation does not
+depend on them. No MuJoCo model is built, stepped or rendered.
 
 Outputs (:func:`write_replay`):
     ``DIR/metrics.json``: per sequence and over the dataset, against the
@@ -57,8 +57,7 @@ from bench.report.io import atomic_write_text, json_safe
 from bench.scenario import NS_PER_S, Scenario, ScenarioError
 from bench.sim.flight_build import build_flight_software, handover_estimate
 from gnc.estimator import IDX_BA, IDX_R, IDX_V, KIND_ALTIMETER, KIND_VELOCITY, KIND_VISION
-from gnc.messages import AltimeterMessage, AttitudeMessage, ContactMessage, ImageMessage, ImuMessage
-from gnc.navstate import NavState
+from gnc.messages import AltimeterMessage, AttitudeMessage, ImageMessage, ImuMessage
 
 REPLAYABLE_SECTIONS = ("tracker", "vision_nav", "estimator")
 FORMAT = "landbench-replay"
@@ -129,8 +128,6 @@ def _vec(cols: dict[str, np.ndarray], names: tuple[str, ...], i: int) -> np.ndar
 
 _R = ("r_x_m", "r_y_m", "r_z_m")
 _V = ("v_x_mps", "v_y_mps", "v_z_mps")
-_Q = ("q_w", "q_x", "q_y", "q_z")
-_W = ("omega_x_radps", "omega_y_radps", "omega_z_radps")
 _BA = ("accel_bias_x_mps2", "accel_bias_y_mps2", "accel_bias_z_mps2")
 
 
@@ -151,13 +148,19 @@ def replay_recording(rec: Recording, scenario: Scenario) -> SequenceReplay:
     att_t, att_q = s["attitude_t_ns"].tolist(), s["attitude_q_LB"]
     alt_t, alt_r, alt_ok, alt_b = (s["altimeter_t_ns"].tolist(), s["altimeter_range_m"].tolist(),
                                    s["altimeter_valid"].tolist(), s["altimeter_boresight_B"])
-    ctl_t, ctl_legs = s["control_t_ns"].tolist(), s["control_legs"]
+    ctl_t = s["control_t_ns"].tolist()
+    tel = rec.telemetry
+    if "thrust_cmd_N" not in tel or "engine_on" not in tel or len(tel["thrust_cmd_N"]) != len(ctl_t):
+        raise ValueError(f"recording {str(rec.path)!r}: its telemetry lacks the flown commands "
+                         "(thrust_cmd_N, engine_on) of every control tick")
+    thrust_cmd, engine_on = tel["thrust_cmd_N"].tolist(), tel["engine_on"].tolist()
     frame_t = rec.frames_t_ns.tolist()
-    truth_nav = scenario.nav == "truth"
 
-    nav_rows: list[tuple] = []
-    nees_e: list[np.ndarray] = []  # per control tick: the NEES error and covariance, evaluated after the loop
-    nees_P: list[np.ndarray] = []
+    # Per control tick, what the telemetry columns are computed from after the loop (_nav_columns).
+    tick_x: list[np.ndarray] = []  # the filter's state
+    tick_P: list[np.ndarray] = []  # its covariance's position / velocity / accelerometer-bias block
+    tick_rest: list[tuple] = []  # mass gauge and vision counters
+    tick_i: list[int] = []  # the tick's row in the truth
     true_r, true_v, true_ba = (np.column_stack([truth[n] for n in names]).astype(float) for names in (_R, _V, _BA))
     fr: dict[str, list] = {k: [] for k in ("frame", "t_ns", "vision_active", "tracks", "tracker_ms", "vision_ms",
                                             "measurement", "accepted", "rejected", "nis")}
@@ -192,27 +195,21 @@ def replay_recording(rec: Recording, scenario: Scenario) -> SequenceReplay:
             fr["accepted"].append(measured and v.rejected == n_rej)
             fr["nis"].append(float(v.last_record.nis) if measured and v.last_record is not None else math.nan)
         elif kind == _CONTROL:
-            t_ns = ctl_t[i]
-            nav = None
-            if truth_nav:
-                nav = NavState(t_ns, _vec(truth, _R, i), _vec(truth, _V, i), _vec(truth, _Q, i),
-                               _vec(truth, _W, i), fsw.mass_kg)
-            fsw.control(t_ns, ContactMessage(t_ns, ctl_legs[i]), nav, attitude=False)  # nothing flies the torque
-            nav_rows.append(_nav_row(fsw, true_r[i], true_v[i], true_ba[i], nees_e, nees_P))
+            fsw.on_flown_command(ctl_t[i], thrust_cmd[i], engine_on[i])  # guidance's commands would fly nothing
+            ekf, v = fsw.filter.ekf, fsw.vision
+            tick_x.append(ekf.x.copy())
+            tick_P.append(ekf.P[:9, :9].copy())
+            tick_rest.append((fsw.mass_kg, len(v.last_tracks) if v.last_tracks is not None else 0, v.measurements,
+                              v.rejected, *(v.last.v_L if v.last is not None else (math.nan,) * 2)))
+            tick_i.append(i)
         else:  # pragma: no cover - open_recording checks the kinds
             raise ValueError(f"unknown event kind {kind}")
     wall_s = time.perf_counter() - wall0
 
-    if len(nav_rows) != len(truth["t_ns"]):
-        raise ValueError(f"recording {str(rec.path)!r}: {len(nav_rows)} control events but {len(truth['t_ns'])} "
-                         "truth rows")
-    nees = block_nees_many(np.array(nees_e), np.array(nees_P)) if nav_rows else np.zeros((0, len(NEES_BLOCKS)))
-    cols = list(zip(*nav_rows, strict=True))
-    k = NAV_COLUMNS.index(f"nees_{next(iter(NEES_BLOCKS))}")
-    cols[k:k] = [nees[:, j] for j in range(len(NEES_BLOCKS))]  # in NAV_COLUMNS order
-    nav = {name: np.array(col) for name, col in zip(NAV_COLUMNS, cols, strict=True)}
-    for name in _INT_COLUMNS:
-        nav[name] = nav[name].astype(np.int64)
+    if tick_i != list(range(len(truth["t_ns"]))):
+        raise ValueError(f"recording {str(rec.path)!r}: {len(tick_i)} control events for {len(truth['t_ns'])} "
+                         "truth rows, or out of order")
+    nav = _nav_columns(tick_x, tick_P, tick_rest, true_r, true_v, true_ba)
     nav = {"t_ns": np.asarray(truth["t_ns"], np.int64), **nav}
     frames = {k: np.array(v) for k, v in fr.items()}
     frames["t_ns"] = frames["t_ns"].astype(np.int64)
@@ -266,26 +263,25 @@ def _epe_metrics(epe: np.ndarray | None) -> dict[str, Any]:
     return {"truth_depth": True, "epe_count": st["n_errors"], **{k: _f(st[k]) if epe.size else None for k in EPE_KEYS}}
 
 
-def _nav_row(fsw, r_true: np.ndarray, v_true: np.ndarray, ba_true: np.ndarray, nees_e: list, nees_P: list) -> tuple:
-    """The flight-software columns of one telemetry row, computed exactly as ``bench.sim.run._row`` does.
+def _nav_columns(tick_x: list[np.ndarray], tick_P: list[np.ndarray], tick_rest: list[tuple], r_true: np.ndarray,
+                 v_true: np.ndarray, ba_true: np.ndarray) -> dict[str, np.ndarray]:
+    """The flight-software telemetry columns (``NAV_COLUMNS``) of every control tick, as ``bench.sim.run._row`` computes them.
 
-    The ``nees_*`` columns are left out: the error and the covariance block are
-    appended to ``nees_e`` / ``nees_P`` and the NEES of every row is computed
-    at once after the replay (:func:`block_nees_many`, the same values as
-    ``block_nees``).
+    The closed loop builds them row by row; here they are built column-wise after the replay
+    from each tick's state, covariance block and counters, with the same elementwise operations
+    (so the same bits), and the NEES of every row at once (:func:`block_nees_many`, the same
+    values as ``block_nees``).
     """
-    x, P = fsw.filter.ekf.x, fsw.filter.ekf.P
-    e = np.concatenate([x[IDX_R] - r_true, x[IDX_V] - v_true, x[IDX_BA] - ba_true])
-    sig = np.sqrt(np.diag(P)[:6])
-    vm = fsw.vision.last
-    nees_e.append(e)
-    nees_P.append(P[:9, :9].copy())
-    return (
-        *x[IDX_R], *x[IDX_V], *e[:6], *sig, *e[6:9], fsw.mass_kg,
-        len(fsw.vision.last_tracks) if fsw.vision.last_tracks is not None else 0,
-        fsw.vision.measurements, fsw.vision.rejected,
-        *(vm.v_L if vm is not None else (math.nan,) * 2),
-    )
+    n = len(tick_x)
+    X = np.array(tick_x).reshape(n, -1)
+    P = np.array(tick_P).reshape(n, 9, 9)
+    e = np.concatenate([X[:, IDX_R] - r_true, X[:, IDX_V] - v_true, X[:, IDX_BA] - ba_true], axis=1)
+    sig = np.sqrt(np.diagonal(P, axis1=1, axis2=2)[:, :6])
+    nees = block_nees_many(e, P) if n else np.zeros((0, len(NEES_BLOCKS)))
+    rest = list(zip(*tick_rest, strict=True)) if n else [()] * 6
+    cols = [*X[:, IDX_R].T, *X[:, IDX_V].T, *e[:, :6].T, *sig.T, *e[:, 6:9].T, *nees.T, *rest]
+    return {name: np.array(col, dtype=np.int64 if name in _INT_COLUMNS else float)
+            for name, col in zip(NAV_COLUMNS, cols, strict=True)}
 
 
 def differing_columns(replayed: dict[str, np.ndarray], recorded: dict[str, np.ndarray]) -> list[str]:
@@ -402,15 +398,18 @@ def dataset_metrics(seqs: list[SequenceReplay]) -> dict[str, Any]:
             "replay_wall_s": float(sum(s.metrics["replay_wall_s"] for s in seqs))}
 
 
-def prepare_replay(dataset: Path, overrides: list[str] | tuple[str, ...]) -> list[tuple[Path, Scenario]]:
-    """Check everything before anything runs: the overrides, every recording's manifest and checksums, the scenarios."""
+def prepare_replay(dataset: Path, overrides: list[str] | tuple[str, ...]) -> list[tuple[Path, Scenario, dict]]:
+    """Check everything before anything runs: the overrides, every recording's manifest and checksums, the scenarios.
+
+    Returns per recording: its folder, its scenario with the overrides, and its verified manifest.
+    """
     check_overrides(overrides)
     paths = find_recordings(dataset)
     out = []
     for p in paths:
         manifest = verify_recording(p)
         try:
-            out.append((p, recorded_scenario(manifest["scenario_toml"], overrides)))
+            out.append((p, recorded_scenario(manifest["scenario_toml"], overrides), manifest))
         except ScenarioError as exc:
             raise ScenarioError(f"recording {str(p)!r}: {exc}") from None
     return out
@@ -419,7 +418,7 @@ def prepare_replay(dataset: Path, overrides: list[str] | tuple[str, ...]) -> lis
 def replay_dataset(dataset: Path, overrides: list[str] | tuple[str, ...] = ()) -> tuple[list[SequenceReplay], dict]:
     """Replay every recording of ``dataset`` with ``overrides``; returns (per sequence, the metrics document)."""
     prepared = prepare_replay(dataset, overrides)
-    seqs = [replay_recording(open_recording(p), scenario) for p, scenario in prepared]
+    seqs = [replay_recording(open_recording(p, manifest), scenario) for p, scenario, manifest in prepared]
     doc = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,

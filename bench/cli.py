@@ -378,6 +378,11 @@ def main(argv: list[str] | None = None) -> int:
     except (ScenarioError, ValueError) as exc:
         print(f"landbench: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except OSError as exc:  # an output folder that cannot be made or written, a file that cannot be read
+        where = f" {exc.filename!r}" if exc.filename else ""
+        print(f"landbench: error: cannot write or read{where}: {exc.strerror or exc}; "
+              "give a folder you can write to (or a file you can read)", file=sys.stderr)
+        return EXIT_USAGE
     except KeyboardInterrupt:
         print("landbench: interrupted", file=sys.stderr)
         return 130

@@ -134,7 +134,7 @@ class VehicleParams:
 class ControlConfig(BaseModel):
     """Controller tuning."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     tilt: TiltLimitConfig = TiltLimitConfig()
     yaw_hold_deg: float = Field(

@@ -138,7 +138,7 @@ class TiltLimitConfig(BaseModel):
     and control (attitude command).
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     tilt_max_high_deg: float = Field(30.0, gt=0.0, lt=80.0, description="tilt limit above taper_altitude_m [deg]")
     tilt_max_touchdown_deg: float = Field(5.0, ge=0.0, lt=80.0, description="tilt limit at zero altitude [deg]")
@@ -171,7 +171,7 @@ class TiltLimitConfig(BaseModel):
 class GuidanceConfig(BaseModel):
     """Guidance law selection and tuning."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     law: Literal["apollo", "zem_zev", "off"] = Field(
         "zem_zev", description="approach-phase guidance law; 'off' commands free fall (failure studies)"

@@ -86,7 +86,7 @@ MIN_CAMERA_HEIGHT_M = 1.0  # no measurement from a camera this close to the grou
 class VisionNavConfig(BaseModel):
     """Vision-measurement settings."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     min_tracks: int = Field(8, ge=3, description="fewest consistent tracks for a measurement [-]")
     pixel_sigma_px: float = Field(

@@ -30,7 +30,7 @@ UINT8_MAX = 255.0
 class CameraConfig(BaseModel):
     """Nadir camera: resolution, field of view, rate and detector noise."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     width_px: int = Field(256, ge=16, le=4096, description="image width [px]")
     height_px: int = Field(256, ge=16, le=4096, description="image height [px]")

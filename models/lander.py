@@ -38,7 +38,7 @@ CONTACT_SOLREF = f"{CONTACT_TIMECONST_S} {CONTACT_DAMPING_RATIO}"
 class EngineConfig(BaseModel):
     """Throttleable main engine, thrust along body +z."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     thrust_max_N: float = Field(7500.0, gt=0, description="maximum thrust [N]")
     thrust_min_N: float = Field(1500.0, ge=0, description="minimum thrust when lit [N] (deep-throttle limit)")
@@ -60,7 +60,7 @@ class EngineConfig(BaseModel):
 class LanderConfig(BaseModel):
     """Mass properties, geometry and actuator limits of the lander."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     dry_mass_kg: float = Field(1500.0, gt=0, description="dry mass [kg]")
     propellant_kg: float = Field(600.0, ge=0, description="initial propellant mass [kg]")

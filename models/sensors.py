@@ -33,7 +33,7 @@ ALTIMETER_BORESIGHT_B = np.array([0.0, 0.0, -1.0])
 class ImuConfig(BaseModel):
     """IMU error model: white noise, turn-on bias and bias random walk."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     period_ns: int = Field(10_000_000, gt=0, description="sample period [ns] (default 100 Hz)")
     accel_noise_density: float = Field(
@@ -49,7 +49,7 @@ class ImuConfig(BaseModel):
 class AltimeterConfig(BaseModel):
     """Laser altimeter error model."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     period_ns: int = Field(50_000_000, gt=0, description="sample period [ns] (default 20 Hz)")
     max_range_m: float = Field(3000.0, gt=0, description="maximum range; beyond it the sample is invalid [m]")
@@ -61,7 +61,7 @@ class AltimeterConfig(BaseModel):
 class StarTrackerConfig(BaseModel):
     """Star-tracker attitude error model."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     period_ns: int = Field(100_000_000, gt=0, description="sample period [ns] (default 10 Hz)")
     noise_sigma_arcsec: float = Field(10.0, ge=0, description="attitude noise, 1-sigma per axis [arcsec]")
@@ -70,7 +70,7 @@ class StarTrackerConfig(BaseModel):
 class SensorsConfig(BaseModel):
     """All non-imaging sensors."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     imu: ImuConfig = ImuConfig()
     altimeter: AltimeterConfig = AltimeterConfig()

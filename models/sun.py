@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field
 class SunConfig(BaseModel):
     """Direction of the sun and shadow rendering."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     elevation_deg: float = Field(30.0, gt=0.0, le=90.0, description="sun elevation above the horizon [deg]")
     azimuth_deg: float = Field(

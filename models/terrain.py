@@ -107,7 +107,7 @@ class TerrainConfig(BaseModel):
     equilibrium, at 0.25 m/texel over a 1024 m square.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     kind: Literal["procedural", "dem"] = Field("procedural", description="'procedural' or 'dem' (user DEM file)")
     seed: int | None = Field(

@@ -6,6 +6,7 @@ import json
 
 import cv2
 import numpy as np
+import pytest
 
 from bench.cli import main
 from bench.report.report import read_telemetry_parquet
@@ -80,3 +81,30 @@ def test_a_failure_after_the_run_leaves_no_partial_video(tmp_path, monkeypatch):
         ro.run_and_write(load_scenario(None, QUICK), out)
     assert not any(p.suffix in (".mp4", ".tmp") or ".mp4." in p.name for p in out.iterdir())
     assert not (out / "summary.json").exists()
+
+
+
+@pytest.mark.parametrize("bad, field", [
+    ("initial.r_BL_L_m=[nan, 0.0, 500.0]", "initial.r_BL_L_m"),
+    ("lander.propellant_kg=inf", "lander.propellant_kg"),
+    ("sensors.imu.accel_noise_density=-inf", "sensors.imu.accel_noise_density"),
+    ("estimator.gate_prob=nan", "estimator.gate_prob"),
+    ("initial.r_BL_L_m=[0.0, 0.0, -5.0]", "initial.r_BL_L_m"),  # footpads below the ground
+    ("initial.r_BL_L_m=[0.0, 0.0, 1.0]", "initial.r_BL_L_m"),  # body origin above it, footpads below
+    ("initial.r_BL_L_m=[900.0, 0.0, 500.0]", "initial.r_BL_L_m"),  # off the 1024 m tile
+])
+def test_non_finite_values_and_impossible_starts_get_one_line_and_write_nothing(tmp_path, capsys, bad, field):
+    out = tmp_path / "new" / "run"
+    assert main(["run", "--out", str(out), *_sets([bad])]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("landbench: error: ") and field in err[0]
+    assert not out.exists()
+
+
+def test_an_output_folder_that_cannot_be_made_gets_one_line(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    assert main(["run", "--out", str(blocker / "run"), *_sets()]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("landbench: error: ") and "run" in err[0]
+    assert blocker.read_text() == "not a folder"

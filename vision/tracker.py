@@ -107,7 +107,7 @@ class TrackerConfig(BaseModel):
     detection (a fixed target would re-detect every frame on sparse texture).
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     subsample_x: int = Field(5, ge=1, le=64, description="Sx, block-averaging interval along x, eq. (2.1) [px]")
     subsample_y: int = Field(5, ge=1, le=64, description="Sy, block-averaging interval along y, eq. (2.1) [px]")

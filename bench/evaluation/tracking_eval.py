@@ -194,7 +194,7 @@ class BaselineConfig(BaseModel):
       0.5 px and re-detection below 75 % of ``max_corners``, as in the tracker.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     max_corners: int = Field(96, ge=1, description="most tracks kept (goodFeaturesToTrack maxCorners) [-]")
     quality_level: float = Field(0.01, gt=0.0, lt=1.0, description="corner quality relative to the best [-]")

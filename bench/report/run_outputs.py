@@ -34,22 +34,26 @@ def run_and_write(scenario: Scenario, out: Path, video: bool = True, progress: b
         (summary dict as written to summary.json, the terminal summary table).
     """
     cam = scenario.camera
-    writer = None
-    if video and cam.enabled:
-        writer = CameraVideo(out / VIDEO, fps=NS_PER_S / cam.period_ns, size=(cam.width_px, cam.height_px))
+    writer: CameraVideo | None = None  # opened at the first frame: a run refused at set-up writes nothing
+    created = not out.exists()
 
     def sink(t_ns, frame, truth, tracks) -> None:
+        nonlocal writer
+        if writer is None:
+            writer = CameraVideo(out / VIDEO, fps=NS_PER_S / cam.period_ns, size=(cam.width_px, cam.height_px))
         xy = prev = None
         if tracks is not None and len(tracks):
             xy, prev = tracks.xy, tracks.prev_xy
         writer.add(frame, tracks_xy=xy, prev_xy=prev, text=frame_caption(t_ns / NS_PER_S, float(truth.r_BL_L[2])))
 
     try:
-        result = run(scenario, frame_sink=sink if writer is not None else None, progress=progress)
+        result = run(scenario, frame_sink=sink if video and cam.enabled else None, progress=progress)
         summary, outputs = write_run_outputs(scenario, result, out, writer)
     except BaseException:
         if writer is not None:
             writer.abort()  # no half-written video left behind, whatever failed
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()  # nor an empty folder this run made
         raise
     return summary, summary_table(summary, {k: str(v) for k, v in outputs.items()})
 

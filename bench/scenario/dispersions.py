@@ -45,7 +45,7 @@ PINNED_KNOWLEDGE = ("lander", "camera")
 
 
 class _Dist(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class Normal(_Dist):

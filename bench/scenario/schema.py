@@ -50,7 +50,7 @@ class ScenarioError(ValueError):
 class SimConfig(BaseModel):
     """Simulation clock and world constants."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     physics_dt_ns: int = Field(2_000_000, gt=0, description="physics step [ns] (default 500 Hz)")
     control_period_ns: int = Field(20_000_000, gt=0, description="flight-software control period [ns] (default 50 Hz)")
@@ -61,7 +61,7 @@ class SimConfig(BaseModel):
 class InitialState(BaseModel):
     """Lander state at hand-over, in the landing frame L (x east, y north, z up)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     r_BL_L_m: tuple[float, float, float] = Field(
         (-120.0, 80.0, 500.0), description="body position relative to the target [m]"
@@ -82,7 +82,7 @@ class InitialState(BaseModel):
 class LandingCriteria(BaseModel):
     """What counts as a safe landing (checked at first footpad contact and after settling)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     v_vertical_max_mps: float = Field(1.0, gt=0, description="largest vertical speed at touchdown [m/s]")
     v_horizontal_max_mps: float = Field(0.5, gt=0, description="largest horizontal speed at touchdown [m/s]")
@@ -102,7 +102,7 @@ class KnowledgeConfig(BaseModel):
     they can be dispersed like any other field.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     lander: LanderConfig | None = Field(
         None, description="the vehicle the flight software was built for; unset: the scenario's lander"
@@ -126,7 +126,7 @@ class KnowledgeConfig(BaseModel):
 class Scenario(BaseModel):
     """A complete landing scenario. ``run(scenario) -> result`` is a pure function of it."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     name: str = Field("default", description="free-form scenario name")
     seed: int = Field(1, ge=0, description="master seed; every random stream is spawned from it")

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bench.scenario import Scenario
+from bench.scenario import Scenario, ScenarioError
 from bench.scenario.seeding import component_rng, component_seed
 from bench.sim.terrain_cache import cached_terrain
 from models.camera import apply_detector_noise
@@ -103,8 +103,23 @@ def build_world(scenario: Scenario, terrain: Terrain | None = None) -> World:
         gravity_mps2=scenario.sim.gravity_mps2,
     )
     init = scenario.initial
+    check_initial_position(scenario, terrain)
     world.reset(np.array(init.r_BL_L_m), np.array(init.v_BL_L_mps), init.q_LB(), np.array(init.omega_B_radps))
     return world
+
+
+def check_initial_position(scenario: Scenario, terrain: Terrain) -> None:
+    """Refuse a start outside the terrain tile, or with the footpads at or below its surface (one line)."""
+    x, y, z = (float(c) for c in scenario.initial.r_BL_L_m)
+    half = terrain.size_m / 2.0
+    if abs(x) >= half or abs(y) >= half:
+        raise ScenarioError(f"initial.r_BL_L_m = {list(scenario.initial.r_BL_L_m)}: the start is outside the "
+                            f"{terrain.size_m:g} m terrain tile; give |x|, |y| < {half:g} m (or a larger terrain.size_m)")
+    ground_m = float(terrain.surface_height(x, y))
+    need_m = ground_m + scenario.lander.footpad_clearance_m
+    if not z > need_m:
+        raise ScenarioError(f"initial.r_BL_L_m = {list(scenario.initial.r_BL_L_m)}: the footpads would start at or "
+                            f"below the terrain (ground at {ground_m:.2f} m there); give z > {need_m:.2f} m")
 
 
 @dataclass

@@ -41,7 +41,7 @@ from typing import Any, Protocol
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bench.evaluation.consistency import NEES_BLOCKS, block_nees, run_consistency
+from bench.evaluation.consistency import NEES_BLOCKS, block_nees_many, run_consistency
 from bench.scenario import NS_PER_S, Scenario
 from bench.scenario.seeding import component_rng
 from bench.sim.flight_build import build_flight_software, handover_estimate, onboard_knowledge
@@ -118,7 +118,9 @@ class _Telemetry:
     """Row-wise recorder, turned into columns at the end."""
 
     def __init__(self) -> None:
-        self.rows: list[tuple] = []
+        self.rows: list[tuple] = []  # ROW_COLUMNS of each control tick
+        self.nees_e: list[np.ndarray] = []  # the NEES's error (position, velocity, accelerometer bias) per tick
+        self.nees_P: list[np.ndarray] = []  # and its covariance block: the NEES columns are made at the end
 
     COLUMNS = (
         "t_s", "r_x_m", "r_y_m", "r_z_m", "v_x_mps", "v_y_mps", "v_z_mps",
@@ -139,8 +141,16 @@ class _Telemetry:
         "vision_v_x_mps", "vision_v_y_mps",
     )
 
+    NEES_COLUMNS = tuple(f"nees_{block}" for block in NEES_BLOCKS)
+    ROW_COLUMNS = tuple(filter(lambda c, nees=NEES_COLUMNS: c not in nees, COLUMNS))  # the columns _row gives
+
     def columns(self, terrain: Terrain, lander: LanderConfig) -> dict[str, np.ndarray]:
-        cols = {name: np.array(values) for name, values in zip(self.COLUMNS, zip(*self.rows, strict=True), strict=True)}
+        rows = {name: np.array(values) for name, values in zip(self.ROW_COLUMNS, zip(*self.rows, strict=True),
+                                                                strict=True)}
+        # Every tick's NEES at once (block_nees_many: the same values as block_nees row by row).
+        nees = block_nees_many(np.array(self.nees_e), np.array(self.nees_P))
+        rows.update({name: nees[:, j] for j, name in enumerate(self.NEES_COLUMNS)})
+        cols = {name: rows[name] for name in self.COLUMNS}
         for name in ("engine_on", "alt_valid"):
             cols[name] = cols[name].astype(bool)
         for name in ("legs_in_contact", "vision_tracks", "vision_measurements", "vision_rejected"):
@@ -290,7 +300,7 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                 tel.rows.append(_row(t_ns, truth, act, fsw.last_guidance, legs, imu_msg, alt_msg, st_msg, thrust_max,
                                      world.propulsion.clamp_thrust(act.thrust_N) * thrust_gain,
                                      PHASE_TOUCHDOWN if touchdown is not None else fsw.last_guidance.phase,
-                                     fsw, sensors.imu.accel_bias))
+                                     fsw, sensors.imu.accel_bias, tel))
             # End conditions.
             if touchdown_ns is not None and t_ns - touchdown_ns >= settle_ns:
                 break
@@ -455,11 +465,15 @@ def _classify(touchdown: dict | None, exhausted_ns: int | None, touchdown_ns: in
     return "landed"
 
 
-def _row(t_ns, truth, act, cmd, legs, imu, alt, st, thrust_max, thrust_delivered, phase, fsw, accel_bias_B) -> tuple:
+def _row(t_ns, truth, act, cmd, legs, imu, alt, st, thrust_max, thrust_delivered, phase, fsw, accel_bias_B,
+         tel: _Telemetry) -> tuple:
+    """One tick's ``_Telemetry.ROW_COLUMNS``; its NEES error and covariance block go to ``tel``."""
     nan3 = (math.nan,) * 3
     x, P = fsw.filter.ekf.x, fsw.filter.ekf.P
     e = np.concatenate([x[IDX_R] - truth.r_BL_L, x[IDX_V] - truth.v_BL_L, x[IDX_BA] - accel_bias_B])
     sig = np.sqrt(np.diag(P)[:6])  # position then velocity
+    tel.nees_e.append(e)
+    tel.nees_P.append(P[:9, :9].copy())
     vm = fsw.vision.last
     return (
         t_ns / NS_PER_S, *truth.r_BL_L, *truth.v_BL_L, *truth.q_LB, *truth.omega_B,
@@ -469,7 +483,7 @@ def _row(t_ns, truth, act, cmd, legs, imu, alt, st, thrust_max, thrust_delivered
         *(imu.f_B if imu is not None else nan3), *(imu.omega_B if imu is not None else nan3),
         alt.range_m if alt is not None else math.nan, bool(alt.valid) if alt is not None else False,
         *(st.q_LB if st is not None else (math.nan,) * 4),
-        *x[IDX_R], *x[IDX_V], *e[:6], *sig, *e[6:9], *block_nees(e, P), fsw.mass_kg,
+        *x[IDX_R], *x[IDX_V], *e[:6], *sig, *e[6:9], fsw.mass_kg,
         len(fsw.vision.last_tracks) if fsw.vision.last_tracks is not None else 0,
         fsw.vision.measurements, fsw.vision.rejected,
         *(vm.v_L if vm is not None else (math.nan,) * 2),

@@ -288,3 +288,12 @@ def test_integrating_accelerometer_reports_the_interval_delta_v(flat_terrain):
     point = world.specific_force_B()
     assert abs(point[2] - mean[2]) > 1e-3  # a point sample sees the pulse phase (alpha x r along z)
     world.close()
+
+
+def test_campaign_reports_count_every_run_outcome_in_order():
+    from bench.report.mc_report import OUTCOMES as REPORT_OUTCOMES
+    from bench.report.mc_report import outcome_counts
+
+    assert set(OUTCOMES) <= set(REPORT_OUTCOMES)  # none falls into "other"
+    rows = [{"outcome": o, "landed": o == "landed"} for o in ("slope_exceeded", "landed", "tipped_over", "landed")]
+    assert list(outcome_counts(rows).items()) == [("landed", 2), ("tipped_over", 1), ("slope_exceeded", 1)]

@@ -12,6 +12,36 @@ Engine logic: a command <= 0 (or ``cut()``) means the engine is off; any
 positive command is clamped to ``[thrust_min_N, thrust_max_N]``, because a
 lit deep-throttle engine cannot go below its minimum. The delivered thrust is
 ``clamped * (1 + thrust_error_frac)``. Mass flows at ``T / (Isp * g0)``.
+
+Two paths (:attr:`PropulsionModel.instant`):
+
+* Instant (idealised actuators, :meth:`models.lander.LanderConfig.ideal`): the
+  engine delivers the clamped command at once and the RCS the saturated torque,
+  held over the whole interval; one closed-form propellant draw per interval
+  (:meth:`PropulsionModel.apply`).
+* Per physics step (:meth:`PropulsionModel.physics_step`), when any of the
+  realistic models is on:
+
+  - throttle response: the engine's thrust ``T`` (before the thrust error)
+    follows the clamped command ``c`` (0 when off) as a first-order lag, exact
+    for a command held over the step, ``T_k+1 = c + (T_k - c) exp(-dt / tau)``,
+    with the change per step limited to ``slew_rate_Nps * dt``. At the first
+    command the engine is already burning at it (hand-over mid-descent).
+    Propellant running out stops the engine at once.
+  - RCS pulse-width modulation (``rcs.mode = "pwm"``): per axis, at the start
+    of every ``pwm_period_ns`` window (aligned on whole periods of simulation
+    time) the held command's impulse ``tau * period`` plus the impulse carried
+    from earlier windows sets an on-time ``|impulse| / tau_max``; an impulse
+    below the minimum impulse bit ``tau_max * min_on_ns`` fires nothing and is
+    carried to the next window (the carry is held within one minimum impulse
+    bit), so a small command fires a minimum pulse every few windows, as a
+    pulse-width pulse-frequency modulator does, instead of leaving a dead zone.
+    During the window the axis delivers ``+-tau_max`` while on; the step in
+    which the pulse ends delivers the on-fraction of that step, so each
+    window's impulse is exactly the on-time's (the physics step resolves it no
+    finer).
+  - RCS propellant: ``sum |tau_axis| / moment_arm_m`` of thrust at the RCS
+    ``isp_s``, from the main tanks; with the tanks dry the RCS stops too.
 """
 
 from __future__ import annotations
@@ -62,6 +92,7 @@ class PropulsionModel:
         self._pwm_on_s = np.zeros(3)  # on-time of the current PWM window per axis [s]
         self._pwm_sign = np.zeros(3)
         self._pwm_window = -1
+        self._pwm_carry_Nms = np.zeros(3)  # impulse commanded but not yet fired, per axis [N m s]
 
     def delivered_thrust_N(self, thrust_cmd_N: float) -> float:
         """Thrust the engine delivers now for a command [N] (instant path: the clamped command times the error)."""
@@ -155,12 +186,15 @@ class PropulsionModel:
         steps_per_window = rcs.pwm_period_ns // dt_ns
         window, k = divmod(step_index, steps_per_window)
         period_s = rcs.pwm_period_ns / 1e9
-        if window != self._pwm_window:  # a new window: the held command sets each axis's pulse
+        if window != self._pwm_window:  # a new window: the held command (plus the carry) sets each axis's pulse
             self._pwm_window = window
-            on_s = np.abs(torque) / tau_max * period_s
-            on_s[on_s < rcs.min_on_ns / 1e9] = 0.0
-            self._pwm_on_s = on_s
-            self._pwm_sign = np.sign(torque)
+            mib = tau_max * rcs.min_on_ns / 1e9
+            demand = torque * period_s + self._pwm_carry_Nms
+            fired = np.clip(demand, -tau_max * period_s, tau_max * period_s)
+            fired[np.abs(fired) < mib] = 0.0
+            self._pwm_carry_Nms = np.clip(demand - fired, -mib, mib)
+            self._pwm_on_s = np.abs(fired) / tau_max
+            self._pwm_sign = np.sign(fired)
         dt_s = dt_ns / 1e9
         frac = np.clip((self._pwm_on_s - k * dt_s) / dt_s, 0.0, 1.0)
         return self._pwm_sign * tau_max * frac

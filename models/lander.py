@@ -85,9 +85,10 @@ class RcsConfig(BaseModel):
     """Reaction-control thrusters: torque delivery and propellant.
 
     ``mode = "pwm"``: each axis's commanded torque is delivered as on/off pulses of the
-    full torque ``rcs_torque_max_Nm``, one pulse per ``pwm_period_ns`` whose width is
-    ``|tau_cmd| / tau_max * period`` rounded to whole physics steps; a pulse shorter than
-    ``min_on_ns`` is not fired (the minimum impulse bit is ``tau_max * min_on_ns``).
+    full torque ``rcs_torque_max_Nm``, at most one pulse per ``pwm_period_ns`` whose width is
+    ``|tau_cmd| / tau_max * period`` plus the impulse carried from earlier windows; a pulse
+    shorter than ``min_on_ns`` is not fired and its impulse is carried (the minimum impulse
+    bit is ``tau_max * min_on_ns``; see :mod:`models.actuators`).
     ``mode = "continuous"``: the commanded torque is delivered exactly (saturated), as an
     idealised controller study wants. Either way, the thrusters burn propellant from the main
     tanks at ``|tau| / moment_arm_m`` of thrust per axis (a couple of two thrusters) at ``isp_s``.

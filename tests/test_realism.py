@@ -113,20 +113,31 @@ def _rcs(mode="pwm", draws=False, **kw) -> PropulsionModel:
 
 def test_pwm_average_torque_and_minimum_impulse_bit():
     period_ns, min_on_ns, tau_max = 20_000_000, 4_000_000, 200.0
-    steps = period_ns // DT_NS
+    steps, period_s = period_ns // DT_NS, period_ns / 1e9
     mib = tau_max * min_on_ns / 1e9  # [N m s]
+    # One window: a command of at least the minimum impulse fires exactly its impulse, in full-torque
+    # pulses with at most one partial step per axis; a smaller one fires nothing (yet).
     for cmd in ([37.0, -150.0, 5.0], [41.0, 199.9, -60.3], [-200.0, 0.0, 123.4]):
         p = _rcs(pwm_period_ns=period_ns, min_on_ns=min_on_ns)
         cmd = np.array(cmd)
         window = np.array([p.physics_step(0.0, cmd, k, DT_NS)[1] for k in range(3 * steps, 4 * steps)])
         impulse = window.sum(axis=0) * DT_S
-        fired = np.abs(cmd) * period_ns / 1e9 >= mib
-        np.testing.assert_allclose(impulse[fired], cmd[fired] * period_ns / 1e9, rtol=1e-12)
+        fired = np.abs(cmd) * period_s >= mib
+        np.testing.assert_allclose(impulse[fired], cmd[fired] * period_s, rtol=1e-12)
         assert np.all(impulse[~fired] == 0.0)
-        assert np.all(np.abs(impulse[fired]) >= mib - 1e-12)
-        # On-off pulses at full torque: at most one partial step per axis and window.
         partial = (np.abs(window) > 0) & (np.abs(window) < tau_max)
         assert np.all(partial.sum(axis=0) <= 1)
+    # Many windows: every pulse is at least the minimum impulse bit, and the average torque is the
+    # commanded one, below the minimum impulse too (an explicit loop over windows as the reference).
+    cmd = np.array([12.5, -31.0, 70.0])  # 0.25, 0.62 and 1.4 minimum impulse bits per window
+    p = _rcs(pwm_period_ns=period_ns, min_on_ns=min_on_ns)
+    n_windows = 200
+    torque = np.array([p.physics_step(0.0, cmd, k, DT_NS)[1] for k in range(n_windows * steps)])
+    per_window = torque.reshape(n_windows, steps, 3).sum(axis=1) * DT_S
+    pulses = per_window[per_window != 0.0]
+    assert pulses.size > 0 and np.all(np.abs(pulses) >= mib - 1e-12)
+    assert np.count_nonzero(per_window[:, 0]) == n_windows // 4  # one minimum pulse every 4th window
+    np.testing.assert_allclose(torque.mean(axis=0), cmd, rtol=0, atol=mib / (n_windows * period_s) + 1e-9)
     # Continuous mode: the saturated command, every step.
     p = _rcs(mode="continuous")
     np.testing.assert_array_equal(p.physics_step(0.0, np.array([37.0, -500.0, 5.0]), 3, DT_NS)[1], [37.0, -200.0, 5.0])

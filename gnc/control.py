@@ -19,7 +19,12 @@ Stages:
        ``m |f|`` clamped to ``[thrust_min_N, thrust_max_N]`` (a lit
        deep-throttle engine cannot go lower; it is never shut down in flight).
        If ``f_z <= 0`` (guidance wants to fall faster than gravity) the thrust
-       axis goes vertical at minimum thrust.
+       axis goes vertical at minimum thrust. With ``thrust_projection =
+       "body_axis"`` the magnitude is instead ``m f . z_B``, the commanded
+       specific force projected on the *current* body +z (the navigation
+       attitude's): the engine can only push along its axis, so while the body
+       still turns towards the command, only the projection is asked for (the
+       usual thrust-vector-control law; never below the minimum thrust).
     2. Attitude command (:func:`attitude_command_LB`): body +z along the thrust
        direction, body +x's horizontal projection held at ``yaw_hold_deg``.
     3. Attitude control (:func:`attitude_torque_B`): quaternion PD with gains
@@ -43,7 +48,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -146,6 +151,11 @@ class ControlConfig(BaseModel):
     slew_rate_max_degps: float = Field(15.0, gt=0.0, le=90.0, description="largest commanded slew rate [deg/s]")
     gravity_mps2: float = Field(LUNAR_GRAVITY_MPS2, gt=0.0, description="surface gravity magnitude [m/s^2]")
     legs_for_engine_cut: int = Field(1, ge=1, le=N_LEGS, description="footpads in contact that cut the engine [-]")
+    thrust_projection: Literal["body_axis", "magnitude"] = Field(
+        "body_axis",
+        description="thrust magnitude: the commanded specific force projected on the current body +z, or its full "
+                    "magnitude (the idealised law)",
+    )
 
     def g_L(self) -> np.ndarray:
         """Gravity in L, (3,) [m/s^2]."""
@@ -165,6 +175,7 @@ def thrust_vector_command(
     altitude_m: float,
     vehicle: VehicleParams,
     tilt: TiltLimitConfig,
+    z_B_L: np.ndarray | None = None,
 ) -> tuple[float, np.ndarray]:
     """Thrust magnitude and direction for a commanded total acceleration.
 
@@ -175,11 +186,13 @@ def thrust_vector_command(
         altitude_m: Height above the target, for the tilt limit [m].
         vehicle: Thrust limits.
         tilt: Tilt-limit schedule.
+        z_B_L: The current body +z in L, (3,) unit, to project the (tilt-limited)
+            specific force on; None: its full magnitude.
 
     Returns:
-        ``(thrust_N, z_cmd_L)``: the thrust command ``m |f| / thrust_scale``
-        clamped to ``[thrust_min_N, thrust_max_N]`` [N] and the unit thrust
-        direction in L, (3,), within the tilt limit.
+        ``(thrust_N, z_cmd_L)``: the thrust command ``m |f| / thrust_scale`` (or
+        ``m f . z_B / thrust_scale``) clamped to ``[thrust_min_N, thrust_max_N]``
+        [N] and the unit thrust direction in L, (3,), within the tilt limit.
     """
     f = np.asarray(a_cmd_L, float) - g_L
     if not f[2] > _F_Z_MIN_MPS2:
@@ -191,7 +204,8 @@ def thrust_vector_command(
     if uh_norm > tan_max * u[2]:
         u[:2] *= tan_max * u[2] / uh_norm
     u_norm = float(np.linalg.norm(u))
-    thrust = float(np.clip(mass_kg * scale * u_norm / vehicle.thrust_scale, vehicle.thrust_min_N, vehicle.thrust_max_N))
+    along = u_norm if z_B_L is None else max(float(u @ z_B_L), 0.0)
+    thrust = float(np.clip(mass_kg * scale * along / vehicle.thrust_scale, vehicle.thrust_min_N, vehicle.thrust_max_N))
     return thrust, u / u_norm
 
 
@@ -320,9 +334,15 @@ class Controller:
         mass = float(nav.mass_kg) if np.isfinite(nav.mass_kg) and nav.mass_kg > 0.0 else float("nan")
         altitude = float(np.asarray(nav.r_BL_L, float)[2])
         a_cmd = np.asarray(cmd.a_cmd_L, float)
+        z_B_L = None
+        if self.cfg.thrust_projection == "body_axis":
+            q_nav = _unit_quaternion(nav.q_LB)
+            if q_nav is not None:
+                w, x, y, z = q_nav
+                z_B_L = np.array([2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)])
         if cmd.valid and np.all(np.isfinite(a_cmd)) and np.isfinite(mass) and np.isfinite(altitude):
             self._thrust_hold_N, z_cmd_L = thrust_vector_command(
-                a_cmd, self.g_L, mass, altitude, self.vehicle, self.cfg.tilt
+                a_cmd, self.g_L, mass, altitude, self.vehicle, self.cfg.tilt, z_B_L
             )
             if attitude:
                 self._q_cmd_hold = attitude_command_LB(z_cmd_L, self.yaw_rad)

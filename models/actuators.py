@@ -12,10 +12,41 @@ Engine logic: a command <= 0 (or ``cut()``) means the engine is off; any
 positive command is clamped to ``[thrust_min_N, thrust_max_N]``, because a
 lit deep-throttle engine cannot go below its minimum. The delivered thrust is
 ``clamped * (1 + thrust_error_frac)``. Mass flows at ``T / (Isp * g0)``.
+
+Two paths (:attr:`PropulsionModel.instant`):
+
+* Instant (idealised actuators, :meth:`models.lander.LanderConfig.ideal`): the
+  engine delivers the clamped command at once and the RCS the saturated torque,
+  held over the whole interval; one closed-form propellant draw per interval
+  (:meth:`PropulsionModel.apply`).
+* Per physics step (:meth:`PropulsionModel.physics_step`), when any of the
+  realistic models is on:
+
+  - throttle response: the engine's thrust ``T`` (before the thrust error)
+    follows the clamped command ``c`` (0 when off) as a first-order lag, exact
+    for a command held over the step, ``T_k+1 = c + (T_k - c) exp(-dt / tau)``,
+    with the change per step limited to ``slew_rate_Nps * dt``. At the first
+    command the engine is already burning at it (hand-over mid-descent).
+    Propellant running out stops the engine at once.
+  - RCS pulse-width modulation (``rcs.mode = "pwm"``): per axis, at the start
+    of every ``pwm_period_ns`` window (aligned on whole periods of simulation
+    time) the held command's impulse ``tau * period`` plus the impulse carried
+    from earlier windows sets an on-time ``|impulse| / tau_max``; an impulse
+    below the minimum impulse bit ``tau_max * min_on_ns`` fires nothing and is
+    carried to the next window (the carry is held within one minimum impulse
+    bit), so a small command fires a minimum pulse every few windows, as a
+    pulse-width pulse-frequency modulator does, instead of leaving a dead zone.
+    During the window the axis delivers ``+-tau_max`` while on; the step in
+    which the pulse ends delivers the on-fraction of that step, so each
+    window's impulse is exactly the on-time's (the physics step resolves it no
+    finer).
+  - RCS propellant: ``sum |tau_axis| / moment_arm_m`` of thrust at the RCS
+    ``isp_s``, from the main tanks; with the tanks dry the RCS stops too.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,6 +83,25 @@ class PropulsionModel:
         self.cfg = cfg
         self.propellant_kg = cfg.propellant_kg
         self.is_cut = False
+        eng, rcs = cfg.engine, cfg.rcs
+        self.instant = (eng.time_constant_s == 0.0 and math.isinf(eng.slew_rate_Nps)
+                        and rcs.mode == "continuous" and not rcs.draws_propellant)
+        self.engine_thrust_N: float | None = None  # engine state before the thrust error; None before any command
+        self._decay = math.nan  # exp(-dt / tau) of the current step size
+        self._decay_dt_s = math.nan
+        self._pwm_on_s = np.zeros(3)  # on-time of the current PWM window per axis [s]
+        self._pwm_sign = np.zeros(3)
+        self._pwm_window = -1
+        self._pwm_carry_Nms = np.zeros(3)  # impulse commanded but not yet fired, per axis [N m s]
+
+    def delivered_thrust_N(self, thrust_cmd_N: float) -> float:
+        """Thrust the engine delivers now for a command [N] (instant path: the clamped command times the error)."""
+        gain = 1.0 + self.cfg.engine.thrust_error_frac
+        if self.instant:
+            return self.clamp_thrust(thrust_cmd_N) * gain
+        if self.engine_thrust_N is None:
+            return self.clamp_thrust(thrust_cmd_N) * gain
+        return self.engine_thrust_N * gain
 
     def cut(self) -> None:
         """Permanent engine cut-off (touchdown)."""
@@ -103,3 +153,78 @@ class PropulsionModel:
         used = self.propellant_kg  # the last partial step's worth is spent too
         self.propellant_kg = 0.0
         return PropulsionOutput(thrust, torque, steps_available, used, True)
+
+    # ----------------------------------------------------------------- per physics step (realistic path)
+    def _engine_step(self, thrust_cmd_N: float, dt_s: float) -> float:
+        """Advance the throttle response one step; returns the engine's thrust over the step [N] (before the error)."""
+        eng = self.cfg.engine
+        target = self.clamp_thrust(thrust_cmd_N)
+        if self.engine_thrust_N is None:
+            self.engine_thrust_N = target  # already burning at the first command
+            return target
+        t = self.engine_thrust_N
+        if eng.time_constant_s > 0.0:
+            if dt_s != self._decay_dt_s:
+                self._decay, self._decay_dt_s = math.exp(-dt_s / eng.time_constant_s), dt_s
+            new = target + (t - target) * self._decay
+        else:
+            new = target
+        max_change = eng.slew_rate_Nps * dt_s
+        if new - t > max_change:
+            new = t + max_change
+        elif t - new > max_change:
+            new = t - max_change
+        self.engine_thrust_N = new
+        return new
+
+    def _rcs_step(self, torque_cmd_B_Nm: np.ndarray, step_index: int, dt_ns: int) -> np.ndarray:
+        """RCS torque over physics step ``step_index`` (3,) [N m]: continuous, or the PWM window's pulses."""
+        rcs, tau_max = self.cfg.rcs, float(self.cfg.rcs_torque_max_Nm)
+        torque = self.clamp_torque(torque_cmd_B_Nm)
+        if rcs.mode == "continuous":
+            return torque
+        steps_per_window = rcs.pwm_period_ns // dt_ns
+        window, k = divmod(step_index, steps_per_window)
+        period_s = rcs.pwm_period_ns / 1e9
+        if window != self._pwm_window:  # a new window: the held command (plus the carry) sets each axis's pulse
+            self._pwm_window = window
+            mib = tau_max * rcs.min_on_ns / 1e9
+            demand = torque * period_s + self._pwm_carry_Nms
+            fired = np.clip(demand, -tau_max * period_s, tau_max * period_s)
+            fired[np.abs(fired) < mib] = 0.0
+            self._pwm_carry_Nms = np.clip(demand - fired, -mib, mib)
+            self._pwm_on_s = np.abs(fired) / tau_max
+            self._pwm_sign = np.sign(fired)
+        dt_s = dt_ns / 1e9
+        frac = np.clip((self._pwm_on_s - k * dt_s) / dt_s, 0.0, 1.0)
+        return self._pwm_sign * tau_max * frac
+
+    def physics_step(self, thrust_cmd_N: float, torque_cmd_B_Nm: np.ndarray, step_index: int,
+                     dt_ns: int) -> tuple[float, np.ndarray, bool]:
+        """One physics step of the realistic actuators.
+
+        Args:
+            thrust_cmd_N: Commanded thrust, held [N].
+            torque_cmd_B_Nm: Commanded torque, held (3,) [N m].
+            step_index: Index of this physics step since t = 0 (PWM windows are aligned on it).
+            dt_ns: Physics step [ns]; ``rcs.pwm_period_ns`` must be a whole multiple of it.
+
+        Returns:
+            (delivered thrust [N], delivered torque (3,) [N m], whether the engine fired
+            this step); ``self.propellant_kg`` is decreased by this step's draw.
+        """
+        dt_s = dt_ns / 1e9
+        rcs = self.cfg.rcs
+        if self.propellant_kg <= 0.0:
+            self.engine_thrust_N = 0.0
+            return 0.0, (np.zeros(3) if rcs.draws_propellant else self._rcs_step(torque_cmd_B_Nm, step_index, dt_ns)), False
+        thrust = self._engine_step(thrust_cmd_N, dt_s) * (1.0 + self.cfg.engine.thrust_error_frac)
+        torque = self._rcs_step(torque_cmd_B_Nm, step_index, dt_ns)
+        used = self.mass_flow_kgps(thrust) * dt_s
+        if rcs.draws_propellant:
+            used += float(np.sum(np.abs(torque))) / rcs.moment_arm_m / (rcs.isp_s * G0_MPS2) * dt_s
+        if used >= self.propellant_kg:  # the last partial step's worth is spent too
+            self.propellant_kg = 0.0
+        else:
+            self.propellant_kg -= used
+        return thrust, torque, thrust > 0.0

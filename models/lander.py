@@ -17,6 +17,9 @@ image x axis is body +x (see :mod:`models.camera`).
 
 from __future__ import annotations
 
+import math
+from typing import Literal
+
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -46,6 +49,20 @@ class EngineConfig(BaseModel):
     thrust_error_frac: float = Field(
         0.0, gt=-0.5, lt=0.5, description="fractional thrust error (delivered = commanded * (1 + e)) [-]"
     )
+    time_constant_s: float = Field(
+        0.1, ge=0.0, le=5.0,
+        description="first-order throttle response time constant [s] (0: the thrust follows the command at once)",
+    )
+    slew_rate_Nps: float = Field(
+        20000.0, gt=0.0, description="largest rate of change of the delivered thrust [N/s] (inf: no limit)"
+    )
+    misalignment_deg: float = Field(
+        0.0, ge=0.0, le=5.0, description="angle of the thrust line from body +z [deg]"
+    )
+    misalignment_azimuth_deg: float = Field(
+        0.0, ge=-360.0, le=360.0,
+        description="direction of the thrust line's tilt, from body +x towards +y about +z [deg]",
+    )
 
     @model_validator(mode="after")
     def _min_below_max(self) -> "EngineConfig":
@@ -55,6 +72,36 @@ class EngineConfig(BaseModel):
                 f"{self.thrust_max_N}; allowed: 0 <= thrust_min_N < thrust_max_N"
             )
         return self
+
+    def thrust_direction_B(self) -> np.ndarray:
+        """Unit direction of the delivered thrust in B (3,): body +z tilted by the misalignment."""
+        if self.misalignment_deg == 0.0:
+            return np.array([0.0, 0.0, 1.0])
+        a, az = math.radians(self.misalignment_deg), math.radians(self.misalignment_azimuth_deg)
+        return np.array([math.sin(a) * math.cos(az), math.sin(a) * math.sin(az), math.cos(a)])
+
+
+class RcsConfig(BaseModel):
+    """Reaction-control thrusters: torque delivery and propellant.
+
+    ``mode = "pwm"``: each axis's commanded torque is delivered as on/off pulses of the
+    full torque ``rcs_torque_max_Nm``, at most one pulse per ``pwm_period_ns`` whose width is
+    ``|tau_cmd| / tau_max * period`` plus the impulse carried from earlier windows; a pulse
+    shorter than ``min_on_ns`` is not fired and its impulse is carried (the minimum impulse
+    bit is ``tau_max * min_on_ns``; see :mod:`models.actuators`).
+    ``mode = "continuous"``: the commanded torque is delivered exactly (saturated), as an
+    idealised controller study wants. Either way, the thrusters burn propellant from the main
+    tanks at ``|tau| / moment_arm_m`` of thrust per axis (a couple of two thrusters) at ``isp_s``.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    mode: Literal["pwm", "continuous"] = Field("pwm", description="pulse-width modulated or continuous torque")
+    pwm_period_ns: int = Field(20_000_000, gt=0, description="pulse-width modulation period [ns] (default 50 Hz)")
+    min_on_ns: int = Field(4_000_000, ge=0, description="shortest pulse a thruster fires [ns]")
+    moment_arm_m: float = Field(1.0, gt=0.0, description="moment arm of each thruster couple [m]")
+    isp_s: float = Field(220.0, gt=0.0, description="RCS specific impulse [s] (hydrazine monopropellant class)")
+    draws_propellant: bool = Field(True, description="the thrusters burn propellant from the main tanks")
 
 
 class LanderConfig(BaseModel):
@@ -73,7 +120,23 @@ class LanderConfig(BaseModel):
     footpad_radius_m: float = Field(0.2, gt=0, description="footpad sphere radius [m]")
     friction: float = Field(0.8, gt=0, description="footpad-regolith Coulomb friction coefficient [-]")
     rcs_torque_max_Nm: float = Field(200.0, gt=0, description="RCS torque saturation per body axis [N m]")
+    com_offset_B_m: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="dry body's centre of mass relative to the body origin, in B [m]"
+    )
     engine: EngineConfig = EngineConfig()
+    rcs: RcsConfig = RcsConfig()
+
+    def ideal(self) -> "LanderConfig":
+        """This lander with idealised actuators (``realism = "ideal"``).
+
+        The engine follows its command at once (no lag or slew limit) along body +z, the dry
+        centre of mass is at the body origin, and the RCS delivers the commanded torque
+        continuously without burning propellant: today's vehicle before issue 17.
+        """
+        engine = self.engine.model_copy(update={"time_constant_s": 0.0, "slew_rate_Nps": math.inf,
+                                                "misalignment_deg": 0.0, "misalignment_azimuth_deg": 0.0})
+        rcs = self.rcs.model_copy(update={"mode": "continuous", "draws_propellant": False})
+        return self.model_copy(update={"engine": engine, "rcs": rcs, "com_offset_B_m": (0.0, 0.0, 0.0)})
 
     @property
     def wet_mass_kg(self) -> float:
@@ -105,6 +168,50 @@ def footpad_positions_B(cfg: LanderConfig) -> np.ndarray:
     r = cfg.leg_radius_m / np.sqrt(2.0)
     z = -cfg.leg_drop_m
     return np.array([[r, r, z], [r, -r, z], [-r, r, z], [-r, -r, z]])
+
+
+def com_position_B(cfg: LanderConfig, propellant_kg: float) -> np.ndarray:
+    """Centre of mass of the whole lander in B (3,) [m]: the dry body's (offset) and the tank's (at the origin)."""
+    dry = cfg.dry_mass_kg
+    return np.asarray(cfg.com_offset_B_m, float) * dry / (dry + max(float(propellant_kg), 0.0))
+
+
+def static_tipover_deg(cfg: LanderConfig, propellant_kg: float) -> float:
+    """Static tip-over angle of the lander standing on level ground [deg].
+
+    The smallest tilt, about any edge of the footpad square, that brings the centre of mass
+    over that edge: ``atan(d / h)`` with ``d`` the horizontal distance from the centre of mass
+    to the edge and ``h`` its height above the footpads' ground contacts. About 36.5 deg for the
+    default legs (``d = 2.2 / sqrt 2`` m, ``h = 1.9 + 0.2`` m).
+    """
+    feet = footpad_positions_B(cfg)[[0, 1, 3, 2]]  # around the square
+    com = com_position_B(cfg, propellant_kg)
+    h = com[2] + cfg.leg_drop_m + cfg.footpad_radius_m
+    d = min(_distance_to_line(com[:2], feet[i, :2], feet[(i + 1) % 4, :2]) for i in range(4))
+    return math.degrees(math.atan2(d, h))
+
+
+def _distance_to_line(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    ab = b - a
+    return float(abs(ab[0] * (p[1] - a[1]) - ab[1] * (p[0] - a[0])) / np.hypot(*ab))
+
+
+def support_margin_m(footpads_xy_L: np.ndarray, com_xy_L: np.ndarray) -> float:
+    """Signed horizontal distance of the centre of mass inside the footpads' convex hull [m] (< 0: outside).
+
+    Args:
+        footpads_xy_L: Horizontal footpad positions (4, 2) [m].
+        com_xy_L: Horizontal centre-of-mass position (2,) [m].
+    """
+    from scipy.spatial import ConvexHull, QhullError
+
+    pts = np.asarray(footpads_xy_L, float)
+    try:
+        hull = ConvexHull(pts)
+    except QhullError:  # degenerate (collinear pads, e.g. lying on its side): no area to stand on
+        return -max(float(np.min(np.linalg.norm(pts - np.asarray(com_xy_L, float), axis=1))), 1e-9)
+    # Each facet: n . x + c <= 0 inside, n unit; the margin is the smallest distance to a facet.
+    return float(-np.max(hull.equations[:, :2] @ np.asarray(com_xy_L, float) + hull.equations[:, 2]))
 
 
 # Sensor mounts: the altimeter sits this far forward of the axis; both sit this far below the body box
@@ -154,10 +261,11 @@ def lander_mjcf(cfg: LanderConfig, camera_fovy_deg: float) -> str:
         )
     alt_x, alt_y, alt_z = altimeter_position_B(cfg)
     cam_x, cam_y, cam_z = camera_position_B(cfg)
+    com_x, com_y, com_z = cfg.com_offset_B_m
     return f"""
     <body name="lander" pos="0 0 0">
       <freejoint name="lander_free"/>
-      <inertial pos="0 0 0" mass="{cfg.dry_mass_kg}" diaginertia="{inertia[0]} {inertia[1]} {inertia[2]}"/>
+      <inertial pos="{com_x} {com_y} {com_z}" mass="{cfg.dry_mass_kg}" diaginertia="{inertia[0]} {inertia[1]} {inertia[2]}"/>
       <geom name="hull" type="box" size="{hx} {hy} {hz}" group="{g}" contype="1" conaffinity="0"
             mass="0" rgba="0.85 0.75 0.3 1" {contact}/>
       {''.join(legs)}
@@ -176,12 +284,15 @@ def actuator_mjcf(cfg: LanderConfig) -> str:
     """MJCF ``<actuator>`` children: engine thrust and three RCS torques.
 
     The engine actuator's control is the delivered thrust [N]; throttle
-    limits, the on/off logic and thrust error are applied by
-    :class:`models.actuators.PropulsionModel` before it writes ``data.ctrl``.
+    limits, the on/off logic, the throttle response and thrust error are applied by
+    :class:`models.actuators.PropulsionModel` before it writes ``data.ctrl``. The force acts
+    at the engine site along :meth:`EngineConfig.thrust_direction_B` (body +z unless
+    misaligned), fixed in the body; MuJoCo adds its moment about the centre of mass.
     """
     tau = cfg.rcs_torque_max_Nm
+    dx, dy, dz = cfg.engine.thrust_direction_B()
     return f"""
-    <motor name="engine" site="engine" gear="0 0 1 0 0 0" ctrllimited="true" ctrlrange="0 {cfg.engine.thrust_max_N * 1.5}"/>
+    <motor name="engine" site="engine" gear="{dx} {dy} {dz} 0 0 0" ctrllimited="true" ctrlrange="0 {cfg.engine.thrust_max_N * 1.5}"/>
     <motor name="rcs_x" site="rcs" gear="0 0 0 1 0 0" ctrllimited="true" ctrlrange="{-tau} {tau}"/>
     <motor name="rcs_y" site="rcs" gear="0 0 0 0 1 0" ctrllimited="true" ctrlrange="{-tau} {tau}"/>
     <motor name="rcs_z" site="rcs" gear="0 0 0 0 0 1" ctrllimited="true" ctrlrange="{-tau} {tau}"/>"""

@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy.spatial.transform import Rotation
 
 from gnc.messages import AltimeterMessage, AttitudeMessage, ImuMessage
@@ -64,7 +64,41 @@ class StarTrackerConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     period_ns: int = Field(100_000_000, gt=0, description="sample period [ns] (default 10 Hz)")
-    noise_sigma_arcsec: float = Field(10.0, ge=0, description="attitude noise, 1-sigma per axis [arcsec]")
+    noise_sigma_arcsec: float = Field(
+        10.0, ge=0, description="isotropic attitude noise, 1-sigma per axis [arcsec] (realism = 'ideal')"
+    )
+    cross_boresight_sigma_arcsec: float = Field(
+        2.0, ge=0, description="noise about each axis across the boresight, 1-sigma [arcsec] (realism = 'realistic')"
+    )
+    about_boresight_sigma_arcsec: float = Field(
+        12.0, ge=0, description="noise about the boresight (roll), 1-sigma [arcsec] (realism = 'realistic')"
+    )
+    boresight_B: tuple[float, float, float] = Field(
+        (0.0, 0.6, 0.8), description="tracker boresight in the body frame (normalised on use) [-]"
+    )
+
+    @model_validator(mode="after")
+    def _boresight_nonzero(self) -> "StarTrackerConfig":
+        n = math.sqrt(sum(c * c for c in self.boresight_B))
+        if not (math.isfinite(n) and n > 0.0):
+            raise ValueError(f"sensors.star_tracker.boresight_B = {self.boresight_B}; allowed: a finite non-zero vector")
+        return self
+
+    def error_axes_B(self) -> np.ndarray:
+        """Orthonormal axes of the attitude error in B, (3, 3), columns: two cross-boresight axes, then the boresight."""
+        b = np.asarray(self.boresight_B, float)
+        b = b / np.linalg.norm(b)
+        helper = np.array([1.0, 0.0, 0.0]) if abs(b[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        u = np.cross(b, helper)
+        u /= np.linalg.norm(u)
+        return np.column_stack([u, np.cross(b, u), b])
+
+    def error_covariance_B(self) -> np.ndarray:
+        """Covariance of the anisotropic attitude error (body-frame rotation vector), (3, 3) [rad^2]."""
+        A = self.error_axes_B()
+        s = np.radians(np.array([self.cross_boresight_sigma_arcsec, self.cross_boresight_sigma_arcsec,
+                                 self.about_boresight_sigma_arcsec]) / 3600.0)
+        return (A * s**2) @ A.T
 
 
 class SensorsConfig(BaseModel):
@@ -124,15 +158,30 @@ class AltimeterModel:
 
 
 class StarTrackerModel:
-    """Attitude quaternion with a small random rotation error per sample."""
+    """Attitude quaternion with a small random rotation error per sample.
 
-    def __init__(self, cfg: StarTrackerConfig, rng: np.random.Generator):
+    ``anisotropic = False`` (realism "ideal"): the body-frame error rotation vector is
+    N(0, noise_sigma^2 I). ``anisotropic = True`` (realism "realistic"): it is
+    ``A diag(s_cross, s_cross, s_about) n`` with ``n ~ N(0, I)`` and ``A`` the tracker's
+    axes in B (two across the boresight, then the boresight): a real tracker measures
+    roll about its boresight several times worse than the boresight's direction.
+    """
+
+    def __init__(self, cfg: StarTrackerConfig, rng: np.random.Generator, anisotropic: bool = False):
         self.cfg = cfg
         self._rng = rng
+        self.anisotropic = anisotropic
         self._sigma_rad = math.radians(cfg.noise_sigma_arcsec / 3600.0)
+        self._axes_B = cfg.error_axes_B()
+        self._sigmas_rad = np.radians(np.array([cfg.cross_boresight_sigma_arcsec, cfg.cross_boresight_sigma_arcsec,
+                                                cfg.about_boresight_sigma_arcsec]) / 3600.0)
 
     def sample(self, t_ns: int, q_LB_true: np.ndarray) -> AttitudeMessage:
         """Corrupt one truth attitude: q_meas = q_true (x) dq(noise), body-frame error."""
-        error = Rotation.from_rotvec(self._rng.normal(0.0, self._sigma_rad, 3))
+        if self.anisotropic:
+            rotvec = self._axes_B @ (self._sigmas_rad * self._rng.normal(0.0, 1.0, 3))
+        else:
+            rotvec = self._rng.normal(0.0, self._sigma_rad, 3)
+        error = Rotation.from_rotvec(rotvec)
         q = (Rotation.from_quat(q_LB_true, scalar_first=True) * error).as_quat(canonical=True, scalar_first=True)
         return AttitudeMessage(t_ns=t_ns, q_LB=q)

@@ -80,7 +80,7 @@ STAMP_BATCH_MAX_HALF_PX = 24
 STAMP_BATCH_ELEMENTS = 4_000_000  # texels per vectorised batch (bounds memory)
 # User DEM: synthetic detail is added only below the DEM's own resolution.
 DEM_DETAIL_MAX_WAVELENGTH_PX = 2.0  # fBm modes longer than this many DEM spacings are left to the DEM
-DEM_UNRESOLVED_CRATER_PX = 4.0  # synthetic craters only up to this many DEM spacings across
+DEM_UNRESOLVED_CRATER_PX = 2.0  # synthetic craters only up to this many DEM spacings across
 # Landing-site patch: its baked detail holds wavelengths below this many coarse
 # texels, and fades out over this fraction of the patch half-width at its edge.
 PATCH_DETAIL_MAX_WAVELENGTH_TEXELS = 2.0
@@ -186,8 +186,21 @@ class TerrainConfig(BaseModel):
         "from the full fine DEM (use when the renderer draws no shadows itself)",
     )
 
-    dem_path: pathlib.Path | None = Field(None, description="kind='dem': .npy (2-D numeric) or 16-bit PNG")
-    dem_spacing_m: float | None = Field(None, gt=0.0, description="kind='dem': DEM post spacing [m]")
+    dem_path: pathlib.Path | None = Field(
+        None, description="kind='dem': .npy (2-D numeric), 16-bit PNG, or GeoTIFF (.tif/.tiff, the 'geo' extra)"
+    )
+    dem_spacing_m: float | None = Field(
+        None, gt=0.0, description="kind='dem': DEM post spacing [m] (a GeoTIFF's is read from the file)"
+    )
+    dem_target_xy: tuple[float, float] | None = Field(
+        None,
+        description="GeoTIFF: the landing target in the file's own projected coordinates (x, y) [m], snapped to "
+        "the nearest post; unset: the raster's centre",
+    )
+    dem_tile_m: float | None = Field(
+        None, gt=0.0,
+        description="GeoTIFF: side of the square cropped around the target [m]; unset: the largest that fits",
+    )
     dem_z_scale_m: float = Field(
         1.0, gt=0.0, description="metres per stored unit, for PNG (DN) and .npy alike [m]"
     )
@@ -221,12 +234,26 @@ class TerrainConfig(BaseModel):
                     f"kind='dem'; set kind='dem' or remove them"
                 )
             return self
-        if self.dem_path is None or self.dem_spacing_m is None:
-            raise ValueError(
-                f"kind='dem' requires dem_path and dem_spacing_m (got dem_path={self.dem_path}, "
-                f"dem_spacing_m={self.dem_spacing_m})"
-            )
-        dem = load_dem(self.dem_path, self.dem_spacing_m, self.dem_z_scale_m)  # fail now, not mid-run
+        if self.dem_path is not None and is_geotiff(self.dem_path):
+            dem, spacing = load_geotiff(self.dem_path, self.dem_target_xy, self.dem_tile_m, self.dem_z_scale_m)
+            if self.dem_spacing_m is not None and not math.isclose(self.dem_spacing_m, spacing, rel_tol=1e-6):
+                raise ValueError(
+                    f"dem_spacing_m={self.dem_spacing_m} differs from the GeoTIFF's own {spacing} m; "
+                    "leave dem_spacing_m unset for a GeoTIFF"
+                )
+            self.dem_spacing_m = spacing
+        else:
+            if self.dem_target_xy is not None or self.dem_tile_m is not None:
+                raise ValueError(
+                    f"dem_target_xy={self.dem_target_xy} / dem_tile_m={self.dem_tile_m} are only used with a "
+                    "GeoTIFF dem_path (.tif/.tiff); remove them"
+                )
+            if self.dem_path is None or self.dem_spacing_m is None:
+                raise ValueError(
+                    f"kind='dem' requires dem_path and dem_spacing_m (got dem_path={self.dem_path}, "
+                    f"dem_spacing_m={self.dem_spacing_m})"
+                )
+            dem = load_dem(self.dem_path, self.dem_spacing_m, self.dem_z_scale_m)  # fail now, not mid-run
         half_m = self.dem_spacing_m * (min(dem.shape) - 1) / 2
         if self.target_clear_radius_m >= half_m:
             raise ValueError(
@@ -812,6 +839,102 @@ def load_dem(path: str | pathlib.Path, spacing_m: float, z_scale_m: float = 1.0)
     return heights
 
 
+GEOTIFF_SUFFIXES = (".tif", ".tiff")
+# How to bring a raster to what landbench flies: metres, square pixels, north up. A local polar
+# stereographic on the Moon's sphere (IAU 2015 radius) suits a south-pole site.
+REPROJECT_HINT = ("reproject it to a metric grid with square pixels, e.g. gdalwarp -t_srs "
+                  "'+proj=stere +lat_0=-90 +lon_0=0 +k=1 +x_0=0 +y_0=0 +R=1737400 +units=m +no_defs' "
+                  "-tr 5 5 -r bilinear in.tif out.tif")
+
+
+def is_geotiff(path: str | pathlib.Path) -> bool:
+    """Whether a DEM path names a GeoTIFF (by its suffix)."""
+    return pathlib.Path(path).suffix.lower() in GEOTIFF_SUFFIXES
+
+
+def load_geotiff(path: str | pathlib.Path, target_xy: tuple[float, float] | None, tile_m: float | None,
+                 z_scale_m: float = 1.0) -> tuple[np.ndarray, float]:
+    """Read the square of a projected GeoTIFF DEM around a target (needs rasterio, the 'geo' extra).
+
+    The spacing, nodata and extent come from the file. Refused, with how to fix it: a raster
+    without a CRS, in degrees (geographic), in non-metre units, rotated or with non-square pixels.
+
+    Args:
+        path: The GeoTIFF (band 1 = heights).
+        target_xy: The landing target in the file's coordinates [m]; None: the raster's centre.
+            Snapped to the nearest post, which becomes the tile's centre.
+        tile_m: Side of the square to crop [m] (rounded to an even number of spacings);
+            None: the largest square around the target that fits.
+        z_scale_m: Metres per stored unit.
+
+    Returns:
+        ((n, n) float64 heights [m], north-up (row 0 = north edge), n odd; the post spacing [m]).
+
+    Raises:
+        ValueError: One line naming the file, what is wrong and how to fix it.
+    """
+    p = pathlib.Path(path)
+    if not p.is_file():
+        raise ValueError(f"dem_path='{p}': file not found; give an existing GeoTIFF")
+    try:
+        import rasterio
+        from rasterio.windows import Window
+    except ImportError:
+        raise ValueError(f"dem_path='{p}': reading GeoTIFF needs rasterio; install the geo extra "
+                         "(pip install 'landbench[geo]'), or convert the DEM to .npy") from None
+    try:
+        ds = rasterio.open(p)
+    except rasterio.errors.RasterioIOError as exc:
+        raise ValueError(f"dem_path='{p}': cannot be read as a GeoTIFF ({str(exc).splitlines()[0]})") from None
+    with ds:
+        crs, t = ds.crs, ds.transform
+        if crs is None:
+            raise ValueError(f"dem_path='{p}': the raster has no coordinate reference system; {REPROJECT_HINT}")
+        if crs.is_geographic:
+            raise ValueError(f"dem_path='{p}': the raster is in degrees ({crs.to_string()}), not metres; "
+                             f"{REPROJECT_HINT}")
+        units, factor = crs.linear_units_factor
+        if not math.isclose(factor, 1.0, rel_tol=1e-9):
+            raise ValueError(f"dem_path='{p}': the raster's units are {units}, not metres; {REPROJECT_HINT}")
+        if t.b != 0.0 or t.d != 0.0 or t.a <= 0.0 or t.e >= 0.0:
+            raise ValueError(f"dem_path='{p}': the raster is rotated or not north-up (transform {tuple(t)[:6]}); "
+                             f"{REPROJECT_HINT}")
+        if not math.isclose(t.a, -t.e, rel_tol=1e-6):
+            raise ValueError(f"dem_path='{p}': its pixels are not square ({t.a} m x {-t.e} m); {REPROJECT_HINT}")
+        spacing = float(t.a)
+        rows, cols = ds.height, ds.width
+        if target_xy is None:
+            r_c, c_c = (rows - 1) // 2, (cols - 1) // 2
+        else:
+            # Pixel (row, col) has its centre at x = c + (col + 0.5) a, y = f + (row + 0.5) e.
+            c_c = int(round((target_xy[0] - t.c) / t.a - 0.5))
+            r_c = int(round((target_xy[1] - t.f) / t.e - 0.5))
+            if not (0 <= r_c < rows and 0 <= c_c < cols):
+                x0, y1 = t.c, t.f
+                raise ValueError(
+                    f"dem_target_xy={tuple(target_xy)} is outside the raster '{p.name}' (x {x0:.1f} to "
+                    f"{x0 + cols * t.a:.1f}, y {y1 + rows * t.e:.1f} to {y1:.1f} m, in its {crs.to_string()})"
+                )
+        fits = min(r_c, c_c, rows - 1 - r_c, cols - 1 - c_c)
+        half = fits if tile_m is None else int(round(tile_m / spacing / 2.0))
+        if half > fits:
+            raise ValueError(
+                f"dem_tile_m={tile_m} around the target does not fit in '{p.name}' "
+                f"(at most {2 * fits * spacing:g} m there); choose a smaller tile or another target"
+            )
+        if 2 * half + 1 < MIN_DEM_PX:
+            raise ValueError(f"dem_path='{p}': the tile around the target is {2 * half + 1} px; "
+                             f"need at least {MIN_DEM_PX} px per side")
+        band = ds.read(1, window=Window(c_c - half, r_c - half, 2 * half + 1, 2 * half + 1), masked=True)
+    nodata = int(np.count_nonzero(np.ma.getmaskarray(band)))
+    heights = np.ma.getdata(band).astype(np.float64) * z_scale_m
+    bad = nodata + int(np.count_nonzero(~np.isfinite(heights)))
+    if bad:
+        raise ValueError(f"dem_path='{p}': {bad} nodata or non-finite posts in the tile around the target; "
+                         "fill the voids first (e.g. gdal_fillnodata.py) or choose another target")
+    return heights, spacing
+
+
 # ---------------------------------------------------------------- generation
 def generate_terrain(
     cfg: TerrainConfig, rng: np.random.Generator, sun_elevation_deg: float, sun_azimuth_deg: float
@@ -846,7 +969,10 @@ def generate_terrain(
         crater_d_max = cfg.crater_max_diameter_m
     else:
         assert cfg.dem_path is not None and cfg.dem_spacing_m is not None  # guaranteed by the validator
-        dem = load_dem(cfg.dem_path, cfg.dem_spacing_m, cfg.dem_z_scale_m)
+        if is_geotiff(cfg.dem_path):  # already the square around the target
+            dem = load_geotiff(cfg.dem_path, cfg.dem_target_xy, cfg.dem_tile_m, cfg.dem_z_scale_m)[0]
+        else:
+            dem = load_dem(cfg.dem_path, cfg.dem_spacing_m, cfg.dem_z_scale_m)
         side = min(dem.shape)
         r0, c0 = (dem.shape[0] - side) // 2, (dem.shape[1] - side) // 2
         dem = np.flipud(dem[r0:r0 + side, c0:c0 + side]).astype(np.float32)  # north-up -> south-up

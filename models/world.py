@@ -169,10 +169,21 @@ class World:
         sun: Sun direction and shadows.
         physics_dt_ns: Physics step [ns].
         gravity_mps2: Surface gravity magnitude [m/s^2].
+        realism: "ideal" (the default here, for library use): the lander's idealised actuators
+            (:meth:`LanderConfig.ideal`), whatever its engine-dynamics, misalignment, centre-of-mass
+            and RCS settings; "realistic": the lander as configured (a scenario's default).
     """
 
     def __init__(self, terrain: Terrain, lander: LanderConfig, camera: CameraConfig, sun: SunConfig,
-                 physics_dt_ns: int, gravity_mps2: float = 1.62):
+                 physics_dt_ns: int, gravity_mps2: float = 1.62, realism: str = "ideal"):
+        if realism not in ("ideal", "realistic"):
+            raise ValueError(f"realism = {realism!r}; allowed: 'ideal' or 'realistic'")
+        if realism == "ideal":
+            lander = lander.ideal()
+        elif lander.rcs.mode == "pwm" and lander.rcs.pwm_period_ns % int(physics_dt_ns):
+            raise ValueError(f"lander.rcs.pwm_period_ns = {lander.rcs.pwm_period_ns} is not a whole multiple of "
+                             f"the physics step {int(physics_dt_ns)} ns; allowed: multiples of it")
+        self.realism = realism
         self.terrain = terrain
         self.lander_cfg = lander
         self.camera_cfg = camera
@@ -205,6 +216,8 @@ class World:
         self._renderer: mujoco.Renderer | None = None
         self._depth_renderer: mujoco.Renderer | None = None
         self._step_count = 0
+        self._imu_sum = np.zeros(3)
+        self._imu_steps = 0
         self._set_clip_planes()
         mujoco.mj_forward(self.model, self.data)
 
@@ -261,6 +274,8 @@ class World:
         self.data.qvel[0:3] = v_BL_L
         self.data.qvel[3:6] = omega_B
         self._step_count = 0
+        self._imu_sum = np.zeros(3)
+        self._imu_steps = 0
         mujoco.mj_forward(self.model, self.data)
 
     def set_pose(self, r_BL_L: np.ndarray, q_LB: np.ndarray) -> None:
@@ -302,6 +317,8 @@ class World:
             PhysicsDivergedError: MuJoCo flagged a bad qacc, qpos or qvel.
         """
         torque = np.zeros(3) if torque_cmd_B_Nm is None else torque_cmd_B_Nm
+        if not self.propulsion.instant:
+            return self._step_each(n_steps, thrust_cmd_N, torque)
         out = self.propulsion.apply(thrust_cmd_N, torque, n_steps, self.dt_s)
         self.data.ctrl[self._act_rcs] = out.torque_B_Nm
         self.data.ctrl[self._act_engine] = out.thrust_N
@@ -314,6 +331,45 @@ class World:
         # After mj_step, positions, sites, cameras, contacts and sensors still describe the state
         # before the last step; mj_forward makes every truth signal match the time t_ns.
         mujoco.mj_forward(self.model, self.data)
+        return out
+
+    def _step_each(self, n_steps: int, thrust_cmd_N: float, torque_cmd_B_Nm: np.ndarray) -> PropulsionOutput:
+        """The realistic actuators: thrust, torque and propellant evaluated at every physics step."""
+        prop = self.propulsion
+        had = prop.propellant_kg > 0.0
+        used0 = prop.propellant_kg
+        burn_steps = 0
+        thrust = 0.0
+        impulse_B = np.zeros(3)
+        for _ in range(n_steps):
+            thrust, torque, fired = prop.physics_step(thrust_cmd_N, torque_cmd_B_Nm, self._step_count, self.physics_dt_ns)
+            burn_steps += fired
+            impulse_B += torque
+            self.data.ctrl[self._act_rcs] = torque
+            self.data.ctrl[self._act_engine] = thrust
+            self._advance(1)
+            # mj_step evaluated the sensors at the step's start with this step's controls: the specific
+            # force that acts over the step, summed for the integrating accelerometer (accel_mean_B).
+            self._imu_sum += self.data.sensordata[self._sens_acc]
+            self._imu_steps += 1
+        self._set_propellant(prop.propellant_kg)
+        mujoco.mj_forward(self.model, self.data)
+        exhausted = had and prop.propellant_kg <= 0.0 and (thrust_cmd_N > 0.0 or burn_steps > 0)
+        return PropulsionOutput(thrust, impulse_B / max(n_steps, 1), burn_steps, used0 - prop.propellant_kg, exhausted)
+
+    def accel_mean_B(self) -> np.ndarray | None:
+        """Mean truth specific force over the physics steps since the last call, in B (3,) [m/s^2], and reset.
+
+        What an integrating accelerometer reports (its delta-velocity over the sample interval,
+        divided by the interval): the RCS's pulses, through the IMU's lever arm from the centre
+        of mass, then average out instead of being point-sampled at a phase locked to their
+        modulation. None before any realistic step (the instant-actuator path keeps point samples).
+        """
+        if self._imu_steps == 0:
+            return None
+        out = self._imu_sum / self._imu_steps
+        self._imu_sum = np.zeros(3)
+        self._imu_steps = 0
         return out
 
     def _advance(self, n: int) -> None:

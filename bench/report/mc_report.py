@@ -4,7 +4,7 @@ Pure: campaign rows in, a figure and text out; no simulator (``mujoco`` is
 never imported here, and matplotlib only when a figure is drawn).
 
 A row is one case (``bench.campaign.mc``): ``case``, ``seed``, ``outcome`` (landed,
-hard_landing, tipped_over, fuel_exhausted, timeout, diverged, or ``error``
+hard_landing, tipped_over, slope_exceeded, fuel_exhausted, timeout, diverged, or ``error``
 when the case raised, crashed or timed out in the runner), ``landed``,
 ``touchdown_t_s``, ``touchdown_v_vertical_mps``, ``touchdown_v_horizontal_mps``,
 ``touchdown_tilt_deg``, ``touchdown_miss_distance_m``, ``touchdown_x_m``,
@@ -40,9 +40,10 @@ if TYPE_CHECKING:  # typing only
 
     from models.terrain import Terrain
 
-OUTCOMES = ("landed", "hard_landing", "tipped_over", "fuel_exhausted", "timeout", "diverged", "error")
+OUTCOMES = ("landed", "hard_landing", "tipped_over", "slope_exceeded", "fuel_exhausted", "timeout", "diverged", "error")
 OUTCOME_COLORS = {
     "landed": "tab:green", "hard_landing": "tab:orange", "tipped_over": "tab:red",
+    "slope_exceeded": "tab:olive",
     "fuel_exhausted": "tab:purple", "timeout": "tab:brown", "diverged": "tab:pink", "error": "black",
 }
 OTHER_COLOR = "tab:gray"  # outcomes not in OUTCOMES

@@ -20,6 +20,13 @@ Distributions (``dist``):
     * ``choice``: one of ``values``, uniformly.
 Integer fields (e.g. ``terrain.seed``) take rounded draws.
 
+Streams: paths are drawn in sorted order from the case's "dispersions" stream,
+so adding a path reshuffles the draws of the paths after it. A path with
+``own_stream = true`` draws from its own child of that stream instead (keyed on
+the path's CRC-32), so it can be added to or removed from a table without
+changing any other path's draws (the realism dispersions of issue 17 are drawn
+so, and a campaign with them pairs case by case with one without).
+
 Seeds: ``SeedSequence(campaign_seed).spawn(n)`` gives one stream per case; a
 case's scenario seed is drawn from its stream, and inside the case every
 component (terrain, sensors, dispersions, ...) has its own child stream
@@ -30,6 +37,7 @@ number of workers or the order in which cases run.
 from __future__ import annotations
 
 import copy
+import zlib
 
 from typing import Annotated, Any, Literal, Union
 
@@ -37,7 +45,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy.stats import truncnorm
 
-from bench.scenario.seeding import component_rng
+from bench.scenario.seeding import component_rng, component_seed
 
 SEED_BITS = 63  # case seeds fit TOML's signed 64-bit integers
 # Truth sections whose nominal values the flight software keeps (scenario.knowledge.<part>).
@@ -46,6 +54,12 @@ PINNED_KNOWLEDGE = ("lander", "camera")
 
 class _Dist(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    own_stream: bool = Field(
+        False,
+        description="draw from this path's own child stream instead of the shared one: adding or removing it "
+                    "leaves every other path's draws unchanged",
+    )
 
 
 class Normal(_Dist):
@@ -205,11 +219,18 @@ def draw_dispersions(scenario, rng: np.random.Generator | None = None) -> tuple[
     drawn: dict[str, Any] = {}
     for path in sorted(scenario.dispersions):  # sorted: the draws do not depend on the table's order
         spec = scenario.dispersions[path]
-        value = _draw(spec, _get(data, path), rng)
+        value = _draw(spec, _get(data, path), own_stream_rng(scenario.seed, path) if spec.own_stream else rng)
         _set(data, path, value)
         drawn[path] = value
     data["dispersions"] = {}
     return data, drawn
+
+
+def own_stream_rng(seed: int, path: str) -> np.random.Generator:
+    """The own stream of a dispersed path (``own_stream = true``): a child of the case's "dispersions" stream."""
+    base = component_seed(seed, "dispersions")
+    return np.random.Generator(np.random.PCG64(
+        np.random.SeedSequence(base.entropy, spawn_key=(*base.spawn_key, zlib.crc32(path.encode("utf-8"))))))
 
 
 def case_seeds(campaign_seed: int, n_cases: int) -> list[int]:

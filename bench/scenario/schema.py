@@ -56,6 +56,37 @@ class SimConfig(BaseModel):
     control_period_ns: int = Field(20_000_000, gt=0, description="flight-software control period [ns] (default 50 Hz)")
     t_max_ns: int = Field(240 * NS_PER_S, gt=0, description="time limit of a run [ns]")
     gravity_mps2: float = Field(1.62, gt=0, description="surface gravity [m/s^2]")
+    compute_latency_ticks: int = Field(
+        1, ge=0, le=10,
+        description="flight-computer latency in control periods: commands computed at tick k act from tick k + "
+                    "latency (realism = 'realistic'; 'ideal' acts at once) [-]",
+    )
+
+
+class PropellantBudget(BaseModel):
+    """The default propellant load (realism = 'realistic', when ``lander.propellant_kg`` is not set).
+
+    load = ``nominal_need_kg`` + the reserve: ``reserve_hover_s`` of hover at landing mass,
+    ``R = t g m_dry / (Isp g0 - t g)`` (the hover flow ``g (m_dry + R) / (Isp g0)`` for ``t``).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    nominal_need_kg: float = Field(
+        72.0, ge=0, description="propellant a nominal descent from the default 500 m start uses [kg]"
+    )
+    reserve_hover_s: float = Field(60.0, ge=0, description="reserve, as seconds of hover at landing mass [s]")
+
+    def reserve_kg(self, lander: LanderConfig, gravity_mps2: float) -> float:
+        """The reserve [kg] for a lander (its dry mass and Isp) at a surface gravity."""
+        t, g, isp_g0 = self.reserve_hover_s, gravity_mps2, lander.engine.isp_s * 9.80665
+        if t * g >= isp_g0:
+            raise ValueError(f"propellant.reserve_hover_s = {t} is beyond what any load can hover; allowed: < {isp_g0 / g:.0f}")
+        return t * g * lander.dry_mass_kg / (isp_g0 - t * g)
+
+    def load_kg(self, lander: LanderConfig, gravity_mps2: float) -> float:
+        """The default load [kg]: nominal need plus reserve."""
+        return self.nominal_need_kg + self.reserve_kg(lander, gravity_mps2)
 
 
 class InitialState(BaseModel):
@@ -137,6 +168,13 @@ class Scenario(BaseModel):
         "vision", description="feature tracks from the paper's tracker on rendered frames, or exact truth tracks"
     )
     vision: Literal["on", "off"] = Field("on", description="use vision velocity measurements ('off': IMU + altimeter)")
+    realism: Literal["realistic", "ideal"] = Field(
+        "ideal",
+        description="'realistic': engine lag, slew limit, misalignment and centre-of-mass offset, PWM RCS with "
+                    "propellant, anisotropic star tracker, compute latency, thrust projected on the body axis and the "
+                    "propellant budget; 'ideal': the idealised vehicle and flight computer (results as before issue 17)",
+    )
+    propellant: PropellantBudget = PropellantBudget()
     sim: SimConfig = SimConfig()
     terrain: TerrainConfig = TerrainConfig()
     sun: SunConfig = SunConfig()
@@ -155,6 +193,15 @@ class Scenario(BaseModel):
         default_factory=dict,
         description="field path -> distribution, drawn per case in Monte Carlo campaigns (a single run flies nominal)",
     )
+
+    @model_validator(mode="after")
+    def _propellant_budget(self) -> "Scenario":
+        # Realistic: an unset propellant load is the budget (nominal need + reserve); written out, it stays.
+        if self.realism == "realistic" and "propellant_kg" not in self.lander.model_fields_set:
+            load = self.propellant.load_kg(self.lander, self.sim.gravity_mps2)
+            self.lander = self.lander.model_copy(update={"propellant_kg": load})
+            self.lander.model_fields_set.add("propellant_kg")
+        return self
 
     @model_validator(mode="after")
     def _rates_divide(self) -> "Scenario":
@@ -210,6 +257,8 @@ class Scenario(BaseModel):
             "sensors.altimeter.period_ns": self.sensors.altimeter.period_ns,
             "sensors.star_tracker.period_ns": self.sensors.star_tracker.period_ns,
             "camera.period_ns": self.camera.period_ns,
+            **({"lander.rcs.pwm_period_ns": self.lander.rcs.pwm_period_ns}
+               if self.realism == "realistic" and self.lander.rcs.mode == "pwm" else {}),
         }
 
     def nominal_lander(self) -> LanderConfig:

@@ -85,7 +85,10 @@ def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.nda
     Nothing of the truth reaches it but the hand-over estimate passed in.
     """
     knowledge = onboard_knowledge(scenario)
-    controller = Controller(scenario.control, knowledge.vehicle)
+    control = scenario.control
+    if scenario.realism == "ideal":  # the idealised flight computer commands the full magnitude m |f|
+        control = control.model_copy(update={"thrust_projection": "magnitude"})
+    controller = Controller(control, knowledge.vehicle)
     guidance = make_guidance(scenario.guidance, controller.guidance_limits())
     nav_filter = make_estimator(scenario.estimator, x0_r_L, x0_v_L, 0, altimeter_mount_B_m=knowledge.r_alt_B_m)
     tracker = Tracker(scenario.tracker) if scenario.tracks == "vision" and scenario.vision == "on" else None

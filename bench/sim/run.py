@@ -25,7 +25,16 @@ Loop (integer-nanosecond scheduler):
 Outcomes, first match wins: ``diverged`` (physics blew up), ``fuel_exhausted``
 (propellant ran out before touchdown), ``timeout`` (no touchdown by
 ``sim.t_max_ns``), ``hard_landing`` (touchdown beyond the velocity or tilt
-limits), ``tipped_over`` (not upright after settling), ``landed``.
+limits), ``tipped_over`` (after settling the lander has fallen over: its
+centre of mass is outside the footpads' support polygon, or its tilt is
+beyond the static tip-over angle of its leg geometry,
+:func:`models.lander.static_tipover_deg`), ``slope_exceeded`` (it stands, but
+tilted beyond ``landing.tilt_max_deg``), ``landed``.
+
+Flight-computer latency (``realism = "realistic"``): the command computed at
+control tick k acts from tick k + ``sim.compute_latency_ticks``; before the
+first command's turn the first command acts (the computer was flying it at
+hand-over). ``realism = "ideal"``: it acts at once.
 """
 
 from __future__ import annotations
@@ -35,6 +44,7 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from collections import deque
 from functools import reduce
 from typing import Any, Protocol
 
@@ -54,11 +64,11 @@ from gnc.messages import AltimeterMessage, AttitudeMessage, ContactMessage, Imag
 from gnc.navstate import NavState
 from models.camera import R_BC
 from vision.tracks import Tracks
-from models.lander import LanderConfig, footpad_positions_B
+from models.lander import LanderConfig, com_position_B, footpad_positions_B, static_tipover_deg, support_margin_m
 from models.terrain import Terrain
 from models.world import PhysicsDivergedError, TruthState, World
 
-OUTCOMES = ("landed", "hard_landing", "tipped_over", "fuel_exhausted", "timeout", "diverged")
+OUTCOMES = ("landed", "hard_landing", "tipped_over", "slope_exceeded", "fuel_exhausted", "timeout", "diverged")
 PHASE_TOUCHDOWN = "touchdown"
 
 FrameSink = Callable[[int, np.ndarray, TruthState, "Tracks | None"], None]
@@ -139,6 +149,7 @@ class _Telemetry:
         *(f"nees_{block}" for block in NEES_BLOCKS), "fsw_mass_kg",
         "vision_tracks", "vision_measurements", "vision_rejected",
         "vision_v_x_mps", "vision_v_y_mps",
+        "thrust_applied_cmd_N", "torque_applied_x_Nm", "torque_applied_y_Nm", "torque_applied_z_Nm",
     )
 
     NEES_COLUMNS = tuple(f"nees_{block}" for block in NEES_BLOCKS)
@@ -217,7 +228,9 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
     tracker_truth = (TruthTracker(terrain, world.K, (cam.width_px, cam.height_px), TRUTH_TRACK_POINTS,
                                   component_rng(scenario.seed, "vision")) if truth_tracks else None)
     thrust_max = scenario.lander.engine.thrust_max_N
-    thrust_gain = 1.0 + scenario.lander.engine.thrust_error_frac
+    latency_ticks = scenario.sim.compute_latency_ticks if scenario.realism == "realistic" else 0
+    pipeline: deque = deque()  # commands computed, not yet acting (the flight computer's latency)
+    applied = None
 
     tel = _Telemetry()
     imu_msg = alt_msg = st_msg = None
@@ -247,7 +260,10 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
             # Sensors due now (zero-order hold between samples); the filter consumes them.
             t0 = time.perf_counter()
             if t_ns % periods["imu"] == 0:
-                imu_msg = sensors.imu.sample(t_ns, world.specific_force_B(), world.angular_rate_B())
+                # Realistic: an integrating accelerometer (the mean over its interval); ideal: a point sample.
+                f_B = world.accel_mean_B() if scenario.realism == "realistic" else None
+                imu_msg = sensors.imu.sample(t_ns, world.specific_force_B() if f_B is None else f_B,
+                                             world.angular_rate_B())
                 if recorder is not None:
                     recorder.message("imu", imu_msg)
                 fsw.on_imu(imu_msg)
@@ -297,17 +313,21 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                 if recorder is not None:
                     recorder.control_tick(t_ns, contact, truth, sensors.imu.accel_bias)
                 act = fsw.control(t_ns, contact, truth_nav)
+                if not pipeline:
+                    pipeline.extend([act] * latency_ticks)  # at hand-over the computer was already flying it
+                pipeline.append(act)
+                applied = pipeline.popleft()
                 tel.rows.append(_row(t_ns, truth, act, fsw.last_guidance, legs, imu_msg, alt_msg, st_msg, thrust_max,
-                                     world.propulsion.clamp_thrust(act.thrust_N) * thrust_gain,
+                                     world.propulsion.delivered_thrust_N(applied.thrust_N),
                                      PHASE_TOUCHDOWN if touchdown is not None else fsw.last_guidance.phase,
-                                     fsw, sensors.imu.accel_bias, tel))
+                                     fsw, sensors.imu.accel_bias, applied, tel))
             # End conditions.
             if touchdown_ns is not None and t_ns - touchdown_ns >= settle_ns:
                 break
             if t_ns >= sim.t_max_ns:
                 break
             prev_truth = truth
-            out = world.step(steps_per_tick, act.thrust_N, act.torque_B_Nm)
+            out = world.step(steps_per_tick, applied.thrust_N, applied.torque_B_Nm)
             if out.exhausted and exhausted_ns is None:
                 exhausted_ns = t_ns
             t_ns += tick_ns
@@ -322,8 +342,9 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
 
     truth = world.truth()
     final_tilt = tilt_deg(truth.q_LB)
+    stability = _stability(truth, world.lander_cfg)
     if outcome is None:
-        outcome = _classify(touchdown, exhausted_ns, touchdown_ns, final_tilt, scenario)
+        outcome = _classify(touchdown, exhausted_ns, touchdown_ns, final_tilt, scenario, stability)
     sim_time_s = world.t_ns / NS_PER_S
     telemetry = tel.columns(terrain, scenario.lander) if tel.rows else {}
     summary: dict[str, Any] = {
@@ -332,7 +353,10 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
         "touchdown": touchdown or {k: None for k in ("t_s", "v_vertical_mps", "v_horizontal_mps", "tilt_deg",
                                                       "miss_distance_m", "x_m", "y_m")},
         "final_tilt_deg": final_tilt,
+        "stability": stability,
+        "realism": scenario.realism,
         "fuel_used_kg": propellant0 - truth.propellant_kg,
+        "fuel_exhausted_t_s": exhausted_ns / NS_PER_S if exhausted_ns is not None else None,
         "propellant_left_kg": truth.propellant_kg,
         "sim_time_s": sim_time_s,
         "wall_time_s": wall_s,
@@ -450,8 +474,22 @@ def _touchdown_metrics(before: TruthState, t_ns: int) -> dict[str, float]:
     }
 
 
+def _stability(truth: TruthState, lander: LanderConfig) -> dict[str, float]:
+    """Whether the lander stands, at the end of the run.
+
+    ``static_tipover_deg``: the static tip-over angle of its legs (with its centre of mass now);
+    ``support_margin_m``: how far the centre of mass's ground projection lies inside the convex
+    hull of the footpads' (negative: outside).
+    """
+    R_LB = Rotation.from_quat(truth.q_LB, scalar_first=True)
+    feet_L = truth.r_BL_L + R_LB.apply(footpad_positions_B(lander))
+    com_L = truth.r_BL_L + R_LB.apply(com_position_B(lander, truth.propellant_kg))
+    return {"static_tipover_deg": static_tipover_deg(lander, truth.propellant_kg),
+            "support_margin_m": support_margin_m(feet_L[:, :2], com_L[:2])}
+
+
 def _classify(touchdown: dict | None, exhausted_ns: int | None, touchdown_ns: int | None, final_tilt: float,
-              scenario: Scenario) -> str:
+              scenario: Scenario, stability: dict[str, float]) -> str:
     crit = scenario.landing
     if exhausted_ns is not None and (touchdown_ns is None or exhausted_ns < touchdown_ns):
         return "fuel_exhausted"
@@ -460,13 +498,15 @@ def _classify(touchdown: dict | None, exhausted_ns: int | None, touchdown_ns: in
     if (touchdown["v_vertical_mps"] > crit.v_vertical_max_mps or touchdown["v_horizontal_mps"] > crit.v_horizontal_max_mps
             or touchdown["tilt_deg"] > crit.tilt_max_deg):
         return "hard_landing"
-    if final_tilt > crit.tilt_max_deg:
+    if final_tilt > stability["static_tipover_deg"] or stability["support_margin_m"] < 0.0:
         return "tipped_over"
+    if final_tilt > crit.tilt_max_deg:
+        return "slope_exceeded"
     return "landed"
 
 
 def _row(t_ns, truth, act, cmd, legs, imu, alt, st, thrust_max, thrust_delivered, phase, fsw, accel_bias_B,
-         tel: _Telemetry) -> tuple:
+         applied, tel: _Telemetry) -> tuple:
     """One tick's ``_Telemetry.ROW_COLUMNS``; its NEES error and covariance block go to ``tel``."""
     nan3 = (math.nan,) * 3
     x, P = fsw.filter.ekf.x, fsw.filter.ekf.P
@@ -487,6 +527,7 @@ def _row(t_ns, truth, act, cmd, legs, imu, alt, st, thrust_max, thrust_delivered
         len(fsw.vision.last_tracks) if fsw.vision.last_tracks is not None else 0,
         fsw.vision.measurements, fsw.vision.rejected,
         *(vm.v_L if vm is not None else (math.nan,) * 2),
+        applied.thrust_N, *applied.torque_B_Nm,
     )
 
 

@@ -101,6 +101,7 @@ def build_world(scenario: Scenario, terrain: Terrain | None = None) -> World:
         scenario.sun,
         physics_dt_ns=scenario.sim.physics_dt_ns,
         gravity_mps2=scenario.sim.gravity_mps2,
+        realism=scenario.realism,
     )
     init = scenario.initial
     check_initial_position(scenario, terrain)
@@ -159,7 +160,8 @@ def build_sensors(scenario: Scenario) -> SensorSuite:
     return SensorSuite(
         imu=ImuModel(s.imu, component_rng(scenario.seed, "imu")),
         altimeter=AltimeterModel(s.altimeter, component_rng(scenario.seed, "altimeter")),
-        star_tracker=StarTrackerModel(s.star_tracker, component_rng(scenario.seed, "star_tracker")),
+        star_tracker=StarTrackerModel(s.star_tracker, component_rng(scenario.seed, "star_tracker"),
+                                      anisotropic=scenario.realism == "realistic"),
         camera_rng=component_rng(scenario.seed, "camera"),
         camera_seed=component_seed(scenario.seed, "camera"),
     )

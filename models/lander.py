@@ -54,7 +54,8 @@ class EngineConfig(BaseModel):
         description="first-order throttle response time constant [s] (0: the thrust follows the command at once)",
     )
     slew_rate_Nps: float = Field(
-        20000.0, gt=0.0, description="largest rate of change of the delivered thrust [N/s] (inf: no limit)"
+        20000.0, gt=0.0, allow_inf_nan=True,  # inf means no limit; NaN fails gt
+        description="largest rate of change of the delivered thrust [N/s] (inf: no limit)"
     )
     misalignment_deg: float = Field(
         0.0, ge=0.0, le=5.0, description="angle of the thrust line from body +z [deg]"

@@ -18,7 +18,7 @@ from models.sensors import StarTrackerConfig, StarTrackerModel
 from models.world import SunConfig, World
 from tests.conftest import SMALL_SET
 
-SNAPSHOT = Path(__file__).parent / "snapshots" / "ideal_vehicle_b90840c.npz"
+SNAPSHOT = Path(__file__).parent / "snapshots" / "ideal_vehicle_before_realism.npz"
 QUIET = ['nav="truth"', 'vision="off"', "camera.enabled=false", *SMALL_SET]
 DT_NS = 2_000_000
 DT_S = DT_NS / 1e9
@@ -28,7 +28,7 @@ LEVEL = np.array([1.0, 0.0, 0.0, 0.0])
 # --------------------------------------------------------------------------- the switch
 def test_ideal_realism_flies_exactly_as_before_issue_17():
     # The telemetry of this short flight (every 10th control tick of 6 s) was written by the code at
-    # b90840c, before any realism existed. realism = "ideal" must reproduce it: measured bit for bit
+    # f2dac0d, main just before realism was merged. realism = "ideal" must reproduce it: measured bit for bit
     # on the machine that wrote it; the tolerance only allows another CPU's last-bit rounding, far below
     # what any realistic model changes (engine lag alone moves the thrust by tens of newtons).
     sets = [*QUIET, "seed=11", "initial.r_BL_L_m=[8.0, 6.0, 20.0]", "initial.v_BL_L_mps=[0.5, 0.0, -1.0]",

@@ -253,11 +253,14 @@ class GuidanceLimits:
         thrust_max_N: Maximum thrust [N].
         tilt: Altitude-dependent tilt limit (the controller's, see
             :func:`gnc.control.guidance_limits`).
+        isp_s: Engine specific impulse as the flight software knows it [s], for
+            laws that model the mass flow (G-FOLD); None when not given.
     """
 
     thrust_min_N: float = 1500.0
     thrust_max_N: float = 7500.0
     tilt: TiltLimitConfig = field(default_factory=TiltLimitConfig)
+    isp_s: float | None = None
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.thrust_max_N) and self.thrust_max_N > 0.0):
@@ -266,6 +269,8 @@ class GuidanceLimits:
             raise ValueError(
                 f"limits.thrust_min_N = {self.thrust_min_N!r}; allowed: 0 <= thrust_min_N < thrust_max_N = {self.thrust_max_N}"
             )
+        if self.isp_s is not None and not (np.isfinite(self.isp_s) and self.isp_s > 0.0):
+            raise ValueError(f"limits.isp_s = {self.isp_s!r}; allowed: a finite value > 0, or None")
         if not isinstance(self.tilt, TiltLimitConfig):
             raise ValueError(f"limits.tilt = {self.tilt!r}; allowed: a TiltLimitConfig")
 
@@ -765,6 +770,11 @@ def guidance_class(law: str) -> type[GuidanceLaw]:
     if law in GUIDANCE_LAWS:
         return GUIDANCE_LAWS[law]
     if law in BUILTIN_PLUGINS:
+        import importlib.util
+
+        if law == "gfold" and importlib.util.find_spec("cvxpy") is None:
+            raise ValueError("guidance.law = 'gfold' needs cvxpy and a conic solver, the optional extra: "
+                             "pip install 'landbench[opt]'")
         return load_law_class(BUILTIN_PLUGINS[law], GuidanceLaw, shown=law)
     if ":" not in law:
         raise ValueError(f"guidance.law = {law!r}: unknown law; allowed: {', '.join([*GUIDANCE_LAWS, *BUILTIN_PLUGINS])}, "

@@ -13,6 +13,7 @@ software without the simulator. :mod:`bench.sim.run` re-exports these names.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -86,7 +87,8 @@ def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.nda
     """
     knowledge = onboard_knowledge(scenario)
     controller = Controller(scenario.control, knowledge.vehicle)
-    guidance = make_guidance(scenario.guidance, controller.guidance_limits())
+    limits = dataclasses.replace(controller.guidance_limits(), isp_s=knowledge.isp_s)  # G-FOLD models the mass flow
+    guidance = make_guidance(scenario.guidance, limits)
     nav_filter = make_estimator(scenario.estimator, x0_r_L, x0_v_L, 0, altimeter_mount_B_m=knowledge.r_alt_B_m)
     tracker = Tracker(scenario.tracker) if scenario.tracks == "vision" and scenario.vision == "on" else None
     return FlightSoftware(guidance, controller, nav_filter, tracker, scenario.vision_nav, scenario.vision == "on",

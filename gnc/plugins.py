@@ -1,15 +1,16 @@
 """Plug-in laws: ``package.module:ClassName`` to a class, with one-line errors.
 
-Input: an import path ``package.module:ClassName`` (``guidance.law``) and the
-base class the plug-in must subclass (:class:`gnc.guidance.GuidanceLaw`).
+Input: an import path ``package.module:ClassName`` (``guidance.law``,
+``control.law``) and the base class the plug-in must subclass
+(:class:`gnc.guidance.GuidanceLaw`, :class:`gnc.control.Controller`).
 Output: the class. Called at scenario validation (so a bad plug-in is refused
 before anything runs or is written) and when the flight software is built.
 
 The module is imported with the current working directory on the search path
 (so ``my_law.py`` beside the scenario works from that folder), and is refused
 if its source imports the simulator or the truth side (``mujoco``,
-``models``, ``bench``): a plug-in is flight software and sees only the
-navigation state and the target.
+``models``, ``bench``): a plug-in is flight software and sees only what the
+flight software gives it (the navigation state, the target, the commands).
 """
 
 from __future__ import annotations
@@ -45,13 +46,16 @@ def _boundary_violations(module) -> set[str]:
     return roots & FORBIDDEN_ROOTS
 
 
-def load_law_class(spec: str, base: type, shown: str | None = None) -> type:
+def load_law_class(spec: str, base: type, shown: str | None = None, field: str = "guidance.law",
+                   what: str = "guidance law") -> type:
     """Import ``package.module:ClassName`` and check it implements ``base``'s interface.
 
     Args:
         spec: The import path.
         base: The abstract base class the plug-in must subclass.
         shown: The value to name in messages (default ``spec``).
+        field: The scenario field named in messages (``guidance.law``, ``control.law``).
+        what: What the class is, in messages ("guidance law", "controller").
 
     Returns:
         The class.
@@ -62,7 +66,7 @@ def load_law_class(spec: str, base: type, shown: str | None = None) -> type:
             unimplemented, or a module that imports the simulator/truth side.
     """
     shown = spec if shown is None else shown
-    head = f"guidance.law = {shown!r}"
+    head = f"{field} = {shown!r}"
     if not _SPEC.match(spec):
         raise ValueError(f"{head}: not an import path; allowed: a built-in law name or 'package.module:ClassName'")
     module_name, class_name = spec.split(":")
@@ -82,7 +86,7 @@ def load_law_class(spec: str, base: type, shown: str | None = None) -> type:
         raise ValueError(f"{head}: importing {module_name!r} failed: {type(exc).__name__}: {exc}") from None
     bad = _boundary_violations(module)
     if bad:
-        raise ValueError(f"{head}: module {module_name!r} imports {', '.join(sorted(bad))}; a guidance law is flight "
+        raise ValueError(f"{head}: module {module_name!r} imports {', '.join(sorted(bad))}; a {what} is flight "
                          "software and may not import the simulator or the truth side (use gnc, numpy, scipy, ...)")
     cls = getattr(module, class_name, None)
     if cls is None:
@@ -92,7 +96,7 @@ def load_law_class(spec: str, base: type, shown: str | None = None) -> type:
         hint = f"; classes there implementing the interface: {', '.join(names)}" if names else ""
         raise ValueError(f"{head}: module {module_name!r} has no class {class_name!r}{hint}")
     if not (inspect.isclass(cls) and issubclass(cls, base)):
-        raise ValueError(f"{head}: {class_name!r} does not implement the guidance interface; allowed: a subclass of "
+        raise ValueError(f"{head}: {class_name!r} does not implement the {what} interface; allowed: a subclass of "
                          f"{base.__module__}.{base.__name__} (README: Controller design studies)")
     if inspect.isabstract(cls):
         missing = ", ".join(sorted(cls.__abstractmethods__))

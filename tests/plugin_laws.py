@@ -57,3 +57,23 @@ class HalfALaw(GuidanceLaw):
 
     def accel_L(self, r_L, v_L, r_f_L, v_f_L, t_go_s):
         return np.zeros(3)
+
+
+# --------------------------------------------------------------------------- a controller plug-in
+from gnc.control import Controller  # noqa: E402
+
+
+class BandwidthOptions(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    attitude_bandwidth_radps: float = Field(3.0, gt=0.0, le=10.0)
+
+
+class RetunedController(Controller):
+    """The built-in controller with its attitude bandwidth taken from [control.options]."""
+
+    Options = BandwidthOptions
+
+    def __init__(self, cfg=None, vehicle=None):
+        super().__init__(cfg, vehicle)
+        self.cfg = self.cfg.model_copy(update={"attitude_bandwidth_radps": self.options.attitude_bandwidth_radps})

@@ -68,7 +68,7 @@ def test_the_shipped_example_law_loads_and_reaches_its_gate_acceleration(monkeyp
 @pytest.mark.parametrize("law, options, needle", [
     ("no_such_module:Law", None, "no module named 'no_such_module'"),
     ("plugin_laws:NoSuchClass", None, "has no class 'NoSuchClass'; classes there implementing the interface: ScaledZemZev"),
-    ("plugin_laws:NotALaw", None, "does not implement the guidance interface"),
+    ("plugin_laws:NotALaw", None, "does not implement the guidance law interface"),
     ("plugin_laws:HalfALaw", None, "lacks the interface's methods coeffs"),
     ("plugin_broken_import:Law", None, "RuntimeError: this module is broken on purpose"),
     ("plugin_boundary_breaker:Peeker", None, "imports models"),
@@ -88,3 +88,34 @@ def test_a_bad_plugin_gets_one_error_line(law, options, needle, capsys, tmp_path
     assert not out.exists()  # nothing written
     with pytest.raises(ScenarioError):
         load_scenario(None, sets[1::2])
+
+
+def test_a_controller_plugin_flies_and_lands_and_gets_its_options():
+    from gnc.control import ControlConfig, Controller, make_controller
+    from gnc.guidance import GuidanceCommand
+
+    sc = load_scenario(None, [*NO_CAMERA, 'control.law="plugin_laws:RetunedController"',
+                              "control.options.attitude_bandwidth_radps=3.5"])
+    ctl = make_controller(sc.control)
+    assert type(ctl).__name__ == "RetunedController" and ctl.cfg.attitude_bandwidth_radps == 3.5
+    # Its torque is the built-in controller's at that bandwidth.
+    ref = Controller(ControlConfig(attitude_bandwidth_radps=3.5))
+    nav = NavState(0, np.array([0.0, 0.0, 200.0]), np.zeros(3), np.array([0.99, 0.1, 0.0, 0.0]) / np.hypot(0.99, 0.1),
+                   np.array([0.01, 0.0, 0.0]), 1900.0)
+    cmd = GuidanceCommand(0, np.array([0.3, 0.0, 0.5]), "approach", 10.0)
+    assert np.allclose(ctl.update(nav, cmd).torque_B_Nm, ref.update(nav, cmd).torque_B_Nm)
+    s = run(sc).summary
+    assert s["outcome"] == "landed", s["outcome"]
+
+
+@pytest.mark.parametrize("sets, needle", [
+    (['control.law="plugin_laws:ScaledZemZev"'], "does not implement the controller interface"),
+    (['control.law="pid"'], "control.law = 'pid': unknown controller"),
+    (['control.law="plugin_laws:RetunedController"', "control.options.attitude_bandwidth_radps=0"],
+     "control.options.attitude_bandwidth_radps = 0"),
+    (["control.options.x=1"], "takes no options"),
+])
+def test_a_bad_controller_plugin_gets_one_error_line(sets, needle, capsys, tmp_path):
+    assert main(["run", *[a for s in sets for a in ("--set", s)], "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("landbench: error: control.") and needle in err, err

@@ -20,7 +20,7 @@ import numpy as np
 
 from bench.scenario import Scenario
 from bench.scenario.seeding import component_rng
-from gnc.control import Controller, VehicleParams
+from gnc.control import VehicleParams, make_controller
 from gnc.estimator import make_estimator
 from gnc.flight import FlightSoftware, OnboardKnowledge
 from gnc.guidance import make_guidance
@@ -86,7 +86,7 @@ def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.nda
     Nothing of the truth reaches it but the hand-over estimate passed in.
     """
     knowledge = onboard_knowledge(scenario)
-    controller = Controller(scenario.control, knowledge.vehicle)
+    controller = make_controller(scenario.control, knowledge.vehicle)
     limits = dataclasses.replace(controller.guidance_limits(), isp_s=knowledge.isp_s)  # G-FOLD models the mass flow
     guidance = make_guidance(scenario.guidance, limits)
     nav_filter = make_estimator(scenario.estimator, x0_r_L, x0_v_L, 0, altimeter_mount_B_m=knowledge.r_alt_B_m)

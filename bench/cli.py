@@ -182,6 +182,44 @@ def cmd_mc(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from bench.campaign import sweep
+
+    if args.resume:
+        directory = Path(args.resume)
+        doc = sweep.run_sweep({}, directory, [], None, 1, directory, 0, workers=args.workers, resume=True,
+                              retention=args.retention, case_timeout_s=args.case_timeout, progress=True,
+                              backend=args.backend, address=args.address,
+                              require=args.require or sweep.DEFAULT_REQUIRE)
+    else:
+        if not args.out:
+            raise ValueError("give --out DIR for a new sweep, or --resume DIR")
+        directory = Path(args.out)
+        if directory.exists() and not directory.is_dir():
+            raise ValueError(f"--out {args.out!r} is a file; give a folder")
+        data, base_dir, table = sweep.split_sweep_table(args.scenario)
+        table = table or {}
+        base = sweep.scenario_from_data(data, base_dir, args.overrides)  # the base itself first
+        design = sweep.design_from_args(args.grid, args.lhs, args.sobol, args.range,
+                                        args.seed if args.seed is not None else base.seed, table)
+        runs = args.runs if args.runs is not None else table.get("runs")
+        if runs is None:
+            raise ValueError("--runs N is required (cases per design point), or runs = N in the [sweep] table")
+        require = args.require or table.get("require") or sweep.DEFAULT_REQUIRE
+        doc = sweep.run_sweep(data, base_dir, args.overrides, design, int(runs), directory,
+                              args.seed if args.seed is not None else base.seed, workers=args.workers,
+                              retention=args.retention, case_timeout_s=args.case_timeout, progress=True,
+                              backend=args.backend, address=args.address, require=require, dry_run=args.dry_run)
+    if args.dry_run:
+        print(f"dry run: {len(doc['design']['points'])} points x {doc['runs']} dispersed scenarios in "
+              f"{directory / sweep.POINTS_DIR}/PPPP/cases/NNNNN/scenario.toml")
+        return 0
+    print(sweep.format_points(doc))
+    print(f"points: {directory / sweep.POINTS_PARQUET}, cases: {directory / sweep.CASES_PARQUET}, "
+          f"report: {directory / 'report.html'}")
+    return 0
+
+
 def _mc_replay(directory: Path, case: int, out: Path) -> int:
     from bench.campaign import mc
     from bench.report.run_outputs import run_and_write
@@ -284,6 +322,39 @@ def build_parser() -> argparse.ArgumentParser:
                    help="whose telemetry and video are kept")
     p.add_argument("--case-timeout", type=float, default=None, metavar="S", help="per-case wall-clock limit [s]")
     p.set_defaults(func=cmd_mc)
+
+    p = sub.add_parser(
+        "sweep", help="design sweep: a Monte Carlo campaign per design point (grid, Latin hypercube, Sobol)",
+        description="Run a campaign of the same --runs cases (the same case seeds: common random numbers) at every "
+                    "point of a design, and report each point's success rate (Wilson interval), fuel (and its ratio "
+                    "to G-FOLD), p95 touchdown speeds and miss, the Pareto front among the points meeting --require, "
+                    "and Sobol indices for --sobol. The design may also be a [sweep] table in the scenario file. "
+                    "Every point is validated before anything runs. Writes DIR/points.parquet, DIR/cases.parquet, "
+                    "DIR/sweep.json and DIR/report.html.")
+    _add_scenario_args(p)
+    p.add_argument("--grid", action="append", default=[], metavar="KEY=V1,V2",
+                   help="a full-factorial factor (repeatable): values, or range(start, stop, step)")
+    p.add_argument("--lhs", type=int, default=None, metavar="N", help="N Latin-hypercube points over the --range factors")
+    p.add_argument("--sobol", type=int, default=None, metavar="N",
+                   help="Saltelli/Sobol design of N base samples over the --range factors: N (D + 2) points, "
+                        "first-order and total indices (pip install 'landbench[sweep]')")
+    p.add_argument("--range", action="append", default=[], metavar="KEY=LOW:HIGH",
+                   help="a continuous factor for --lhs/--sobol (repeatable; integer ends give integer values)")
+    p.add_argument("--runs", type=int, default=None, help="cases per design point")
+    p.add_argument("--require", action="append", default=[], metavar="METRIC>=VALUE",
+                   help="constraint for the Pareto front (repeatable; default success_rate>=0.95)")
+    p.add_argument("--workers", type=int, default=None, help="cases run at once (as landbench mc)")
+    p.add_argument("--backend", default="local", choices=("local", "ray"), help="as landbench mc")
+    p.add_argument("--address", default=None, help="Ray cluster address for --backend ray")
+    p.add_argument("--seed", type=int, default=None,
+                   help="campaign seed, the same at every point (default: the scenario's seed); also seeds --lhs/--sobol")
+    p.add_argument("--out", default=None, metavar="DIR", help="sweep folder")
+    p.add_argument("--resume", default=None, metavar="DIR", help="finish an interrupted sweep")
+    p.add_argument("--retention", default="summary", choices=("summary", "failed", "all"),
+                   help="whose telemetry and video are kept")
+    p.add_argument("--case-timeout", type=float, default=None, metavar="S", help="per-case wall-clock limit [s]")
+    p.add_argument("--dry-run", action="store_true", help="write every point's dispersed case scenarios, run nothing")
+    p.set_defaults(func=cmd_sweep)
 
     p = sub.add_parser(
         "compare", help="paired A/B comparison of two Monte Carlo campaigns (case by case) or two replays "

@@ -45,6 +45,8 @@ def format_validation_error(err: ValidationError, model: type[BaseModel], prefix
     if first.get("type") == "extra_forbidden":
         allowed = _allowed_fields(model, loc)
         line = f"unknown field '{path}'" + (f"; allowed here: {allowed}" if allowed else "")
+    elif loc and msg.startswith(path):  # a validator that names its own field (and sub-field) already
+        line = msg
     elif loc:
         line = f"{path} = {first.get('input')!r}: {msg}"
     else:

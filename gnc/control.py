@@ -48,12 +48,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator
 
-from gnc.config import validated_config
+from gnc.config import format_validation_error, validated_config
 from gnc.guidance import LUNAR_GRAVITY_MPS2, GuidanceCommand, GuidanceLimits, TiltLimitConfig
 from gnc.messages import N_LEGS, ContactMessage
 from gnc.navstate import NavState
@@ -136,11 +136,22 @@ class VehicleParams:
         return np.asarray(self.dry_inertia_B_kgm2, float) + SPHERE_INERTIA_FACTOR * propellant * self.tank_radius_m**2
 
 
+CONTROLLER_DEFAULT = "quaternion_pd"
+
+
 class ControlConfig(BaseModel):
-    """Controller tuning."""
+    """Controller selection and tuning."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
+    law: str = Field(
+        CONTROLLER_DEFAULT,
+        description="the controller: 'quaternion_pd' (this module's), or a plug-in 'package.module:ClassName' "
+                    "subclassing gnc.control.Controller",
+    )
+    options: dict[str, Any] = Field(
+        default_factory=dict, description="the plug-in controller's options, validated by its Options model"
+    )
     tilt: TiltLimitConfig = TiltLimitConfig()
     yaw_hold_deg: float = Field(
         0.0, ge=-360.0, le=360.0,
@@ -157,9 +168,53 @@ class ControlConfig(BaseModel):
                     "magnitude (the idealised law)",
     )
 
+    @field_validator("law")
+    @classmethod
+    def _law_resolves(cls, law: str) -> str:
+        controller_class(law)  # one-line ValueError: unknown name, bad import path, missing class, interface
+        return law
+
+    @field_validator("options")
+    @classmethod
+    def _options_valid(cls, options: dict[str, Any], info: ValidationInfo) -> dict[str, Any]:
+        law = info.data.get("law")
+        if law is not None:
+            _controller_options(controller_class(law), law, options)
+        return options
+
     def g_L(self) -> np.ndarray:
         """Gravity in L, (3,) [m/s^2]."""
         return np.array([0.0, 0.0, -self.gravity_mps2])
+
+
+def controller_class(law: str) -> type["Controller"]:
+    """The class of a ``control.law`` value: ``quaternion_pd`` or a plug-in ``package.module:ClassName``.
+
+    Raises:
+        ValueError: One line naming the value and what is wrong.
+    """
+    if law == CONTROLLER_DEFAULT:
+        return Controller
+    if ":" not in law:
+        raise ValueError(f"control.law = {law!r}: unknown controller; allowed: {CONTROLLER_DEFAULT}, "
+                         "or a plug-in 'package.module:ClassName'")
+    from gnc.plugins import load_law_class
+
+    return load_law_class(law, Controller, field="control.law", what="controller")
+
+
+def _controller_options(cls: type, law: str, options: Mapping[str, Any] | None) -> BaseModel | None:
+    """Validate ``[control.options]`` with the controller's ``Options`` model (one-line ValueError)."""
+    options = dict(options or {})
+    model = getattr(cls, "Options", None)
+    if model is None:
+        if options:
+            raise ValueError(f"control.options = {options!r}: controller {law!r} takes no options; allowed: an empty table")
+        return None
+    try:
+        return model.model_validate(options)
+    except ValidationError as err:
+        raise ValueError(f"{format_validation_error(err, model, 'control.options')} (options of controller {law!r})") from None
 
 
 def guidance_limits(vehicle: VehicleParams, cfg: ControlConfig) -> GuidanceLimits:
@@ -281,6 +336,11 @@ def attitude_torque_B(
 class Controller:
     """Thrust-vector and attitude controller with touchdown cut-off.
 
+    Also the controller plug-in interface (``control.law =
+    "package.module:ClassName"``): a subclass that overrides :meth:`update`
+    (or :meth:`reset`), with an optional ``Options`` pydantic model of its
+    ``[control.options]`` (validated options in ``self.options``).
+
     Ports:
         Inputs: NavState, GuidanceCommand, optional ContactMessage.
         Output: ActuatorCommand (thrust [N], torque_B (3,) [N m], engine_on).
@@ -288,8 +348,11 @@ class Controller:
             engine-cut latch.
     """
 
+    Options: ClassVar[type[BaseModel] | None] = None  # a plug-in's [control.options] model
+
     def __init__(self, cfg: ControlConfig | Mapping[str, Any] | None = None, vehicle: VehicleParams | None = None):
         self.cfg: ControlConfig = validated_config(ControlConfig, cfg, "control")
+        self.options: BaseModel | None = _controller_options(type(self), self.cfg.law, self.cfg.options)
         if vehicle is None:
             vehicle = VehicleParams()
         if not isinstance(vehicle, VehicleParams):
@@ -379,5 +442,9 @@ def _unit_quaternion(q: np.ndarray) -> np.ndarray | None:
 def make_controller(
     cfg: ControlConfig | Mapping[str, Any] | None = None, vehicle: VehicleParams | None = None
 ) -> Controller:
-    """Build the controller; a bad parameter raises ValueError naming the field, value and what is allowed."""
-    return Controller(cfg, vehicle)
+    """Build the configured controller (``control.law``: the built-in one or a plug-in).
+
+    A bad parameter raises ValueError naming the field, value and what is allowed.
+    """
+    cfg = validated_config(ControlConfig, cfg, "control")
+    return controller_class(cfg.law)(cfg, vehicle)

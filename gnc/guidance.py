@@ -97,9 +97,9 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
-from gnc.config import validated_config
+from gnc.config import format_validation_error, validated_config
 from gnc.navstate import NavState
 
 NS_PER_S = 1_000_000_000
@@ -173,8 +173,14 @@ class GuidanceConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    law: Literal["apollo", "zem_zev", "off"] = Field(
-        "zem_zev", description="approach-phase guidance law; 'off' commands free fall (failure studies)"
+    law: str = Field(
+        "zem_zev",
+        description="approach-phase guidance law: apollo, zem_zev, gfold (fuel-optimal, needs landbench[opt]), "
+                    "'off' (free fall, failure studies), or a plug-in 'package.module:ClassName'",
+    )
+    options: dict[str, Any] = Field(
+        default_factory=dict,
+        description="the law's own options, validated by its Options model (plug-ins and gfold; empty otherwise)",
     )
     gate_altitude_m: float = Field(30.0, gt=0.0, description="gate height above the target [m]")
     terminal_descent_rate_mps: float = Field(
@@ -209,6 +215,21 @@ class GuidanceConfig(BaseModel):
         1.0, gt=0.0, le=10.0, description="terminal vertical-rate loop gain [1/s]"
     )
 
+    @field_validator("law")
+    @classmethod
+    def _law_resolves(cls, law: str) -> str:
+        guidance_class(law)  # raises a one-line ValueError: unknown name, bad import path, missing class, interface
+        return law
+
+    @field_validator("options")
+    @classmethod
+    def _options_valid(cls, options: dict[str, Any], info: ValidationInfo) -> dict[str, Any]:
+        law = info.data.get("law")
+        if law is None:  # the law itself was refused; that error is reported
+            return options
+        validate_law_options(guidance_class(law), law, options)
+        return options
+
     @model_validator(mode="after")
     def _t_go_bounds(self) -> "GuidanceConfig":
         if not self.open_loop_t_go_s < self.t_go_min_s < self.t_go_max_s:
@@ -232,11 +253,14 @@ class GuidanceLimits:
         thrust_max_N: Maximum thrust [N].
         tilt: Altitude-dependent tilt limit (the controller's, see
             :func:`gnc.control.guidance_limits`).
+        isp_s: Engine specific impulse as the flight software knows it [s], for
+            laws that model the mass flow (G-FOLD); None when not given.
     """
 
     thrust_min_N: float = 1500.0
     thrust_max_N: float = 7500.0
     tilt: TiltLimitConfig = field(default_factory=TiltLimitConfig)
+    isp_s: float | None = None
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.thrust_max_N) and self.thrust_max_N > 0.0):
@@ -245,6 +269,8 @@ class GuidanceLimits:
             raise ValueError(
                 f"limits.thrust_min_N = {self.thrust_min_N!r}; allowed: 0 <= thrust_min_N < thrust_max_N = {self.thrust_max_N}"
             )
+        if self.isp_s is not None and not (np.isfinite(self.isp_s) and self.isp_s > 0.0):
+            raise ValueError(f"limits.isp_s = {self.isp_s!r}; allowed: a finite value > 0, or None")
         if not isinstance(self.tilt, TiltLimitConfig):
             raise ValueError(f"limits.tilt = {self.tilt!r}; allowed: a TiltLimitConfig")
 
@@ -420,14 +446,22 @@ class GuidanceLaw(ABC):
             the open-loop end of the path once it has started.
 
     Subclasses provide the approach-phase formula (:meth:`accel_L`) and its
-    open-loop polynomial (:meth:`coeffs`), which the planner evaluates.
+    open-loop polynomial (:meth:`coeffs`), which the planner evaluates; a law
+    may instead override :meth:`update` altogether (as G-FOLD does). This is
+    also the plug-in interface (``guidance.law = "package.module:ClassName"``,
+    README "Controller design studies"): a plug-in subclasses this class,
+    implements every abstract method, and may declare ``Options``, a pydantic
+    model of its ``[guidance.options]`` table; the validated options are
+    ``self.options`` (None when the class declares no ``Options``).
     """
 
     name: ClassVar[str]
+    Options: ClassVar[type[BaseModel] | None] = None
 
     def __init__(self, cfg: GuidanceConfig, limits: GuidanceLimits):
         self.cfg = cfg
         self.limits = limits
+        self.options: BaseModel | None = validate_law_options(type(self), cfg.law, cfg.options)
         self.g_L = cfg.g_L()
         self.n_plans = 0  # plans adopted since construction (telemetry)
         self.reset()
@@ -719,6 +753,55 @@ class NoGuidance(GuidanceLaw):
 
 
 GUIDANCE_LAWS: dict[str, type[GuidanceLaw]] = {cls.name: cls for cls in (ApolloGuidance, ZemZevGuidance, NoGuidance)}
+# Built-in laws that live in their own module (imported only when chosen: G-FOLD needs cvxpy).
+BUILTIN_PLUGINS: dict[str, str] = {"gfold": "gnc.gfold:GfoldGuidance"}
+
+
+def guidance_class(law: str) -> type[GuidanceLaw]:
+    """The class of a ``guidance.law`` value: a built-in name or a plug-in ``package.module:ClassName``.
+
+    Raises:
+        ValueError: One line naming the value and what is wrong (unknown name,
+            module that does not import, missing class, class that lacks the
+            interface, or a module that crosses the flight-software boundary).
+    """
+    from gnc.plugins import load_law_class
+
+    if law in GUIDANCE_LAWS:
+        return GUIDANCE_LAWS[law]
+    if law in BUILTIN_PLUGINS:
+        import importlib.util
+
+        if law == "gfold" and importlib.util.find_spec("cvxpy") is None:
+            raise ValueError("guidance.law = 'gfold' needs cvxpy and a conic solver, the optional extra: "
+                             "pip install 'landbench[opt]'")
+        return load_law_class(BUILTIN_PLUGINS[law], GuidanceLaw, shown=law)
+    if ":" not in law:
+        raise ValueError(f"guidance.law = {law!r}: unknown law; allowed: {', '.join([*GUIDANCE_LAWS, *BUILTIN_PLUGINS])}, "
+                         "or a plug-in 'package.module:ClassName'")
+    return load_law_class(law, GuidanceLaw)
+
+
+def validate_law_options(law_cls: type, law: str, options: Mapping[str, Any] | None) -> BaseModel | None:
+    """Validate ``[guidance.options]`` with the law's own ``Options`` model.
+
+    Returns:
+        The validated options, or None when the law declares no ``Options`` (then
+        the table must be empty).
+
+    Raises:
+        ValueError: One line naming ``guidance.options.<field>``, the bad value and what is allowed.
+    """
+    options = dict(options or {})
+    model = getattr(law_cls, "Options", None)
+    if model is None:
+        if options:
+            raise ValueError(f"guidance.options = {options!r}: law {law!r} takes no options; allowed: an empty table")
+        return None
+    try:
+        return model.model_validate(options)
+    except ValidationError as err:
+        raise ValueError(f"{format_validation_error(err, model, 'guidance.options')} (options of law {law!r})") from None
 
 
 def make_guidance(
@@ -738,10 +821,9 @@ def make_guidance(
             the bad value and what is allowed.
     """
     cfg = validated_config(GuidanceConfig, cfg, "guidance")
-    if cfg.law not in GUIDANCE_LAWS:  # unreachable after validation; kept for subclassed configs
-        raise ValueError(f"guidance.law = {cfg.law!r}; allowed: {', '.join(GUIDANCE_LAWS)}")
+    law_cls = guidance_class(cfg.law)  # validated already; resolves plug-ins and gfold
     if limits is None:
         limits = GuidanceLimits()
     if not isinstance(limits, GuidanceLimits):
         raise ValueError(f"limits = {limits!r}; allowed: a GuidanceLimits")
-    return GUIDANCE_LAWS[cfg.law](cfg, limits)
+    return law_cls(cfg, limits)

@@ -3,7 +3,7 @@
 #   1. system packages: a Python >= 3.11 with venv, Mesa's headless OpenGL
 #      (EGL + OSMesa software rendering) and Chromium (the HTML report's browser
 #      test), installed through apt when missing;
-#   2. .venv with landbench installed (editable) with its test and Ray extras.
+#   2. .venv with landbench installed (editable) with its test, Ray and study (cvxpy, SALib, Gymnasium) extras.
 # Idempotent: re-running does nothing when everything is in place.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -80,6 +80,6 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 if [ ! -f "$STAMP" ] || [ pyproject.toml -nt "$STAMP" ]; then
   "$VENV/bin/python" -m pip install -q --upgrade pip
-  "$VENV/bin/python" -m pip install -q -e '.[dev,ray]'  # ray: the tests run the Ray backend too
+  "$VENV/bin/python" -m pip install -q -e '.[dev,ray,studies,geo]'  # ray: the tests run the Ray backend too; studies: G-FOLD, sweeps, Gymnasium; geo: GeoTIFF DEMs
   touch "$STAMP"
 fi

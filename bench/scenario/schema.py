@@ -380,13 +380,30 @@ def load_scenario(path: str | Path | None = None, overrides: list[str] | tuple[s
     Raises:
         ScenarioError: One line naming the field, the bad value and what is allowed.
     """
+    data, base = read_scenario_data(path)
+    return scenario_from_data(data, base, overrides)
+
+
+def read_scenario_data(path: str | Path | None) -> tuple[dict[str, Any], Path]:
+    """The raw TOML table of a scenario file (or the bundled default) and the folder its relative paths start from.
+
+    Raises:
+        ScenarioError: The file is missing, unreadable or not TOML.
+    """
     if path is None:
-        data = tomllib.loads(default_scenario_text())
-        base = Path.cwd()
-    else:
-        path = Path(path)
-        data = _read_toml(path)
-        base = path.parent
+        return tomllib.loads(default_scenario_text()), Path.cwd()
+    path = Path(path)
+    return _read_toml(path), path.parent
+
+
+def scenario_from_data(data: dict[str, Any], base: Path, overrides: list[str] | tuple[str, ...] = ()) -> Scenario:
+    """Apply overrides to a raw scenario table, resolve ``terrain.dem_path`` against ``base``, validate.
+
+    ``data`` is copied, not changed. (``landbench sweep`` takes its ``[sweep]`` table out of the file first.)
+    """
+    import copy
+
+    data = copy.deepcopy(data)
     for assignment in overrides:
         apply_override(data, assignment)
     dem = data.get("terrain", {}).get("dem_path") if isinstance(data.get("terrain"), dict) else None

@@ -13,13 +13,14 @@ software without the simulator. :mod:`bench.sim.run` re-exports these names.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
 
 from bench.scenario import Scenario
 from bench.scenario.seeding import component_rng
-from gnc.control import Controller, VehicleParams
+from gnc.control import VehicleParams, make_controller
 from gnc.estimator import make_estimator
 from gnc.flight import FlightSoftware, OnboardKnowledge
 from gnc.guidance import make_guidance
@@ -88,8 +89,9 @@ def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.nda
     control = scenario.control
     if scenario.realism == "ideal":  # the idealised flight computer commands the full magnitude m |f|
         control = control.model_copy(update={"thrust_projection": "magnitude"})
-    controller = Controller(control, knowledge.vehicle)
-    guidance = make_guidance(scenario.guidance, controller.guidance_limits())
+    controller = make_controller(control, knowledge.vehicle)
+    limits = dataclasses.replace(controller.guidance_limits(), isp_s=knowledge.isp_s)  # G-FOLD models the mass flow
+    guidance = make_guidance(scenario.guidance, limits)
     nav_filter = make_estimator(scenario.estimator, x0_r_L, x0_v_L, 0, altimeter_mount_B_m=knowledge.r_alt_B_m)
     tracker = Tracker(scenario.tracker) if scenario.tracks == "vision" and scenario.vision == "on" else None
     return FlightSoftware(guidance, controller, nav_filter, tracker, scenario.vision_nav, scenario.vision == "on",

@@ -368,7 +368,8 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
         "camera_enabled": cam.enabled,
         "criteria": scenario.landing.model_dump(),
         "nav": _nav_summary(telemetry, touchdown),
-        "guidance": _guidance_summary(telemetry, scenario),
+        "guidance": {**_guidance_summary(telemetry, scenario),
+                     **({"law_stats": fsw.guidance.stats()} if hasattr(fsw.guidance, "stats") else {})},
         "vision": _vision_summary(fsw),
         "consistency": run_consistency(telemetry, touchdown, fsw.filter.log),
         "time_split_s": {**timing, "frames_rendered": frames_rendered},  # what was rendered depends on the outputs

@@ -1,0 +1,1 @@
+"""Controller design studies beyond sweeps: the Gymnasium environment (:mod:`bench.studies.lander_env`)."""

@@ -67,6 +67,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from gnc.guidance import (
+    guidance_inputs,
     NS_PER_S,
     PHASE_APPROACH,
     PHASE_TERMINAL,
@@ -393,13 +394,8 @@ class GfoldGuidance(ZemZevGuidance):
         """One guidance step: solve or re-solve when due, track the path, terminal phase from the gate."""
         if self.fallback:
             return super().update(nav, target)
-        t_ns = int(nav.t_ns)
-        target_L = np.asarray(target.r_L, float)
-        r = np.asarray(nav.r_BL_L, float)
-        v = np.asarray(nav.v_BL_L, float)
-        m = float(nav.mass_kg)
-        usable = np.all(np.isfinite(r)) and np.all(np.isfinite(v)) and np.all(np.isfinite(target_L))
-        if not (usable and np.isfinite(m) and m > 0.0):
+        t_ns, target_L, r, v, m = guidance_inputs(nav, target)
+        if target_L is None:
             return GuidanceCommand(t_ns, np.zeros(3), self.phase, float("nan"), saturated=False, valid=False)
         if self._target_L is None or not np.array_equal(self._target_L, target_L):
             self._target_L = target_L.copy()

@@ -128,6 +128,24 @@ _EPS = 1e-9
 
 
 # --------------------------------------------------------------------------- configuration
+def guidance_inputs(nav: NavState, target: LandingTarget
+                    ) -> tuple[int, np.ndarray | None, np.ndarray, np.ndarray, float]:
+    """A guidance step's inputs: ``(t_ns, target_L, r_BL_L, v_BL_L, mass_kg)`` as arrays and floats.
+
+    ``target_L`` is None when they are unusable (a non-finite position, velocity or target, or a
+    mass that is not a finite positive number): the step then returns an invalid command.
+    """
+    t_ns = int(nav.t_ns)
+    target_L = np.asarray(target.r_L, float)
+    r = np.asarray(nav.r_BL_L, float)
+    v = np.asarray(nav.v_BL_L, float)
+    m = float(nav.mass_kg)
+    usable = np.all(np.isfinite(r)) and np.all(np.isfinite(v)) and np.all(np.isfinite(target_L))
+    if not (usable and np.isfinite(m) and m > 0.0):
+        return t_ns, None, r, v, m
+    return t_ns, target_L, r, v, m
+
+
 class TiltLimitConfig(BaseModel):
     """Maximum tilt of the thrust axis from vertical, tightening near the ground.
 
@@ -596,13 +614,8 @@ class GuidanceLaw(ABC):
         Returns:
             The guidance command for this control period.
         """
-        t_ns = int(nav.t_ns)
-        target_L = np.asarray(target.r_L, float)
-        r = np.asarray(nav.r_BL_L, float)
-        v = np.asarray(nav.v_BL_L, float)
-        m = float(nav.mass_kg)
-        usable = np.all(np.isfinite(r)) and np.all(np.isfinite(v)) and np.all(np.isfinite(target_L))
-        if not (usable and np.isfinite(m) and m > 0.0):  # attitude is not needed here
+        t_ns, target_L, r, v, m = guidance_inputs(nav, target)
+        if target_L is None:  # attitude is not needed here
             return GuidanceCommand(t_ns, np.zeros(3), self.phase, float("nan"), saturated=False, valid=False)
         r_f, v_f = self.gate_L(target)
         if self._target_L is None or not np.array_equal(self._target_L, target_L):

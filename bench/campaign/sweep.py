@@ -569,24 +569,33 @@ def write_tables(doc: Mapping[str, Any], all_rows: Sequence[Sequence[Mapping[str
     write_cases_parquet([dict(p) for p in doc["points"]], out / POINTS_PARQUET)
 
 
+POINT_COLUMNS = ("success_rate", "success_wilson", "fuel_mean_kg", "fuel_p95_kg", "fuel_ratio_gfold_mean",
+                 "td_v_vertical_p95_mps", "td_v_horizontal_p95_mps", "miss_p95_m", "wall_time_s", "pareto")
+"""The per-point figures of the points table, after the design's factors (CLI, README and HTML report)."""
+
+
+def format_point_cell(p: Mapping[str, Any], c: str, markdown: bool = True) -> str:
+    """One cell of the points table: point ``p``'s column ``c`` as text (Markdown bold for a Pareto point)."""
+    if c == "success_wilson":
+        lo, hi = p["success_wilson_low"], p["success_wilson_high"]
+        return "—" if lo is None else f"{100 * lo:.0f}–{100 * hi:.0f} %"
+    v = p.get(c)
+    if c == "pareto":
+        if v:
+            return "**yes**" if markdown else "yes"
+        return ("no" if markdown else "") if p["meets_require"] else "fails require"
+    if v is None:
+        return "—"
+    if c == "success_rate":
+        return f"{100 * v:.0f} %"
+    return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+
 def format_points(doc: Mapping[str, Any]) -> str:
     """The points table as Markdown (the CLI prints it; the README quotes it)."""
     factors = doc["design"]["factors"]
-    cols = [*factors, "success_rate", "success_wilson", "fuel_mean_kg", "fuel_p95_kg", "fuel_ratio_gfold_mean",
-            "td_v_vertical_p95_mps", "td_v_horizontal_p95_mps", "miss_p95_m", "wall_time_s", "pareto"]
-
-    def cell(p, c):
-        if c == "success_wilson":
-            lo, hi = p["success_wilson_low"], p["success_wilson_high"]
-            return "—" if lo is None else f"{100 * lo:.0f}–{100 * hi:.0f} %"
-        v = p.get(c)
-        if c == "pareto":
-            return "**yes**" if v else ("no" if p["meets_require"] else "fails require")
-        if v is None:
-            return "—"
-        if c == "success_rate":
-            return f"{100 * v:.0f} %"
-        return f"{v:.4g}" if isinstance(v, float) else str(v)
+    cols = [*factors, *POINT_COLUMNS]
+    cell = format_point_cell
 
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     lines += ["| " + " | ".join(cell(p, c) for c in cols) + " |" for p in doc["points"]]

@@ -21,6 +21,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from bench.campaign.sweep import format_point_cell
 from bench.report.compare_html import _environment
 from bench.report.io import atomic_write_text
 
@@ -34,17 +35,7 @@ COLUMNS = ("success_rate", "success_wilson", "fuel_mean_kg", "fuel_p95_kg", "fue
 
 
 def _cell(p: Mapping[str, Any], c: str) -> str:
-    if c == "success_wilson":
-        lo, hi = p["success_wilson_low"], p["success_wilson_high"]
-        return "—" if lo is None else f"{100 * lo:.0f}–{100 * hi:.0f} %"
-    v = p.get(c)
-    if c == "pareto":
-        return "yes" if v else ("" if p["meets_require"] else "fails require")
-    if v is None:
-        return "—"
-    if c == "success_rate":
-        return f"{100 * v:.0f} %"
-    return f"{v:.4g}" if isinstance(v, float) else str(v)
+    return format_point_cell(p, c, markdown=False)
 
 
 def _label(p: Mapping[str, Any], factors: list[str]) -> str:

@@ -372,18 +372,13 @@ class Controller:
         """Limits for :func:`gnc.guidance.make_guidance` matching this controller."""
         return guidance_limits(self.vehicle, self.cfg)
 
-    def update(self, nav: NavState, cmd: GuidanceCommand, contact: ContactMessage | None = None,
-               attitude: bool = True) -> ActuatorCommand:
+    def update(self, nav: NavState, cmd: GuidanceCommand, contact: ContactMessage | None = None) -> ActuatorCommand:
         """One control step.
 
         Args:
             nav: Navigation state.
             cmd: Guidance command for this period.
             contact: Latest footpad contacts, or None when not available.
-            attitude: False: thrust and engine state only, for an open-loop replay where
-                nothing flies the command. The thrust, the engine-cut latch and every later
-                thrust are what ``attitude=True`` gives; the torque is zero and the attitude
-                command is not recomputed (it feeds only the torque).
 
         Returns:
             The actuator command, within every actuator limit.
@@ -407,11 +402,7 @@ class Controller:
             self._thrust_hold_N, z_cmd_L = thrust_vector_command(
                 a_cmd, self.g_L, mass, altitude, self.vehicle, self.cfg.tilt, z_B_L
             )
-            if attitude:
-                self._q_cmd_hold = attitude_command_LB(z_cmd_L, self.yaw_rad)
-        if not attitude:
-            thrust = float(np.clip(self._thrust_hold_N, self.vehicle.thrust_min_N, self.vehicle.thrust_max_N))
-            return ActuatorCommand(thrust, np.zeros(3), True, t_ns, self._q_cmd_hold.copy())
+            self._q_cmd_hold = attitude_command_LB(z_cmd_L, self.yaw_rad)
 
         q = _unit_quaternion(nav.q_LB)
         omega = np.asarray(nav.omega_B, float)

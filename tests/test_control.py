@@ -317,19 +317,3 @@ def test_bad_vehicle_params_name_the_field():
         VehicleParams(thrust_min_N=9000.0)
     with pytest.raises(ValueError, match="dry_inertia_B_kgm2"):
         VehicleParams(dry_inertia_B_kgm2=(1.0, -1.0, 1.0))
-
-
-def test_thrust_only_updates_give_the_same_thrust_and_engine_cut_as_full_ones():
-    # attitude=False (open-loop replay) skips the attitude command and torque, never the thrust or the cut latch.
-    rng = np.random.default_rng(4)
-    full, thrust_only = make_controller(), make_controller()
-    for k in range(60):
-        n = nav(r=(rng.normal(0, 20), rng.normal(0, 20), 200.0 - 3 * k), v=rng.normal(0, 2, 3),
-                q=Rotation.from_rotvec(rng.normal(0, 0.05, 3)).as_quat(scalar_first=True),
-                omega=rng.normal(0, 0.02, 3), mass=2000.0 - k, t_s=0.02 * k)
-        cmd = gcmd(rng.normal((0, 0, 1.62), 0.5), valid=k % 7 != 3, t_s=0.02 * k)
-        legs = ContactMessage(n.t_ns, np.array([k >= 55, False, False, False]))
-        a, b = full.update(n, cmd, legs), thrust_only.update(n, cmd, legs, attitude=False)
-        assert (a.thrust_N, a.engine_on) == (b.thrust_N, b.engine_on), k
-        assert np.all(b.torque_B_Nm == 0.0)
-    assert full.engine_cut and thrust_only.engine_cut

@@ -82,3 +82,23 @@ def validated_config(model: type[BaseModel], cfg: BaseModel | Mapping[str, Any] 
         return model.model_validate(data)
     except ValidationError as err:
         raise ValueError(format_validation_error(err, model, prefix)) from None
+
+
+def validate_options(cls: type, law: str, options: Mapping[str, Any] | None, field: str,
+                     what: str) -> BaseModel | None:
+    """Validate a law's free-form options table (``field``, e.g. ``"guidance.options"``) with its ``Options`` model.
+
+    Returns the validated options, or None when ``cls`` declares no ``Options`` (then the table
+    must be empty). Raises a one-line ValueError naming ``<field>.<name>``, the bad value and what
+    is allowed; ``what`` names the kind of plug-in in it (``"law"``, ``"controller"``).
+    """
+    options = dict(options or {})
+    model = getattr(cls, "Options", None)
+    if model is None:
+        if options:
+            raise ValueError(f"{field} = {options!r}: {what} {law!r} takes no options; allowed: an empty table")
+        return None
+    try:
+        return model.model_validate(options)
+    except ValidationError as err:
+        raise ValueError(f"{format_validation_error(err, model, field)} (options of {what} {law!r})") from None

@@ -51,9 +51,9 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
-from gnc.config import format_validation_error, validated_config
+from gnc.config import validate_options, validated_config
 from gnc.guidance import LUNAR_GRAVITY_MPS2, GuidanceCommand, GuidanceLimits, TiltLimitConfig
 from gnc.messages import N_LEGS, ContactMessage
 from gnc.navstate import NavState
@@ -205,16 +205,7 @@ def controller_class(law: str) -> type["Controller"]:
 
 def _controller_options(cls: type, law: str, options: Mapping[str, Any] | None) -> BaseModel | None:
     """Validate ``[control.options]`` with the controller's ``Options`` model (one-line ValueError)."""
-    options = dict(options or {})
-    model = getattr(cls, "Options", None)
-    if model is None:
-        if options:
-            raise ValueError(f"control.options = {options!r}: controller {law!r} takes no options; allowed: an empty table")
-        return None
-    try:
-        return model.model_validate(options)
-    except ValidationError as err:
-        raise ValueError(f"{format_validation_error(err, model, 'control.options')} (options of controller {law!r})") from None
+    return validate_options(cls, law, options, "control.options", "controller")
 
 
 def guidance_limits(vehicle: VehicleParams, cfg: ControlConfig) -> GuidanceLimits:

@@ -97,9 +97,9 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
-from gnc.config import format_validation_error, validated_config
+from gnc.config import validate_options, validated_config
 from gnc.navstate import NavState
 
 NS_PER_S = 1_000_000_000
@@ -805,16 +805,7 @@ def validate_law_options(law_cls: type, law: str, options: Mapping[str, Any] | N
     Raises:
         ValueError: One line naming ``guidance.options.<field>``, the bad value and what is allowed.
     """
-    options = dict(options or {})
-    model = getattr(law_cls, "Options", None)
-    if model is None:
-        if options:
-            raise ValueError(f"guidance.options = {options!r}: law {law!r} takes no options; allowed: an empty table")
-        return None
-    try:
-        return model.model_validate(options)
-    except ValidationError as err:
-        raise ValueError(f"{format_validation_error(err, model, 'guidance.options')} (options of law {law!r})") from None
+    return validate_options(law_cls, law, options, "guidance.options", "law")
 
 
 def make_guidance(

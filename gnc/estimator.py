@@ -150,6 +150,7 @@ from gnc.config import validated_config
 from gnc.guidance import LUNAR_GRAVITY_MPS2
 from gnc.messages import AltimeterMessage, AttitudeMessage, ImuMessage
 from gnc.navstate import NavState
+from gnc.numeric import all_finite
 
 NS_PER_S = 1_000_000_000
 ARCSEC_TO_RAD = math.pi / (180.0 * 3600.0)
@@ -381,23 +382,24 @@ def _quat_normalized(q: Quat) -> Quat:
     return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
 
 
+def _quat_rows(q: Quat) -> tuple[float, float, float, float, float, float, float, float, float]:
+    """The nine elements of :func:`quat_to_matrix`, row by row, as floats."""
+    w, x, y, z = q
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    return (1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy),
+            2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx),
+            2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy))
+
+
 def quat_to_matrix(q: Quat) -> np.ndarray:
     """Rotation matrix ``R_LB`` (3, 3) of a unit scalar-first quaternion ``q_LB``.
 
     Same convention as ``scipy.spatial.transform.Rotation.from_quat(q, scalar_first=True)``
     (tested against it), without building a Rotation per IMU step.
     """
-    w, x, y, z = q
-    xx, yy, zz = x * x, y * y, z * z
-    xy, xz, yz = x * y, x * z, y * z
-    wx, wy, wz = w * x, w * y, w * z
-    return np.array(
-        [
-            [1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy)],
-            [2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx)],
-            [2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy)],
-        ]
-    )
+    return np.array(_quat_rows(q)).reshape(3, 3)
 
 
 def _const(_x: np.ndarray, value: np.ndarray) -> np.ndarray:
@@ -445,7 +447,7 @@ class NavFilter:
         self.consecutive_rejections = {KIND_ALTIMETER: 0, KIND_VELOCITY: 0, KIND_VISION: 0}
 
         self._t_ns = int(t0_ns)
-        self._g_L = np.array([0.0, 0.0, -cfg.gravity_mps2])
+        self._g_L_tuple = (0.0, 0.0, -cfg.gravity_mps2)  # gravity in L [m/s^2]
         self._q_LB: Quat | None = q0_LB  # attitude at the filter time
         self._q_gyro: Quat | None = q0_LB  # gyro-only attitude, never reset by a fix (relative rotations)
         self._clone_t_ns: int | None = None  # time of the position clone; None: no clone held
@@ -629,20 +631,29 @@ class NavFilter:
         else:
             q_mid = self._q_LB
         self._q_gyro = _quat_normalized(_quat_mul(self._q_gyro, _quat_mul(half, half)))
-        R_LB = quat_to_matrix(q_mid)  # mid-interval attitude
-
+        # Mid-interval attitude, in plain floats: at the IMU rate, NumPy's per-call cost on 3-vectors
+        # outweighs the arithmetic.
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = rows = _quat_rows(q_mid)
         ekf = self.ekf
         F = self._F
-        np.multiply(R_LB, -dt, out=F[IDX_V, IDX_BA])
-        np.multiply(R_LB, -0.5 * dt * dt, out=F[IDX_R, IDX_BA])
+        # d(r, v)/d(b_a) = -R_LB (dt^2 / 2, dt): one block, rows (r, v).
+        a, b = -0.5 * dt * dt, -dt
+        F[IDX_R.start:IDX_V.stop, IDX_BA] = np.array([c * a for c in rows] + [c * b for c in rows]).reshape(6, 3)
         ekf.F = F
-        u_L = R_LB @ np.array((fx, fy, fz)) + self._g_L  # measured specific force + gravity (bias via F)
+        # Measured specific force in L plus gravity (the bias enters through F).
+        g_x, g_y, g_z = self._g_L_tuple
+        u_L = np.array((r00 * fx + r01 * fy + r02 * fz + g_x,
+                        r10 * fx + r11 * fy + r12 * fz + g_y,
+                        r20 * fx + r21 * fy + r22 * fz + g_z))
         # Star-tracker error tilts the specific force: extra acceleration PSD sigma^2 |f|^2 T.
         psd = self._accel_psd + self._att_var_time * (fx * fx + fy * fy + fz * fz)
         np.multiply(self._Q_shape, psd, out=self._Q[:6, :6])
         ekf.Q = self._Q
         ekf.predict(u_L)
-        self._a_L = u_L - R_LB @ ekf.x[IDX_BA]
+        bx, by, bz = ekf.x[IDX_BA].tolist()
+        self._a_L = u_L - np.array((r00 * bx + r01 * by + r02 * bz,
+                                    r10 * bx + r11 * by + r12 * bz,
+                                    r20 * bx + r21 * by + r22 * bz))
         self._t_ns = t_ns
         counts["used"] += 1
         return True
@@ -906,14 +917,13 @@ class NavFilter:
         P[IDX_DC, IDX_DC] = row[:, IDX_DN]
         self._offset_clone_known = self._offset_new_known
         # The position: r_clone <- r + v lag, with its correlations (the offset's included).
-        T = np.zeros((3, DIM_X))
-        T[:, IDX_R] = np.eye(3)
-        T[:, IDX_V] = (lag_ns / NS_PER_S) * np.eye(3)
-        x[IDX_C] = T @ x
-        TP = T @ P
+        # T = [I, lag I] on (r, v), zero elsewhere, written out.
+        lag_s = lag_ns / NS_PER_S
+        x[IDX_C] = x[IDX_R] + lag_s * x[IDX_V]
+        TP = P[IDX_R, :] + lag_s * P[IDX_V, :]
         P[IDX_C, :] = TP
         P[:, IDX_C] = TP.T
-        P[IDX_C, IDX_C] = TP @ T.T
+        P[IDX_C, IDX_C] = TP[:, IDX_R] + lag_s * TP[:, IDX_V]
         self._clear_new_offset(x, P)
         self._clone_t_ns = int(t_ns)
         return True
@@ -986,7 +996,7 @@ class NavFilter:
                 f"update_relative: shapes z {z.shape}, hx {hx.shape}, H_r {H_r.shape}, H_c {H_c.shape}, R {R.shape}, "
                 f"R_frame {R_f.shape}; expected (2,), (2,), (2, 3), (2, 3), (2, 2), (2, 2)"
             )
-        if not all(np.all(np.isfinite(a)) for a in (z, hx, H_r, H_c, R, R_f, H_g, H_s)):
+        if not all_finite(z, hx, H_r, H_c, R, R_f, H_g, H_s):
             return self._not_applied(t_ns, kind, z, REASON_NONFINITE, "invalid")
         if self._clone_t_ns is None:
             return self._not_applied(t_ns, kind, z, REASON_NO_CLONE, "invalid")
@@ -1184,6 +1194,7 @@ def _gauss_hermite_2d(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 _GH_NODES, _GH_WEIGHTS = _gauss_hermite_2d(7)
+_GH_NODES_T = np.ascontiguousarray(_GH_NODES.T)  # (2, n*n)
 _GH_REACH = float(np.max(np.hypot(_GH_NODES[:, 0], _GH_NODES[:, 1])))  # the farthest node, in 1-sigmas
 
 
@@ -1199,9 +1210,23 @@ def site_relief_factor(cfg: EstimatorConfig, rho_m: np.ndarray | float) -> np.nd
     rho = np.asarray(rho_m, dtype=float)
     if cfg.site_radius_m <= 0.0 or cfg.terrain_relief_sigma_m <= 0.0:
         return np.ones_like(rho)
-    k_site = min(cfg.site_relief_sigma_m / cfg.terrain_relief_sigma_m, 1.0)
-    ramp = np.clip((rho - cfg.site_radius_m) / cfg.site_relief_ramp_m, 0.0, 1.0)
+    k_site = _k_site(cfg)
+    # np.minimum / np.maximum: np.clip's dispatch costs more than the work on arrays this small.
+    ramp = np.minimum(np.maximum((rho - cfg.site_radius_m) / cfg.site_relief_ramp_m, 0.0), 1.0)
     return k_site + (1.0 - k_site) * ramp
+
+
+def _k_site(cfg: EstimatorConfig) -> float:
+    """The site map's relief factor inside the cleared site [-]."""
+    return min(cfg.site_relief_sigma_m / cfg.terrain_relief_sigma_m, 1.0)
+
+
+def _site_relief_factor_at(cfg: EstimatorConfig, rho_m: float) -> float:
+    """:func:`site_relief_factor` at one distance, in plain floats (the same arithmetic)."""
+    if cfg.site_radius_m <= 0.0 or cfg.terrain_relief_sigma_m <= 0.0:
+        return 1.0
+    k_site = _k_site(cfg)
+    return k_site + (1.0 - k_site) * min(max((rho_m - cfg.site_radius_m) / cfg.site_relief_ramp_m, 0.0), 1.0)
 
 
 def relief_scale(cfg: EstimatorConfig, r_xy_m: np.ndarray, cov_xy_m2: np.ndarray) -> float:
@@ -1222,13 +1247,12 @@ def relief_scale(cfg: EstimatorConfig, r_xy_m: np.ndarray, cov_xy_m2: np.ndarray
     # Every node beyond the ramp, or every node inside the site: the factor is the same at all of them.
     reach_m, dist_m = _GH_REACH * s1, math.hypot(rx, ry)
     if dist_m - reach_m >= cfg.site_radius_m + cfg.site_relief_ramp_m or dist_m + reach_m <= cfg.site_radius_m:
-        return float(site_relief_factor(cfg, dist_m))
+        return _site_relief_factor_at(cfg, dist_m)
     theta = 0.5 * math.atan2(2.0 * b, a - c)  # the major axis's direction
     ct, st = math.cos(theta), math.sin(theta)
-    n1, n2 = _GH_NODES[:, 0], _GH_NODES[:, 1]
-    px = rx + (s1 * ct) * n1 - (s2 * st) * n2
-    py = ry + (s1 * st) * n1 + (s2 * ct) * n2
-    k = site_relief_factor(cfg, np.hypot(px, py))
+    # The nodes in L: r + [[s1 ct, -s2 st], [s1 st, s2 ct]] n, as rows (x, y).
+    p = np.array(((s1 * ct, -s2 * st), (s1 * st, s2 * ct))) @ _GH_NODES_T
+    k = site_relief_factor(cfg, np.hypot(p[0] + rx, p[1] + ry))
     return math.sqrt(float(_GH_WEIGHTS @ (k * k)))
 
 

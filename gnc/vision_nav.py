@@ -76,6 +76,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from gnc.numeric import all_finite, median
 from vision.tracks import Tracks
 
 NS_PER_S = 1_000_000_000
@@ -204,11 +205,12 @@ def vision_measurement(
         ``MIN_CAMERA_HEIGHT_M``).
     """
     dt_s = (t1_ns - t0_ns) / NS_PER_S
-    arrays = (K, R_BC, r_cam_B, R_LB0, R_LB1, r0_L, r1_L)
-    if not (dt_s > 0 and math.isfinite(sigma_rot_rad) and all(np.all(np.isfinite(a)) for a in arrays)):
+    if not (dt_s > 0 and math.isfinite(sigma_rot_rad) and all_finite(K, R_BC, r_cam_B, R_LB0, R_LB1, r0_L, r1_L)):
         return None
-    have_prev = np.all(np.isfinite(tracks.prev_xy), axis=1) & np.all(np.isfinite(tracks.xy), axis=1)
-    n_tracks = int(have_prev.sum())
+    # A track is usable where both positions are finite (a sum is finite iff both terms are).
+    ok = np.isfinite(tracks.prev_xy + tracks.xy)
+    have_prev = ok[:, 0] & ok[:, 1]
+    n_tracks = int(np.count_nonzero(have_prev))
     if n_tracks < cfg.min_tracks:
         return None
     c0 = r0_L + R_LB0 @ r_cam_B  # camera positions [m]
@@ -217,50 +219,54 @@ def vision_measurement(
     if h0 < MIN_CAMERA_HEIGHT_M:
         return None
     dz = float(c1[2] - c0[2])
-    K_inv = np.linalg.inv(K)
-    d0 = _rays_L(tracks.prev_xy[have_prev], K_inv, R_LB0 @ R_BC)
+    K_inv = _intrinsics_inverse(K)
+    xy0 = tracks.prev_xy[have_prev]
+    d0 = _rays_L(xy0, K_inv, R_LB0 @ R_BC)
     d1 = _rays_L(tracks.xy[have_prev], K_inv, R_LB1 @ R_BC)
+    # Within max_off_nadir_deg of straight down: -d_z > cos_max |d|.
     cos_max = math.cos(math.radians(cfg.max_off_nadir_deg))
-    down = (-d0[:, 2] > cos_max * np.linalg.norm(d0, axis=1)) & (-d1[:, 2] > cos_max * np.linalg.norm(d1, axis=1))
-    if int(down.sum()) < cfg.min_tracks:
+    down = (-d0[:, 2] > cos_max * np.sqrt((d0 * d0).sum(axis=1))) & (-d1[:, 2] > cos_max * np.sqrt((d1 * d1).sum(axis=1)))
+    if int(np.count_nonzero(down)) < cfg.min_tracks:
         return None
-    a = d0[down] / -d0[down, 2:3]
-    b = d1[down] / -d1[down, 2:3]
-    g = a[:, :2] - b[:, :2]  # per-track flow [-]
-    y = h0 * g - dz * b[:, :2]  # each track's estimate of the horizontal camera displacement [m]
+    d0, d1, xy0 = d0[down], d1[down], xy0[down]
+    a = d0[:, :2] / -d0[:, 2:3]  # unit-height rays, horizontal part [-]
+    b = d1[:, :2] / -d1[:, 2:3]
+    g = a - b  # per-track flow [-]
+    y = h0 * g - dz * b  # each track's estimate of the horizontal camera displacement [m]
     f_px = float(K[0, 0])
     floor = cfg.pixel_sigma_px * h0 / f_px  # a pixel's footprint on the ground [m]
     n = g.shape[0]
     keep = np.ones(n, bool)
+    n_used = n
     for _ in range(cfg.outlier_iterations + 1):
-        if int(keep.sum()) < cfg.min_tracks:
+        if n_used < cfg.min_tracks:
             return None
-        res = y - y[keep].mean(axis=0)
+        res = y - y[keep].sum(axis=0) / n_used
         res_norm = np.hypot(res[:, 0], res[:, 1])
-        sigma = MAD_TO_SIGMA * float(np.median(res_norm[keep])) / math.sqrt(2.0)  # per axis [m]
+        sigma = MAD_TO_SIGMA * median(res_norm[keep]) / math.sqrt(2.0)  # per axis [m]
         new_keep = res_norm <= cfg.outlier_mad_k * max(sigma, floor) * math.sqrt(2.0)
         if np.array_equal(new_keep, keep):
             break
         keep = new_keep
-    n_used = int(keep.sum())
+        n_used = int(np.count_nonzero(keep))
     if n_used < cfg.min_tracks:
         return None
-    res = y[keep] - y[keep].mean(axis=0)
-    s2 = max(float(np.sum(res**2)) / max(2 * n_used - 2, 1), floor**2)  # per-axis track variance [m^2]
+    yk, gk, ak, bk = y[keep], g[keep], a[keep], b[keep]
+    res = yk - yk.sum(axis=0) / n_used
+    s2 = max(float((res * res).sum()) / max(2 * n_used - 2, 1), floor**2)  # per-axis track variance [m^2]
     # The mean's covariance, cluster-robust: tracks close together in the image (one template's
     # features) err together, so the tracks are not n independent samples.
-    xy_kept = tracks.prev_xy[have_prev][down][keep]
-    cell = np.floor(xy_kept / cfg.cluster_px).astype(np.int64)
-    _, cluster = np.unique(cell[:, 0] * 1_000_003 + cell[:, 1], return_inverse=True)
-    n_clusters = int(cluster.max()) + 1
-    sums = np.zeros((n_clusters, 2))
-    np.add.at(sums, cluster, res)
+    cluster, n_clusters = _image_cells(xy0[keep], cfg.cluster_px)
+    sums = np.column_stack([np.bincount(cluster, weights=res[:, 0], minlength=n_clusters),
+                            np.bincount(cluster, weights=res[:, 1], minlength=n_clusters)])
     cov_mean = sums.T @ sums / (n_used * n_used) * (n_clusters / max(n_clusters - 1, 1))
-    cov_mean = cov_mean + np.eye(2) * max(floor**2 / n_used - float(np.min(np.diag(cov_mean))), 0.0)
-    z = g[keep].mean(axis=0)
-    b_mean = b[keep, :2].mean(axis=0)
-    a_mean = a[keep, :2].mean(axis=0)
-    M = b[keep, :2].T @ a[keep, :2] / n_used  # mean of b_i a_i^T [-]
+    lift = max(floor**2 / n_used - min(float(cov_mean[0, 0]), float(cov_mean[1, 1])), 0.0)
+    cov_mean[0, 0] += lift
+    cov_mean[1, 1] += lift
+    z = gk.sum(axis=0) / n_used
+    b_mean = bk.sum(axis=0) / n_used
+    a_mean = ak.sum(axis=0) / n_used
+    M = bk.T @ ak / n_used  # mean of b_i a_i^T [-]
     sv = np.zeros(2) if s_view is None else np.asarray(s_view, dtype=float)
     dr_xy = (c1 - c0)[:2]
     scale = 1.0 + float(sv @ a_mean)
@@ -269,8 +275,10 @@ def vision_measurement(
     # The vertical columns: the camera's vertical displacement enters through dz b_mean (the
     # divergence term), the clone's height also through h0. The filter takes them as consider
     # columns: their uncertainty is in the innovation covariance, but vision does not correct them.
-    H_r = np.array([[scale, 0.0, div[0]], [0.0, scale, div[1]]]) / h0
-    H_c = -np.array([[scale, 0.0, div[0] + hx[0]], [0.0, scale, div[1] + hx[1]]]) / h0
+    div_x, div_y = div.tolist()
+    hx_x, hx_y = hx.tolist()
+    H_r = np.array([[scale, 0.0, div_x], [0.0, scale, div_y]]) / h0
+    H_c = -np.array([[scale, 0.0, div_x + hx_x], [0.0, scale, div_y + hx_y]]) / h0
     H_g = hx / h0  # a higher ground is a shorter range: a larger flow
     H_s = (np.outer(dr_xy, a_mean) + dz * M) / h0
     # The tracks' scatter about their mean holds the pixel noise of both frames. Its per-frame part,
@@ -282,9 +290,13 @@ def vision_measurement(
     R_frame = 0.5 * share * track_cov
     # Under a slew most of the image motion is rotation; the tracker follows it to about
     # rotation_error_frac of the rotation, an error the scatter does not show (all tracks share it).
-    cos_rot = float(np.clip((np.trace(R_LB1.T @ R_LB0) - 1.0) / 2.0, -1.0, 1.0))
+    # trace(R_LB1^T R_LB0) = sum of the elementwise products.
+    cos_rot = min(max((float((R_LB1 * R_LB0).sum()) - 1.0) / 2.0, -1.0), 1.0)
     sigma_slew = cfg.rotation_error_frac * math.acos(cos_rot)
-    R = (1.0 - share) * track_cov + (sigma_rot_rad**2 + sigma_slew**2) * np.eye(2)
+    R = (1.0 - share) * track_cov
+    white = sigma_rot_rad**2 + sigma_slew**2
+    R[0, 0] += white
+    R[1, 1] += white
     R = cfg.covariance_inflation * R
     R_frame = cfg.covariance_inflation * R_frame
     v_xy = (h0 * z - dz * b_mean - ((R_LB1 - R_LB0) @ r_cam_B)[:2]) / dt_s
@@ -295,7 +307,32 @@ def vision_measurement(
     )
 
 
+_K_INV_CACHE: dict[bytes, np.ndarray] = {}
+
+
+def _intrinsics_inverse(K: np.ndarray) -> np.ndarray:
+    """``inv(K)``, computed once per distinct calibration (a camera's is constant)."""
+    key = np.ascontiguousarray(K, dtype=float).tobytes()
+    K_inv = _K_INV_CACHE.get(key)
+    if K_inv is None:
+        if len(_K_INV_CACHE) > 16:
+            _K_INV_CACHE.clear()
+        K_inv = _K_INV_CACHE[key] = np.linalg.inv(K)
+        K_inv.flags.writeable = False
+    return K_inv
+
+
 def _rays_L(xy: np.ndarray, K_inv: np.ndarray, R_LC: np.ndarray) -> np.ndarray:
-    """Pixel rays (not normalised) in L, (N, 3)."""
-    pix = np.column_stack([xy, np.ones(len(xy))])
-    return (R_LC @ (K_inv @ pix.T)).T
+    """Pixel rays (not normalised) in L, (N, 3): ``R_LC K^-1 (x, y, 1)`` per pixel."""
+    A = R_LC @ K_inv
+    return xy @ A[:, :2].T + A[:, 2]
+
+
+def _image_cells(xy: np.ndarray, cell_px: float) -> tuple[np.ndarray, int]:
+    """Which ``cell_px`` square of the image each point (N >= 1, (N, 2) [px]) falls in, and how many
+    distinct squares there are: labels 0..n-1 in the order of the squares' (column, row)."""
+    cell = np.floor(xy / cell_px).astype(np.int64)
+    cell -= cell.min(axis=0)
+    key = cell[:, 0] * (int(cell[:, 1].max()) + 1) + cell[:, 1]
+    label = np.cumsum(np.bincount(key) > 0) - 1
+    return label[key], int(label[-1]) + 1

@@ -435,7 +435,7 @@ class NavFilter:
     """
 
     def __init__(self, cfg: EstimatorConfig, x0: np.ndarray, P0: np.ndarray, t0_ns: int,
-                 q0_LB: Quat | None, altimeter_mount_B_m: np.ndarray) -> None:
+                 q0_LB: Quat | None, altimeter_mount_B_m: np.ndarray, gyro_delta_angle: bool = False) -> None:
         """Use :func:`make_estimator`; this constructor does not validate its inputs."""
         self.cfg = cfg
         ekf = ExtendedKalmanFilter(dim_x=DIM_X, dim_z=1, dim_u=3)
@@ -458,6 +458,7 @@ class NavFilter:
         self._a_L = np.zeros(3)  # latest estimated total acceleration [m/s^2] (for measurement-time shifts)
         self._gyro = cfg.attitude_propagation == "gyro"
         self._lever_B = np.array(altimeter_mount_B_m, dtype=float)
+        self._gyro_delta_angle = bool(gyro_delta_angle)  # rate samples are interval means (an integrating gyro)
         self._footprint_L: np.ndarray | None = None  # (2,) horizontal footprint of the last applied range [m]
         # Relief amplitude (the site map's factor on the relief 1-sigma) the terrain and view states were last
         # carried at; the initial covariance is built at the initial position's (make_estimator).
@@ -610,10 +611,11 @@ class NavFilter:
         if not math.isfinite(fx + fy + fz + wx + wy + wz):
             counts["invalid"] += 1
             return False
-        # The gyro samples the rate at t_k; over (t_{k-1}, t_k] the rate is integrated with the trapezoid
-        # of the last two samples (exact for a rate that changes linearly, as under a held RCS torque;
-        # holding the end sample would rotate by alpha dt^2 / 2 too much per step during a slew).
-        w0x, w0y, w0z = self._omega_B if self._have_rate else (wx, wy, wz)
+        # A point-sampling gyro gives the rate at t_k; over (t_{k-1}, t_k] the rate is integrated with the
+        # trapezoid of the last two samples (exact for a rate that changes linearly, as under a held RCS
+        # torque; holding the end sample would rotate by alpha dt^2 / 2 too much per step during a slew).
+        # An integrating gyro gives the interval's delta-angle as a mean rate: the rotation itself.
+        w0x, w0y, w0z = self._omega_B if self._have_rate and not self._gyro_delta_angle else (wx, wy, wz)
         self._omega_B = (wx, wy, wz)
         self._have_rate = True
         if self._q_LB is None:
@@ -1322,6 +1324,7 @@ def make_estimator(
     q0_LB: Any = None,
     *,
     altimeter_mount_B_m: Any,
+    gyro_delta_angle: bool = False,
 ) -> NavFilter:
     """Validate the config and the initial state, and build the filter.
 
@@ -1334,6 +1337,9 @@ def make_estimator(
             are ignored until the first star-tracker fix.
         altimeter_mount_B_m: Altimeter position relative to the body origin, in B,
             (3,) [m]: the vehicle's calibration, from the same source as the world's.
+        gyro_delta_angle: The IMU is an integrating one: each gyro sample is the delta-angle
+            over its interval divided by the interval (the rotation is that mean rate held),
+            not the rate at the sample time (integrated with the trapezoid of two samples).
 
     Returns:
         The filter, with zero bias and terrain estimates and the config's initial covariance.
@@ -1358,4 +1364,5 @@ def make_estimator(
         q0 = tuple(float(v) for v in q / norm)  # type: ignore[assignment]
     mount = _vec3(altimeter_mount_B_m, "altimeter_mount_B_m")
     x0 = np.concatenate([r0, v0, np.zeros(4), r0, np.zeros(11)])
-    return NavFilter(c, x0, initial_covariance(c, float(r0[2]), r0[:2]), int(t0_ns), q0, mount)
+    return NavFilter(c, x0, initial_covariance(c, float(r0[2]), r0[:2]), int(t0_ns), q0, mount,
+                     gyro_delta_angle=gyro_delta_angle)

@@ -216,7 +216,8 @@ class World:
         self._renderer: mujoco.Renderer | None = None
         self._depth_renderer: mujoco.Renderer | None = None
         self._step_count = 0
-        self._imu_sum = np.zeros(3)
+        self._imu_sum = np.zeros(3)  # integrating accelerometer: sum of the steps' specific forces [m/s^2]
+        self._gyro_sum = np.zeros(3)  # integrating gyro: sum of the steps' integrated body rates [rad/s]
         self._imu_steps = 0
         self._set_clip_planes()
         mujoco.mj_forward(self.model, self.data)
@@ -275,6 +276,7 @@ class World:
         self.data.qvel[3:6] = omega_B
         self._step_count = 0
         self._imu_sum = np.zeros(3)
+        self._gyro_sum = np.zeros(3)
         self._imu_steps = 0
         mujoco.mj_forward(self.model, self.data)
 
@@ -349,26 +351,33 @@ class World:
             self.data.ctrl[self._act_engine] = thrust
             self._advance(1)
             # mj_step evaluated the sensors at the step's start with this step's controls: the specific
-            # force that acts over the step, summed for the integrating accelerometer (accel_mean_B).
+            # force that acts over the step, summed for the integrating accelerometer (imu_mean_B).
             self._imu_sum += self.data.sensordata[self._sens_acc]
+            # The (semi-implicit) integrator turned the attitude with the step's new body rate (the free
+            # joint's local angular velocity, the IMU site's axes): summed, the interval's delta-angle.
+            self._gyro_sum += self.data.qvel[3:6]
             self._imu_steps += 1
         self._set_propellant(prop.propellant_kg)
         mujoco.mj_forward(self.model, self.data)
         exhausted = had and prop.propellant_kg <= 0.0 and (thrust_cmd_N > 0.0 or burn_steps > 0)
         return PropulsionOutput(thrust, impulse_B / max(n_steps, 1), burn_steps, used0 - prop.propellant_kg, exhausted)
 
-    def accel_mean_B(self) -> np.ndarray | None:
-        """Mean truth specific force over the physics steps since the last call, in B (3,) [m/s^2], and reset.
+    def imu_mean_B(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Mean truth specific force and body rate over the physics steps since the last call, in B, and reset.
 
-        What an integrating accelerometer reports (its delta-velocity over the sample interval,
-        divided by the interval): the RCS's pulses, through the IMU's lever arm from the centre
-        of mass, then average out instead of being point-sampled at a phase locked to their
-        modulation. None before any realistic step (the instant-actuator path keeps point samples).
+        What an integrating IMU reports: its delta-velocity and delta-angle over the sample
+        interval, divided by the interval, ((3,) [m/s^2], (3,) [rad/s]). The RCS's pulses,
+        through the IMU's lever arm from the centre of mass, then average out instead of being
+        point-sampled at a phase locked to their modulation, and the delta-angle is the rotation
+        the simulator made (a point-sampled rate leads the attitude by a physics step under
+        angular acceleration). None before any realistic step (the instant-actuator path keeps
+        point samples).
         """
         if self._imu_steps == 0:
             return None
-        out = self._imu_sum / self._imu_steps
+        out = (self._imu_sum / self._imu_steps, self._gyro_sum / self._imu_steps)
         self._imu_sum = np.zeros(3)
+        self._gyro_sum = np.zeros(3)
         self._imu_steps = 0
         return out
 

@@ -497,6 +497,29 @@ def test_covariance_and_rotating_prediction_match_an_explicit_loop():
                                q_end.as_matrix(), atol=1e-12)
 
 
+def test_integrating_gyro_samples_compose_to_the_product_of_their_rotations():
+    # An integrating gyro's sample k is its interval's delta-angle / dt: the rotation over the interval is
+    # exp(w_k dt), whatever the rate did inside it. With gyro_delta_angle the filter's attitudes are the
+    # product of those rotations; the trapezoid of consecutive samples (a point-sampling gyro) is not.
+    rng = np.random.default_rng(12)
+    q0 = Rotation.from_euler("xyz", [5.0, -8.0, 30.0], degrees=True)
+    w = rng.normal(0.0, 0.05, size=(40, 3))  # a different mean rate every interval [rad/s]
+    dt = IMU_DT_NS / 1e9
+    truth = q0
+    for w_k in w:
+        truth = truth * Rotation.from_rotvec(w_k * dt)
+    ends = {}
+    for delta_angle in (True, False):
+        nav = make_estimator({}, np.zeros(3), np.zeros(3), 0, q0.as_quat(scalar_first=True),
+                             altimeter_mount_B_m=LEVER_B, gyro_delta_angle=delta_angle)
+        for k, w_k in enumerate(w, start=1):
+            assert nav.propagate_imu(_imu(k, [0.0, 0.0, 1.62], w_k))
+        ends[delta_angle] = [Rotation.from_quat(q, scalar_first=True) for q in (nav.q_LB, nav.gyro_attitude())]
+    for q in ends[True]:
+        assert (truth.inv() * q).magnitude() < 1e-12
+    assert (truth.inv() * ends[False][0]).magnitude() > 1e-6  # the trapezoid rotates by other angles
+
+
 def test_quat_to_matrix_matches_scipy():
     rng = np.random.default_rng(3)
     for q in Rotation.random(20, random_state=rng).as_quat(scalar_first=True):

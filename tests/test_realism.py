@@ -279,6 +279,28 @@ def test_falling_over_is_tipped_over_even_within_a_loose_tilt_limit():
     assert s["final_tilt_deg"] > s["stability"]["static_tipover_deg"] or s["stability"]["support_margin_m"] < 0.0
 
 
+def test_integrating_gyro_reports_the_rotation_the_simulator_made(flat_terrain):
+    # Under PWM torque pulses the body rate changes every physics step. The realistic gyro reports the
+    # interval's delta-angle as a mean rate: held over the interval it gives the truth rotation (to the
+    # coning of a rotation this small), where the trapezoid of point-sampled rates is off.
+    from scipy.spatial.transform import Rotation
+    cfg = LanderConfig(com_offset_B_m=(0.03, -0.02, 0.0))
+    world = World(flat_terrain, cfg, CameraConfig(width_px=64, height_px=64), SunConfig(), DT_NS, 1.62,
+                  realism="realistic")
+    world.reset(np.array([0.0, 0.0, 300.0]), np.zeros(3), LEVEL, np.array([0.01, -0.02, 0.005]))
+    torque = np.array([150.0, -70.0, 40.0])
+    world.step(5, 5000.0, torque)
+    world.imu_mean_B()  # start a fresh interval
+    q0, w0 = world.truth().q_LB, world.angular_rate_B()
+    world.step(5, 5000.0, torque)
+    _, omega_mean = world.imu_mean_B()
+    q1, w1 = world.truth().q_LB, world.angular_rate_B()
+    turn = (Rotation.from_quat(q0, scalar_first=True).inv() * Rotation.from_quat(q1, scalar_first=True)).as_rotvec()
+    np.testing.assert_allclose(omega_mean * 5 * DT_S, turn, rtol=0, atol=1e-4 * np.linalg.norm(turn))
+    trapezoid = 0.5 * (w0 + w1) * 5 * DT_S
+    assert np.linalg.norm(trapezoid - turn) > 10 * np.linalg.norm(omega_mean * 5 * DT_S - turn)
+
+
 def test_integrating_accelerometer_reports_the_interval_delta_v(flat_terrain):
     # With PWM pulses and a centre-of-mass offset the specific force at the IMU (the body origin) jumps
     # with every pulse (alpha x r); the realistic accelerometer reports its mean over the interval,
@@ -288,14 +310,14 @@ def test_integrating_accelerometer_reports_the_interval_delta_v(flat_terrain):
                   realism="realistic")
     world.reset(np.array([0.0, 0.0, 300.0]), np.zeros(3), LEVEL, np.zeros(3))
     world.step(5, 5000.0, np.array([150.0, -70.0, 0.0]))
-    world.accel_mean_B()  # start a fresh interval
+    world.imu_mean_B()  # start a fresh interval
     v0 = world.truth().v_BL_L
     world.step(5, 5000.0, np.array([150.0, -70.0, 0.0]))
-    mean = world.accel_mean_B()
+    mean, _ = world.imu_mean_B()
     dv_dt = (world.truth().v_BL_L - v0) / (5 * DT_S) - np.array([0.0, 0.0, -1.62])
     # The attitude turns by ~1e-5 rad over the interval: the body-frame mean equals the L-frame one to that.
     np.testing.assert_allclose(mean, dv_dt, rtol=0, atol=1e-4 * np.linalg.norm(dv_dt))
-    assert world.accel_mean_B() is None  # read once per interval
+    assert world.imu_mean_B() is None  # read once per interval
     point = world.specific_force_B()
     assert abs(point[2] - mean[2]) > 1e-3  # a point sample sees the pulse phase (alpha x r along z)
     world.close()

@@ -260,10 +260,11 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
             # Sensors due now (zero-order hold between samples); the filter consumes them.
             t0 = time.perf_counter()
             if t_ns % periods["imu"] == 0:
-                # Realistic: an integrating accelerometer (the mean over its interval); ideal: a point sample.
-                f_B = world.accel_mean_B() if scenario.realism == "realistic" else None
-                imu_msg = sensors.imu.sample(t_ns, world.specific_force_B() if f_B is None else f_B,
-                                             world.angular_rate_B())
+                # Realistic: an integrating IMU (delta-velocity and delta-angle over its interval, as means);
+                # ideal: point samples.
+                means = world.imu_mean_B() if scenario.realism == "realistic" else None
+                f_B, omega_B = means if means is not None else (world.specific_force_B(), world.angular_rate_B())
+                imu_msg = sensors.imu.sample(t_ns, f_B, omega_B)
                 if recorder is not None:
                     recorder.message("imu", imu_msg)
                 fsw.on_imu(imu_msg)

@@ -213,9 +213,10 @@ def test_propellant_budget_is_nominal_need_plus_a_60_s_hover_at_landing_mass():
     hover_flow = landing_mass * sc.sim.gravity_mps2 / (lander.engine.isp_s * G0_MPS2)
     assert reserve == pytest.approx(budget.reserve_hover_s * hover_flow, rel=1e-12)
     assert budget.reserve_hover_s == 60.0 and 40.0 < reserve < 60.0
-    # An explicit load wins; the ideal vehicle keeps its 600 kg.
+    # An explicit load wins; the ideal vehicle keeps its 600 kg; the default (realistic) vehicle flies the budget.
     assert load_scenario(None, ['realism="realistic"', "lander.propellant_kg=300"]).lander.propellant_kg == 300.0
-    assert load_scenario().lander.propellant_kg == 600.0
+    assert load_scenario(None, ['realism="ideal"']).lander.propellant_kg == 600.0
+    assert load_scenario().lander.propellant_kg == lander.propellant_kg
     with pytest.raises(ScenarioError, match="reserve_hover_s"):
         load_scenario(None, ['realism="realistic"', "propellant.reserve_hover_s=5000"])
 

@@ -169,10 +169,10 @@ class Scenario(BaseModel):
     )
     vision: Literal["on", "off"] = Field("on", description="use vision velocity measurements ('off': IMU + altimeter)")
     realism: Literal["realistic", "ideal"] = Field(
-        "ideal",
+        "realistic",
         description="'realistic': engine lag, slew limit, misalignment and centre-of-mass offset, PWM RCS with "
                     "propellant, anisotropic star tracker, compute latency, thrust projected on the body axis and the "
-                    "propellant budget; 'ideal': the idealised vehicle and flight computer (results as before issue 17)",
+                    "propellant budget; 'ideal': the idealised vehicle and flight computer (results as before issue 17; studies may select it)",
     )
     propellant: PropellantBudget = PropellantBudget()
     sim: SimConfig = SimConfig()

@@ -334,8 +334,8 @@ class UpdateRecord:
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:
-    """A read-only copy (records must not change after the fact)."""
-    out = np.array(a, dtype=float)
+    """A read-only float copy (records must not change after the fact)."""
+    out = a.astype(float)  # always a copy
     out.flags.writeable = False
     return out
 
@@ -480,6 +480,7 @@ class NavFilter:
         self._Q_shape = np.zeros((6, 6))
         self._H_vel = np.zeros((3, DIM_X))
         self._H_vel[:, IDX_V] = np.eye(3)
+        self._T_terrain = np.eye(DIM_X)  # the terrain step's transition (_linear_step writes its block)
 
     # ------------------------------------------------------------------ properties
     @property
@@ -571,6 +572,7 @@ class NavFilter:
         dt = dt_ns / NS_PER_S
         eye3 = np.eye(3)
         self._F[IDX_R, IDX_V] = dt * eye3
+        self._bias_coupling = np.repeat([-0.5 * dt * dt, -dt], 3)[:, None]  # (6, 1): rows (r, v) of d/d(b_a), per R_LB
         self.ekf.B = np.vstack([0.5 * dt * dt * eye3, dt * eye3, np.zeros((DIM_X - 6, 3))])
         # Acceleration noise held over one step, per unit PSD: dv = n dt, dr = n dt^2/2, var(n) = PSD/dt.
         shape = np.zeros((DIM_X, DIM_X))
@@ -639,8 +641,7 @@ class NavFilter:
         ekf = self.ekf
         F = self._F
         # d(r, v)/d(b_a) = -R_LB (dt^2 / 2, dt): one block, rows (r, v).
-        a, b = -0.5 * dt * dt, -dt
-        F[IDX_R.start:IDX_V.stop, IDX_BA] = np.array([c * a for c in rows] + [c * b for c in rows]).reshape(6, 3)
+        np.multiply(np.array(rows + rows).reshape(6, 3), self._bias_coupling, out=F[IDX_R.start:IDX_V.stop, IDX_BA])
         ekf.F = F
         # Measured specific force in L plus gravity (the bias enters through F).
         g_x, g_y, g_z = self._g_L_tuple
@@ -787,8 +788,7 @@ class NavFilter:
         k_new = relief_scale(self.cfg, footprint_L, P[:2, :2])
         step = self._terrain_step(footprint_L, k_new)
         if step is not None:
-            x, P = x.copy(), P.copy()
-            _apply_linear_step(x, P, _IDX_TERRAIN, *step, ix=_IX_TERRAIN)
+            x, P = _linear_step(self._T_terrain, x, P, *step)
             prior = (x, P)
         height = p_alt_L[2] + x[IDX_VZ] * lag_s - x[IDX_H]  # altimeter height above the ground [m]
         rho_hat = height / cos_nadir
@@ -1149,16 +1149,18 @@ def matern32_terrain_step(d_xy: np.ndarray, sigma_m: float, length_m: float) -> 
     return F, Q
 
 
-def _apply_linear_step(x: np.ndarray, P: np.ndarray, idx: np.ndarray, F: np.ndarray, Q: np.ndarray,
-                       ix: tuple[np.ndarray, np.ndarray] | None = None) -> None:
-    """``x_i <- F x_i``, ``P <- F P F^T + Q`` on the states ``idx`` (the others unchanged), in place.
+def _linear_step(T: np.ndarray, x: np.ndarray, P: np.ndarray, F: np.ndarray,
+                 Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The terrain states ``(h, dh/dx, dh/dy)`` stepped by ``x_i <- F x_i``, ``P <- F P F^T + Q``; new arrays.
 
-    ``ix``: ``np.ix_(idx, idx)`` when the caller keeps it (it is the same every step).
+    ``T`` is the filter's identity buffer (24, 24); its terrain block becomes ``F``, so
+    ``T x`` and ``T P T^T`` leave every other state as it was (two whole products cost
+    less than the fancy-indexed block updates on a matrix this small; the same numbers).
     """
-    x[idx] = F @ x[idx]
-    P[idx, :] = F @ P[idx, :]
-    P[:, idx] = P[:, idx] @ F.T
-    P[ix if ix is not None else np.ix_(idx, idx)] += Q
+    T[_IX_TERRAIN] = F
+    P = T @ P @ T.T
+    P[_IX_TERRAIN] += Q
+    return T @ x, P
 
 
 # --------------------------------------------------------------------------- factory

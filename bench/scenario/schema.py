@@ -36,6 +36,7 @@ from vision.tracker import TrackerConfig
 from models.camera import CameraConfig
 from models.lander import CONTACT_TIMECONST_S, LanderConfig
 from models.sensors import SensorsConfig
+from models.orbital_map import OrbitalMapConfig
 from models.terrain import TerrainConfig
 from models.sun import SunConfig  # not models.world: a scenario loads without MuJoCo
 
@@ -189,6 +190,11 @@ class Scenario(BaseModel):
     tracker: TrackerConfig = TrackerConfig()
     vision_nav: VisionNavConfig = VisionNavConfig()
     knowledge: KnowledgeConfig = KnowledgeConfig()
+    onboard_map: OrbitalMapConfig = Field(
+        OrbitalMapConfig(),
+        description="the onboard map product for map-relative navigation (orbital sun, resolution, noise, "
+                    "georeferencing error); see bench.maps",
+    )
     dispersions: dict[str, Dispersion] = Field(
         default_factory=dict,
         description="field path -> distribution, drawn per case in Monte Carlo campaigns (a single run flies nominal)",

@@ -109,3 +109,326 @@ class OnboardMap:
         col = (np.asarray(x_m, np.float64) - self.image_origin_xy_m[0]) / self.image_res_m - 0.5
         row = (np.asarray(y_m, np.float64) - self.image_origin_xy_m[1]) / self.image_res_m - 0.5
         return col, row
+
+
+# ------------------------------------------------------------------ the map fix
+import cv2  # noqa: E402  (kept next to its users; the map container above needs only NumPy)
+from pydantic import BaseModel, ConfigDict, Field  # noqa: E402
+
+PARABOLA_EPS = 1e-12  # curvature below this: no sub-pixel step (flat top)
+MAD_TO_SIGMA = 1.4826  # sigma of a Gaussian over its median absolute deviation
+
+
+class MapFixConfig(BaseModel):
+    """Settings of the map fix (flight software: a specification, no truth)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    search_sigmas: float = Field(3.0, gt=0.0, le=10.0, description="half-width of the coarse search window [sigma]")
+    max_ortho_px: int = Field(320, ge=32, le=2048, description="largest side of the orthorectified frame [work px]")
+    template_frac: float = Field(
+        0.7, gt=0.1, le=1.0, description="side of the coarse template as a fraction of the ortho image [-]"
+    )
+    gsd_ratio: float = Field(
+        1.0, gt=0.1, le=4.0,
+        description="work at the coarsest map pyramid level (res * 2^k) not coarser than this many of the frame's "
+                    "ground-sample distances at the boresight [-]",
+    )
+    min_psr: float = Field(4.0, ge=0.0, description="smallest peak-to-sidelobe ratio of the coarse peak [-]")
+    max_sidelobe_ratio: float = Field(
+        0.75, gt=0.0, le=1.0, description="largest ratio of the highest sidelobe to the coarse peak [-]"
+    )
+    min_peak: float = Field(0.3, ge=0.0, le=1.0, description="smallest coarse correlation peak [-]")
+    patch_grid: int = Field(7, ge=3, le=12, description="patches per side of the fine grid (grid^2 patches) [-]")
+    patch_search_px: int = Field(3, ge=1, le=16, description="fine search half-width around the coarse offset [work px]")
+    min_patch_corr: float = Field(0.5, gt=0.0, le=1.0, description="smallest fine correlation peak of a patch [-]")
+    min_patch_std_dn: float = Field(2.0, ge=0.0, description="smallest DN standard deviation of a patch (texture) [DN]")
+    outlier_mad_k: float = Field(3.0, gt=0.0, description="reject patches beyond this many robust sigmas [-]")
+    min_inliers: int = Field(12, ge=4, description="fewest inlier patches for a fix [-]")
+    subpixel_floor_px: float = Field(0.05, ge=0.0, description="floor of the fix's 1-sigma per axis [work px]")
+    common_mode_sigma_px: float = Field(
+        0.25, ge=0.0,
+        description="error common to all patches that their scatter cannot show (the frame's and the map's "
+                    "different illumination, the map's blur), 1-sigma per axis [work px]; a budget, to be "
+                    "calibrated in closed-loop campaigns",
+    )
+
+
+@dataclass(frozen=True)
+class MapFix:
+    """One map fix, or a refusal.
+
+    Attributes:
+        ok: Whether the fix was accepted.
+        reason: Why it was refused ("" when accepted).
+        r_CM_xy_m: Measured horizontal camera position in the map frame M (2,) [m] (NaN when refused).
+        cov_xy_m2: Its covariance (2, 2) [m^2] (NaN when refused).
+        offset_xy_m: Measured minus estimated camera position (2,) [m] (NaN when the coarse peak was refused).
+        psr: Peak-to-sidelobe ratio of the coarse peak [-].
+        sidelobe_ratio: Highest sidelobe over the coarse peak [-].
+        peak: Coarse correlation peak [-].
+        n_patches: Patches matched; n_inliers: kept after outlier rejection.
+        scale: Fitted scale of the patch offsets about the nadir point [-] (an altitude error shows here).
+        work_res_m: Resolution the fix worked at [m/px].
+    """
+
+    ok: bool
+    reason: str
+    r_CM_xy_m: np.ndarray
+    cov_xy_m2: np.ndarray
+    offset_xy_m: np.ndarray
+    psr: float = float("nan")
+    sidelobe_ratio: float = float("nan")
+    peak: float = float("nan")
+    n_patches: int = 0
+    n_inliers: int = 0
+    scale: float = float("nan")
+    work_res_m: float = float("nan")
+
+
+def _nan2() -> np.ndarray:
+    return np.full(2, np.nan)
+
+
+def _parabola_peak(left: float, centre: float, right: float) -> float:
+    """Sub-pixel offset of the vertex of the parabola through three samples at -1, 0, 1 [px] (within +-0.5)."""
+    curv = left - 2.0 * centre + right
+    if curv >= -PARABOLA_EPS:
+        return 0.0
+    return float(np.clip(0.5 * (left - right) / curv, -0.5, 0.5))
+
+
+def _subpixel_peak(c: np.ndarray, row: int, col: int) -> tuple[float, float]:
+    """(row, col) of the peak of a correlation surface refined by a parabola on each axis."""
+    dr = _parabola_peak(c[row - 1, col], c[row, col], c[row + 1, col]) if 0 < row < c.shape[0] - 1 else 0.0
+    dc = _parabola_peak(c[row, col - 1], c[row, col], c[row, col + 1]) if 0 < col < c.shape[1] - 1 else 0.0
+    return row + dr, col + dc
+
+
+def peak_to_sidelobe(c: np.ndarray) -> tuple[int, int, float, float, float]:
+    """The peak of a correlation surface and how clearly it stands out.
+
+    The main lobe is the connected region above half the peak that holds it,
+    grown by 2 px; the sidelobes are everything else.
+
+    Args:
+        c: (h, w) float32 correlation surface.
+
+    Returns:
+        (peak row, peak column, peak value, PSR = (peak - mean sidelobe) / std sidelobe,
+        highest sidelobe / peak). PSR is 0 and the ratio 1 when too few sidelobe samples remain.
+    """
+    _, peak, _, (col, row) = cv2.minMaxLoc(c)
+    above = (c > 0.5 * peak).astype(np.uint8)
+    _, labels = cv2.connectedComponents(above, connectivity=8)
+    lobe = (labels == labels[row, col]).astype(np.uint8)
+    lobe = cv2.dilate(lobe, np.ones((5, 5), np.uint8))
+    side = c[lobe == 0]
+    if side.size < 16 or peak <= 0:
+        return row, col, float(peak), 0.0, 1.0
+    psr = (peak - float(side.mean())) / max(float(side.std()), 1e-6)
+    return row, col, float(peak), float(psr), float(side.max()) / float(peak)
+
+
+class MapMatcher:
+    """Map fixes of camera frames against one onboard map (see the module's docstring).
+
+    Holds the map's image pyramid (built once, level k at ``res * 2^k``).
+
+    Args:
+        onboard_map: The map.
+        cfg: Settings.
+    """
+
+    def __init__(self, onboard_map: OnboardMap, cfg: MapFixConfig | None = None) -> None:
+        self.map = onboard_map
+        self.cfg = cfg if cfg is not None else MapFixConfig()
+        self._levels: list[np.ndarray] = [onboard_map.image.astype(np.float32)]
+
+    def _level(self, k: int) -> np.ndarray:
+        while len(self._levels) <= k:
+            prev = self._levels[-1]
+            h, w = prev.shape[0] // 2, prev.shape[1] // 2
+            self._levels.append(cv2.resize(prev[:2 * h, :2 * w], (w, h), interpolation=cv2.INTER_AREA))
+        return self._levels[k]
+
+    def orthorectify(self, frame: np.ndarray, K: np.ndarray, R_LC: np.ndarray, r_CL_L: np.ndarray,
+                     res_m: float, rows: np.ndarray, cols: np.ndarray, prefilter_px: float) -> np.ndarray:
+        """The frame sampled at map points (work-level pixel centres, heights from the map DEM).
+
+        Args:
+            frame: (H, W) uint8 or float image.
+            K: (3, 3) intrinsics [px].
+            R_LC: (3, 3) camera-to-L rotation (estimated).
+            r_CL_L: (3,) camera position in L (estimated) [m].
+            res_m: Work-level pixel size [m].
+            rows, cols: 1-D work-level pixel indices of the grid (row i is y = y0 + (i + 0.5) res).
+            prefilter_px: Gaussian sigma applied to the frame first (anti-aliasing) [frame px].
+
+        Returns:
+            (len(rows), len(cols)) float32; NaN where the point falls outside the frame or behind the camera.
+        """
+        x0, y0 = self.map.image_origin_xy_m
+        xs = x0 + (cols + 0.5) * res_m
+        ys = y0 + (rows + 0.5) * res_m
+        X, Y = np.meshgrid(xs, ys)
+        Z = self.map.dem_height(X, Y)
+        d = np.stack([X - r_CL_L[0], Y - r_CL_L[1], Z - r_CL_L[2]], axis=-1) @ R_LC  # rows: R_CL (P - r_C)
+        z = d[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = K[0, 0] * d[..., 0] / z + K[0, 2]
+            v = K[1, 1] * d[..., 1] / z + K[1, 2]
+        h, w = frame.shape
+        bad = ~((z > 0) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1))
+        img = frame.astype(np.float32)
+        if prefilter_px > 0.3:
+            img = cv2.GaussianBlur(img, (0, 0), prefilter_px)
+        u = np.where(bad, -10.0, u).astype(np.float32)
+        v = np.where(bad, -10.0, v).astype(np.float32)
+        ortho = cv2.remap(img, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+        ortho[bad] = np.nan
+        return ortho
+
+    def fix(self, frame: np.ndarray, K: np.ndarray, R_LC: np.ndarray, r_CL_L: np.ndarray,
+            sigma_xy_m: float, sigma_att_rad: float = 0.0) -> MapFix:
+        """One map fix.
+
+        Args:
+            frame: (H, W) uint8 camera frame.
+            K: (3, 3) camera intrinsics [px].
+            R_LC: (3, 3) estimated camera-to-L rotation.
+            r_CL_L: (3,) estimated camera position in L [m].
+            sigma_xy_m: 1-sigma of the horizontal position prior, per axis [m] (sets the search window).
+            sigma_att_rad: 1-sigma of the attitude estimate per axis [rad] (enters the covariance).
+
+        Returns:
+            The fix, or a refusal naming its reason.
+        """
+        cfg, m = self.cfg, self.map
+        r_C = np.asarray(r_CL_L, np.float64)
+        R_LC = np.asarray(R_LC, np.float64)
+        # Ground point of the boresight (fixed point on the DEM) and the height above it.
+        b = R_LC[:, 2]
+        if b[2] > -0.2:
+            return MapFix(False, "camera not looking down", _nan2(), np.full((2, 2), np.nan), _nan2())
+        ground_z = float(m.dem_height(r_C[0], r_C[1]))
+        for _ in range(4):
+            t = (ground_z - r_C[2]) / b[2]
+            g = r_C + t * b
+            ground_z = float(m.dem_height(g[0], g[1]))
+        height = r_C[2] - float(m.dem_height(r_C[0], r_C[1]))
+        slant = (ground_z - r_C[2]) / b[2]
+        if not (height > 0 and slant > 0):
+            return MapFix(False, "camera below the map's ground", _nan2(), np.full((2, 2), np.nan), _nan2())
+        gsd = slant / K[0, 0]
+        level = 0
+        while m.image_res_m * 2 ** (level + 1) <= cfg.gsd_ratio * gsd and level < 6:
+            level += 1
+        res = m.image_res_m * 2**level
+        img = self._level(level)
+        prefilter = 0.5 * res / gsd if res > gsd else 0.0
+        footprint_px = int(min(cfg.max_ortho_px, 0.9 * min(frame.shape) * gsd / res))
+        if footprint_px < 24:
+            return MapFix(False, "footprint too small at the map's resolution", _nan2(),
+                          np.full((2, 2), np.nan), _nan2(), work_res_m=res)
+        x0, y0 = m.image_origin_xy_m
+        gc, gr = (g[0] - x0) / res - 0.5, (g[1] - y0) / res - 0.5
+        c0, r0 = int(round(gc - footprint_px / 2)), int(round(gr - footprint_px / 2))
+        rows, cols = np.arange(r0, r0 + footprint_px), np.arange(c0, c0 + footprint_px)
+        ortho = self.orthorectify(frame, K, R_LC, r_C, res, rows, cols, prefilter)
+        # Coarse template: the central square, shrunk until it lies wholly inside the frame.
+        side = int(cfg.template_frac * footprint_px)
+        while side >= 24:
+            a = (footprint_px - side) // 2
+            tmpl = ortho[a:a + side, a:a + side]
+            if not np.isnan(tmpl).any():
+                break
+            side = int(side * 0.9)
+        else:
+            return MapFix(False, "too little of the frame on the map grid", _nan2(), np.full((2, 2), np.nan),
+                          _nan2(), work_res_m=res)
+        win = int(math.ceil(cfg.search_sigmas * sigma_xy_m / res)) + 1
+        tr, tc = r0 + a, c0 + a  # map-level pixel of the template's top-left at zero offset
+        # The window, clipped to the map (a peak on a clipped edge is refused like one on the window's edge).
+        lo_r, lo_c = max(tr - win, 0), max(tc - win, 0)
+        hi_r, hi_c = min(tr + side + win, img.shape[0]), min(tc + side + win, img.shape[1])
+        if hi_r - lo_r < side + 2 or hi_c - lo_c < side + 2:
+            return MapFix(False, "search window leaves the map", _nan2(), np.full((2, 2), np.nan), _nan2(),
+                          work_res_m=res)
+        corr = cv2.matchTemplate(img[lo_r:hi_r, lo_c:hi_c], tmpl, cv2.TM_CCOEFF_NORMED)
+        prow, pcol, peak, psr, sidelobe = peak_to_sidelobe(corr)
+        diag = dict(psr=psr, sidelobe_ratio=sidelobe, peak=peak, work_res_m=res)
+        if peak < cfg.min_peak or psr < cfg.min_psr or sidelobe > cfg.max_sidelobe_ratio:
+            return MapFix(False, "coarse peak not clear of its sidelobes", _nan2(), np.full((2, 2), np.nan),
+                          _nan2(), **diag)
+        if prow in (0, corr.shape[0] - 1) or pcol in (0, corr.shape[1] - 1):
+            return MapFix(False, "coarse peak on the search window's edge", _nan2(), np.full((2, 2), np.nan),
+                          _nan2(), **diag)
+        srow, scol = _subpixel_peak(corr, prow, pcol)
+        d0r, d0c = int(round(srow + lo_r - tr)), int(round(scol + lo_c - tc))
+        # Fine: a grid of patches over the template, each searched around the coarse offset.
+        g_n, s = cfg.patch_grid, cfg.patch_search_px
+        patch = max(9, side // g_n)
+        starts = np.linspace(0, side - patch, g_n).round().astype(int)
+        offs, centres, grid_ij = [], [], []
+        for i, pr in enumerate(starts):
+            for j, pc in enumerate(starts):
+                p = tmpl[pr:pr + patch, pc:pc + patch]
+                if float(p.std()) < cfg.min_patch_std_dn:
+                    continue
+                mr, mc = tr + pr + d0r - s, tc + pc + d0c - s
+                if mr < 0 or mc < 0 or mr + patch + 2 * s > img.shape[0] or mc + patch + 2 * s > img.shape[1]:
+                    continue
+                cc = cv2.matchTemplate(img[mr:mr + patch + 2 * s, mc:mc + patch + 2 * s], p, cv2.TM_CCOEFF_NORMED)
+                _, pk, _, (qc, qr) = cv2.minMaxLoc(cc)
+                if pk < cfg.min_patch_corr or qr in (0, 2 * s) or qc in (0, 2 * s):
+                    continue
+                fr, fc = _subpixel_peak(cc, qr, qc)
+                offs.append((fc - s + d0c, fr - s + d0r))  # (x, y) offset [work px]
+                centres.append((x0 + (tc + pc + patch / 2) * res, y0 + (tr + pr + patch / 2) * res))
+                grid_ij.append((i, j))
+        n_patches = len(offs)
+        if n_patches < cfg.min_inliers:
+            return MapFix(False, "too few textured patches matched", _nan2(), np.full((2, 2), np.nan), _nan2(),
+                          n_patches=n_patches, **diag)
+        d = np.asarray(offs) * res  # [m]
+        rel = np.asarray(centres) - r_C[:2]  # patch centre relative to the nadir point [m]
+        ij = np.asarray(grid_ij)
+        # Robust fit d_i = t + s * rel_i (translation at the nadir point + scale), MAD rejection, iterated.
+        keep = np.ones(n_patches, bool)
+        for _ in range(4):
+            A = np.zeros((2 * keep.sum(), 3))
+            A[0::2, 0] = 1.0
+            A[1::2, 1] = 1.0
+            A[:, 2] = rel[keep].ravel()
+            sol = np.linalg.lstsq(A, d[keep].ravel(), rcond=None)[0]
+            resid = d - sol[:2] - sol[2] * rel
+            rn = np.hypot(resid[:, 0], resid[:, 1])
+            sig = max(MAD_TO_SIGMA * float(np.median(rn[keep])), cfg.subpixel_floor_px * res)
+            new = rn <= cfg.outlier_mad_k * sig
+            if np.array_equal(new, keep) or new.sum() < cfg.min_inliers:
+                break
+            keep = new
+        n_in = int(keep.sum())
+        if n_in < cfg.min_inliers:
+            return MapFix(False, "too few inlier patches", _nan2(), np.full((2, 2), np.nan), _nan2(),
+                          n_patches=n_patches, n_inliers=n_in, **diag)
+        t, scale = sol[:2], float(sol[2])
+        r_in = resid[keep]
+        var = (r_in**2).sum(axis=0) / max(n_in - 2, 1)  # per-axis scatter [m^2]
+        # Neighbouring patches err together: correlation of grid neighbours' residuals inflates the variance.
+        pos = {tuple(p): k for k, p in enumerate(ij[keep])}
+        prod, pairs = np.zeros(2), 0
+        for (i, j), k in pos.items():
+            for nb in ((i + 1, j), (i, j + 1)):
+                if nb in pos:
+                    prod += r_in[k] * r_in[pos[nb]]
+                    pairs += 1
+        rho = np.clip(prod / (pairs * np.maximum(var, 1e-18)), 0.0, 0.95) if pairs else np.zeros(2)
+        vif = 1.0 + 2.0 * rho * pairs / n_in
+        var_t = var * vif / n_in + (cfg.subpixel_floor_px * res) ** 2 + (cfg.common_mode_sigma_px * res) ** 2
+        # Attitude error moves the whole ortho image by height * angle; map DEM error by its view angle.
+        tan_view = float(np.mean(np.hypot(rel[keep, 0], rel[keep, 1]))) / height
+        var_t = var_t + (sigma_att_rad * height) ** 2 + (m.dem_sigma_m * tan_view) ** 2 * vif / n_in
+        return MapFix(True, "", r_C[:2] + t, np.diag(var_t), t, n_patches=n_patches, n_inliers=n_in,
+                      scale=scale, **diag)

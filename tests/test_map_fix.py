@@ -11,10 +11,10 @@ import math
 
 import numpy as np
 import pytest
-import scipy.ndimage
 from scipy.spatial.transform import Rotation
 
 from bench.maps import onboard_map_from_product
+from bench.maps.synthetic import render_map_frame
 from bench.scenario.seeding import component_rng
 from gnc.map_nav import MapFixConfig, MapMatcher, OnboardMap, peak_to_sidelobe
 from models.orbital_map import OrbitalMapConfig, render_orbital_map
@@ -37,21 +37,7 @@ def onboard() -> OnboardMap:
 
 def render_frame(m: OnboardMap, r_C: np.ndarray, R_LC: np.ndarray, rng: np.random.Generator,
                  ground: np.ndarray | None = None, noise_dn: float = 2.0) -> np.ndarray:
-    """A camera frame of the map's ground (or of ``ground``, an image on the map's grid) seen from a true pose."""
-    img = (m.image if ground is None else ground).astype(np.float64)
-    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
-    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1) @ R_LC.T
-    z = np.zeros_like(u)
-    for _ in range(30):  # fixed point: the ray meets the DEM where its height is the DEM's
-        t = (z - r_C[2]) / rays[..., 2]
-        x, y = r_C[0] + t * rays[..., 0], r_C[1] + t * rays[..., 1]
-        rows = (y - m.dem_origin_xy_m[1]) / m.dem_spacing_m
-        cols = (x - m.dem_origin_xy_m[0]) / m.dem_spacing_m
-        z = scipy.ndimage.map_coordinates(m.dem_m.astype(np.float64), [rows, cols], order=1, mode="nearest")
-    col, row = m.pixel_of(x, y)
-    frame = scipy.ndimage.map_coordinates(img, [row, col], order=3, mode="nearest")
-    frame += noise_dn * rng.standard_normal(frame.shape)
-    return np.clip(np.rint(frame), 0, 255).astype(np.uint8)
+    return render_map_frame(m, K, r_C, R_LC, rng, (H, W), ground, noise_dn)
 
 
 def attitude(roll_deg: float = 0.0, pitch_deg: float = 0.0, yaw_deg: float = 0.0) -> np.ndarray:

@@ -115,6 +115,18 @@ class OnboardMap:
 import cv2  # noqa: E402  (kept next to its users; the map container above needs only NumPy)
 from pydantic import BaseModel, ConfigDict, Field  # noqa: E402
 
+# Why a fix is refused: MapFix.reason, and its identifier for summaries (MapNavStats.refused).
+REFUSALS = {
+    "camera not looking down": "not_looking_down",
+    "camera below the map's ground": "below_map_ground",
+    "footprint too small at the map's resolution": "footprint_too_small",
+    "too little of the frame on the map grid": "frame_off_map",
+    "search window leaves the map": "window_off_map",
+    "coarse peak not clear of its sidelobes": "peak_not_clear",
+    "coarse peak on the search window's edge": "peak_on_window_edge",
+    "too few textured patches matched": "few_patches",
+    "too few inlier patches": "few_inliers",
+}
 PARABOLA_EPS = 1e-12  # curvature below this: no sub-pixel step (flat top)
 MAD_TO_SIGMA = 1.4826  # sigma of a Gaussian over its median absolute deviation
 
@@ -125,12 +137,17 @@ class MapFixConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     search_sigmas: float = Field(3.0, gt=0.0, le=10.0, description="half-width of the coarse search window [sigma]")
+    min_search_px: int = Field(
+        12, ge=2, le=256,
+        description="smallest half-width of the coarse search window [work px]: a tight prior still leaves the "
+                    "correlation surface enough sidelobes to judge the peak by",
+    )
     max_ortho_px: int = Field(320, ge=32, le=2048, description="largest side of the orthorectified frame [work px]")
     template_frac: float = Field(
         0.7, gt=0.1, le=1.0, description="side of the coarse template as a fraction of the ortho image [-]"
     )
     gsd_ratio: float = Field(
-        1.0, gt=0.1, le=4.0,
+        1.25, gt=0.1, le=4.0,
         description="work at the coarsest map pyramid level (res * 2^k) not coarser than this many of the frame's "
                     "ground-sample distances at the boresight [-]",
     )
@@ -347,7 +364,7 @@ class MapMatcher:
         else:
             return MapFix(False, "too little of the frame on the map grid", _nan2(), np.full((2, 2), np.nan),
                           _nan2(), work_res_m=res)
-        win = int(math.ceil(cfg.search_sigmas * sigma_xy_m / res)) + 1
+        win = max(int(math.ceil(cfg.search_sigmas * sigma_xy_m / res)) + 1, cfg.min_search_px)
         tr, tc = r0 + a, c0 + a  # map-level pixel of the template's top-left at zero offset
         # The window, clipped to the map (a peak on a clipped edge is refused like one on the window's edge).
         lo_r, lo_c = max(tr - win, 0), max(tc - win, 0)
@@ -432,3 +449,136 @@ class MapMatcher:
         var_t = var_t + (sigma_att_rad * height) ** 2 + (m.dem_sigma_m * tan_view) ** 2 * vif / n_in
         return MapFix(True, "", r_C[:2] + t, np.diag(var_t), t, n_patches=n_patches, n_inliers=n_in,
                       scale=scale, **diag)
+
+
+# ------------------------------------------------------------------ map navigation in flight
+NS_PER_S = 1_000_000_000
+ARCSEC_TO_RAD = math.pi / (180.0 * 3600.0)
+
+
+class MapNavConfig(BaseModel):
+    """When the flight software takes map fixes, and how a first fix must be confirmed."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    period_ns: int = Field(1_000_000_000, gt=0, description="time between map fixes [ns] (default 1 Hz)")
+    max_altitude_m: float = Field(600.0, gt=0.0, description="no fixes above this estimated height [m]")
+    min_altitude_m: float = Field(50.0, ge=0.0, description="no fixes below this estimated height [m]")
+    confirm_sigmas: float = Field(
+        3.0, gt=0.0,
+        description="before the first fix is used, two consecutive fixes' offsets must agree to this many "
+                    "sigmas of their difference [-]",
+    )
+    confirm_drift_m: float = Field(
+        1.0, ge=0.0,
+        description="1-sigma per axis of the filter's own drift between two fixes, added to the difference's "
+                    "covariance in the confirmation [m]",
+    )
+    fix: MapFixConfig = MapFixConfig()
+
+
+@dataclass
+class MapNavStats:
+    """Map-fix bookkeeping (flight side): every attempt, its outcome and the filter's verdict."""
+
+    attempts: int = 0
+    refused: dict[str, int] = None  # type: ignore[assignment]
+    unconfirmed: int = 0  # accepted by the matcher, waiting for or failing the consecutive-frame check
+    updates: int = 0  # handed to the filter
+    gate_rejected: int = 0
+    locked: bool = False
+    log: list = None  # type: ignore[assignment]  # (t_ns, MapFix, used: bool, gate_accepted: bool | None)
+
+    def __post_init__(self) -> None:
+        self.refused = dict.fromkeys(REFUSALS.values(), 0) if self.refused is None else self.refused
+        self.log = [] if self.log is None else self.log
+
+
+class MapNavigator:
+    """Map-relative position fixes for the navigation filter (flight software).
+
+    Ports:
+        Input: camera frames (the caller asks :meth:`wants_frame` first), the filter's
+            state, covariance and attitude, and the camera calibration.
+        Output: horizontal position updates of the filter (``update_map_position``), through
+            its chi-square gate, and :class:`MapNavStats`.
+        Rate: ``period_ns`` (default 1 Hz) while the estimated height is within
+            [``min_altitude_m``, ``max_altitude_m``].
+
+    A first fix is used only when the next one agrees with it (their offsets from the
+    filter's estimate differ by at most ``confirm_sigmas`` of the difference's sigma): one
+    fix alone may be a false lock. Once locked, every fix goes to the filter's gate.
+
+    Args:
+        onboard_map: The map.
+        cfg: Settings.
+        K: Camera intrinsics (3, 3) [px]; R_BC: camera-to-body rotation; r_cam_B_m: camera position in B [m].
+    """
+
+    def __init__(self, onboard_map: OnboardMap, cfg: MapNavConfig, K: np.ndarray, R_BC: np.ndarray,
+                 r_cam_B_m: np.ndarray) -> None:
+        self.cfg = cfg
+        self.matcher = MapMatcher(onboard_map, cfg.fix)
+        self.K = np.asarray(K, float)
+        self.R_BC = np.asarray(R_BC, float)
+        self.r_cam_B = np.asarray(r_cam_B_m, float)
+        self.stats = MapNavStats()
+        self._last_t_ns: int | None = None
+        self._pending: tuple[np.ndarray, np.ndarray] | None = None  # (offset, covariance) awaiting confirmation
+
+    def wants_frame(self, t_ns: int, height_m: float) -> bool:
+        """Would :meth:`on_frame` take a fix now?"""
+        if not (self.cfg.min_altitude_m <= height_m <= self.cfg.max_altitude_m):
+            return False
+        return self._last_t_ns is None or t_ns - self._last_t_ns >= self.cfg.period_ns
+
+    def on_frame(self, t_ns: int, frame: np.ndarray, nav_filter) -> MapFix | None:
+        """Take a map fix from the frame and update the filter with it (see the class docstring).
+
+        Args:
+            t_ns: The frame's time [ns].
+            frame: (H, W) uint8.
+            nav_filter: The :class:`gnc.estimator.NavFilter` (its state, covariance and attitude).
+
+        Returns:
+            The fix (accepted or refused), or None when no fix was due or no attitude is known yet.
+        """
+        from gnc.estimator import quat_to_matrix  # gnc-internal; here to keep the matcher importable alone
+
+        x = nav_filter.ekf.x
+        if not self.wants_frame(t_ns, float(x[2])) or nav_filter.q_LB is None:
+            return None
+        self._last_t_ns = t_ns
+        P = nav_filter.ekf.P
+        R_LB = quat_to_matrix(nav_filter.q_LB)
+        lag_s = (t_ns - nav_filter.time_ns) / NS_PER_S
+        lever = R_LB @ self.r_cam_B
+        r_C = x[0:3] + x[3:6] * lag_s + lever
+        sigma_xy = math.sqrt(max(float(np.linalg.eigvalsh(P[0:2, 0:2])[-1]), 0.0))
+        sigma_att = nav_filter.cfg.attitude_sigma_arcsec * ARCSEC_TO_RAD
+        self.stats.attempts += 1
+        fix = self.matcher.fix(frame, self.K, R_LB @ self.R_BC, r_C, sigma_xy, sigma_att)
+        if not fix.ok:
+            key = REFUSALS[fix.reason]
+            self.stats.refused[key] = self.stats.refused.get(key, 0) + 1
+            self._pending = None
+            self.stats.log.append((t_ns, fix, False, None))
+            return fix
+        if not self.stats.locked:
+            pending, self._pending = self._pending, (fix.offset_xy_m.copy(), fix.cov_xy_m2.copy())
+            if pending is None:
+                self.stats.unconfirmed += 1
+                self.stats.log.append((t_ns, fix, False, None))
+                return fix
+            d = fix.offset_xy_m - pending[0]
+            S = fix.cov_xy_m2 + pending[1] + np.eye(2) * self.cfg.confirm_drift_m**2
+            if not float(d @ np.linalg.solve(S, d)) <= self.cfg.confirm_sigmas**2:
+                self.stats.unconfirmed += 1
+                self.stats.log.append((t_ns, fix, False, None))
+                return fix
+            self.stats.locked = True
+        rec = nav_filter.update_map_position(t_ns, fix.r_CM_xy_m, fix.cov_xy_m2, lever[:2])
+        self.stats.updates += 1
+        self.stats.gate_rejected += int(not rec.accepted)
+        self.stats.log.append((t_ns, fix, True, bool(rec.accepted)))
+        return fix

@@ -129,3 +129,6 @@ def test_default_landing_with_map_navigation_lands_on_the_map_target():
     assert m["false_locks"] == 0 and m["updates"] >= 10
     assert m["miss_vs_map_target_m"] < 3.0
     assert m["fix_err_max_m"] < 1.5
+    # Navigation errors are taken in the map frame: the same figure both ways.
+    assert res.summary["nav"]["pos_err_touchdown_m"] < 3.0
+    assert m["nav_err_map_frame_touchdown_m"] <= res.summary["nav"]["pos_err_touchdown_m"] + 1e-9

@@ -232,6 +232,9 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
     fsw = build_flight_software(scenario, *handover_estimate(scenario, world.truth()),
                                 onboard_map=maps[0] if maps is not None else None)
     map_truth_log: list[tuple[int, np.ndarray]] = []  # (t_ns, truth camera position) at each map-fix attempt
+    # With map fixes the flight software navigates in the map's frame: its errors are taken against the truth
+    # there (truth + the map's shift). Without them, against the truth in L.
+    nav_offset_L = np.array([*maps[1].shift_xy_m, 0.0]) if maps is not None else None
     tracker_truth = (TruthTracker(terrain, world.K, (cam.width_px, cam.height_px), TRUTH_TRACK_POINTS,
                                   component_rng(scenario.seed, "vision")) if truth_tracks else None)
     thrust_max = scenario.lander.engine.thrust_max_N
@@ -334,7 +337,7 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                 tel.rows.append(_row(t_ns, truth, act, fsw.last_guidance, legs, imu_msg, alt_msg, st_msg, thrust_max,
                                      world.propulsion.delivered_thrust_N(applied.thrust_N),
                                      PHASE_TOUCHDOWN if touchdown is not None else fsw.last_guidance.phase,
-                                     fsw, sensors.imu.accel_bias, applied, tel))
+                                     fsw, sensors.imu.accel_bias, applied, tel, nav_offset_L))
             # End conditions.
             if touchdown_ns is not None and t_ns - touchdown_ns >= settle_ns:
                 break
@@ -439,8 +442,8 @@ def _map_nav_summary(fsw: FlightSoftware, map_truth: Any, truth_log: list[tuple[
         t = tel["t_s"]
         flying = t < touchdown["t_s"] if touchdown is not None else np.ones(t.size, bool)
         k = int(np.flatnonzero(flying)[-1]) if flying.any() else 0
-        e = np.array([tel["nav_err_r_x_m"][k], tel["nav_err_r_y_m"][k]]) - shift
-        out["nav_err_map_frame_touchdown_m"] = float(np.hypot(*e))
+        # The telemetry's navigation errors are already against the truth in the map frame.
+        out["nav_err_map_frame_touchdown_m"] = float(np.hypot(tel["nav_err_r_x_m"][k], tel["nav_err_r_y_m"][k]))
     return out
 
 
@@ -572,11 +575,16 @@ def _classify(touchdown: dict | None, exhausted_ns: int | None, touchdown_ns: in
 
 
 def _row(t_ns, truth, act, cmd, legs, imu, alt, st, thrust_max, thrust_delivered, phase, fsw, accel_bias_B,
-         applied, tel: _Telemetry) -> tuple:
-    """One tick's ``_Telemetry.ROW_COLUMNS``; its NEES error and covariance block go to ``tel``."""
+         applied, tel: _Telemetry, nav_offset_L: np.ndarray | None = None) -> tuple:
+    """One tick's ``_Telemetry.ROW_COLUMNS``; its NEES error and covariance block go to ``tel``.
+
+    ``nav_offset_L``: where the flight software's navigation frame puts the truth, minus the truth (the
+    map's shift with map fixes); None: its frame is L.
+    """
     nan3 = (math.nan,) * 3
     x, P = fsw.filter.ekf.x, fsw.filter.ekf.P
-    e = np.concatenate([x[IDX_R] - truth.r_BL_L, x[IDX_V] - truth.v_BL_L, x[IDX_BA] - accel_bias_B])
+    r_ref = truth.r_BL_L if nav_offset_L is None else truth.r_BL_L + nav_offset_L
+    e = np.concatenate([x[IDX_R] - r_ref, x[IDX_V] - truth.v_BL_L, x[IDX_BA] - accel_bias_B])
     sig = np.sqrt(np.diag(P)[:6])  # position then velocity
     tel.nees_e.append(e)
     tel.nees_P.append(P[:9, :9].copy())

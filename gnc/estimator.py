@@ -182,6 +182,7 @@ _VISION_CONSIDER = np.array([IDX_RZ, IDX_VZ, IDX_BA.start + 2, IDX_H, IDX_C.star
 KIND_ALTIMETER = "altimeter"
 KIND_VELOCITY = "velocity"
 KIND_VISION = "vision"
+KIND_MAP = "map"  # map-relative position fixes (gnc.map_nav); counted only once one is made
 # Why an update was not applied (UpdateRecord.reason); "" when accepted.
 REASON_GATE = "gate"
 REASON_NONFINITE = "nonfinite"
@@ -863,6 +864,37 @@ class NavFilter:
         R, lag_ns = checked
         hx = (self.ekf.x[IDX_V] + self._a_L * (lag_ns / NS_PER_S))[idx]
         return self._gated_update(int(t_ns), KIND_VELOCITY, z, hx, self._H_vel[idx], R)
+
+    def update_map_position(self, t_ns: int, z_xy_m: np.ndarray, R: np.ndarray,
+                            lever_xy_m: np.ndarray) -> UpdateRecord:
+        """Horizontal position update from a map fix (kind ``"map"``, chi-square gated like every update).
+
+        Args:
+            t_ns: Time of validity [ns].
+            z_xy_m: Measured horizontal position of a point on the body (the camera) in the map frame, (2,) [m].
+            R: Its covariance, (2, 2) [m^2].
+            lever_xy_m: Horizontal offset of that point from the body origin, in L, (2,) [m].
+
+        Returns:
+            The update's record (the state is unchanged unless accepted).
+        """
+        self.counters.setdefault(KIND_MAP, {"accepted": 0, "rejected": 0, "invalid": 0})
+        self.consecutive_rejections.setdefault(KIND_MAP, 0)
+        z = np.asarray(z_xy_m, dtype=float)
+        R = np.asarray(R, dtype=float)
+        if z.shape != (2,) or R.shape != (2, 2):
+            raise ValueError(f"update_map_position: z {z.shape}, R {R.shape}; expected (2,) and (2, 2)")
+        if not (np.all(np.isfinite(z)) and np.all(np.isfinite(R))):
+            return self._not_applied(t_ns, KIND_MAP, z, REASON_NONFINITE, "invalid")
+        checked = self._checked_noise_and_lag(t_ns, KIND_MAP, z, R)
+        if isinstance(checked, UpdateRecord):
+            return checked
+        R, lag_ns = checked
+        x = self.ekf.x
+        hx = x[0:2] + x[3:5] * (lag_ns / NS_PER_S) + np.asarray(lever_xy_m, dtype=float)
+        H = np.zeros((2, DIM_X))
+        H[0, 0] = H[1, 1] = 1.0
+        return self._gated_update(int(t_ns), KIND_MAP, z, hx, H, R)
 
     def clone_frame(self, t_ns: int) -> bool:
         """Clone the state of a camera frame at ``t_ns``: its position and its image offset.

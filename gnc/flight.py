@@ -39,6 +39,7 @@ import numpy as np
 from gnc.control import ActuatorCommand, Controller, VehicleParams
 from gnc.estimator import IDX_C, IDX_G, IDX_R, IDX_SV, IDX_V, NavFilter, UpdateRecord, quat_to_matrix
 from gnc.guidance import GuidanceCommand, GuidanceLaw, LandingTarget
+from gnc.map_nav import MapNavigator
 from gnc.messages import AltimeterMessage, AttitudeMessage, ContactMessage, ImageMessage, ImuMessage
 from gnc.navstate import NavState
 from gnc.vision_nav import VisionMeasurement, VisionNavConfig, vision_measurement
@@ -135,11 +136,12 @@ class FlightSoftware:
         vision_enabled: Use vision measurements at all.
         knowledge: The onboard knowledge of the vehicle. (The gyro's specification,
             for the relative rotation's uncertainty, is the filter's configuration.)
+        map_nav: Map-relative position fixes (``nav_map = "on"``), or None.
     """
 
     def __init__(self, guidance: GuidanceLaw, controller: Controller, nav_filter: NavFilter,
                  tracker: Tracker | None, vision_cfg: VisionNavConfig, vision_enabled: bool,
-                 knowledge: OnboardKnowledge):
+                 knowledge: OnboardKnowledge, map_nav: MapNavigator | None = None):
         self.guidance = guidance
         self.controller = controller
         self.filter = nav_filter
@@ -157,6 +159,7 @@ class FlightSoftware:
         self._last_cmd_t_ns: int | None = None
         self._last_thrust_N = 0.0
         self.last_guidance: GuidanceCommand | None = None
+        self.map_nav = map_nav
 
     # ------------------------------------------------------------------ sensors
     def on_imu(self, msg: ImuMessage) -> None:
@@ -177,12 +180,18 @@ class FlightSoftware:
         """
         return self.tracker is not None and self.vision_active()
 
+    def wants_map_frame(self, t_ns: int) -> bool:
+        """Would :meth:`on_image` take a map fix from a frame now (``map_nav`` set, due, in its height window)?"""
+        return self.map_nav is not None and self.map_nav.wants_frame(t_ns, float(self.filter.ekf.x[2]))
+
     def skip_image(self) -> None:
         """A camera frame went by that :meth:`wants_image` said would not be used."""
         self._end_vision()
 
     def on_image(self, msg: ImageMessage) -> Tracks | None:
-        """Run the paper's tracker on a frame (above the cut-off) and use its tracks."""
+        """A map fix when one is due (``map_nav``), then the paper's tracker (above the cut-off) and its tracks."""
+        if self.map_nav is not None:
+            self.map_nav.on_frame(msg.t_ns, msg.image, self.filter)
         if not self.wants_image():
             self._end_vision()
             return None

@@ -936,30 +936,14 @@ def load_geotiff(path: str | pathlib.Path, target_xy: tuple[float, float] | None
 
 
 # ---------------------------------------------------------------- generation
-def generate_terrain(
-    cfg: TerrainConfig, rng: np.random.Generator, sun_elevation_deg: float, sun_azimuth_deg: float
-) -> Terrain:
-    """Build the terrain tile described by ``cfg``.
-
-    Args:
-        cfg: Terrain configuration.
-        rng: The only random source. Independent child streams are spawned
-            for craters, roughness, boulders and albedo, so changing one
-            part's parameters does not reshuffle the others.
-        sun_elevation_deg: Sun elevation for the baked shading, in (0, 90] [deg].
-        sun_azimuth_deg: Sun azimuth from north, clockwise toward east [deg].
+def _fine_dem(cfg: TerrainConfig, rng_craters: np.random.Generator, rng_rough: np.random.Generator,
+              rng_boulders: np.random.Generator) -> tuple[np.ndarray, float, float, np.ndarray, np.ndarray, np.ndarray]:
+    """The fine DEM at texture resolution (before the datum shift) and the catalogs stamped into it.
 
     Returns:
-        The terrain. For kind="dem" the tile side is dem_spacing_m * (n - 1)
-        with n the side of the DEM's central square crop, and the DEM is
-        centred on the origin.
+        (fine (m, m) float32 heights [m] south-up, size_m, texel_m, craters (k, 3), freshness (k,),
+        boulders (j, 3)).
     """
-    if not (math.isfinite(sun_elevation_deg) and 0.0 < sun_elevation_deg <= 90.0):
-        raise ValueError(f"sun_elevation_deg={sun_elevation_deg} must be in (0, 90] [deg]")
-    if not math.isfinite(sun_azimuth_deg):
-        raise ValueError(f"sun_azimuth_deg={sun_azimuth_deg} must be finite [deg]")
-    rng_craters, rng_rough, rng_boulders, rng_albedo, rng_patch = rng.spawn(5)
-    sun = _sun_vector(sun_elevation_deg, sun_azimuth_deg)
     m = cfg.texture_px
 
     if cfg.kind == "procedural":
@@ -1008,6 +992,55 @@ def generate_terrain(
     _stamp_radial(fine, size_m, boulders[:, 0], boulders[:, 1], boulders[:, 2] / 2, boulders[:, 2],
                   _boulder_rho2, BOULDER_SUPPORT_R)
 
+    return fine, size_m, texel_m, craters, freshness, boulders
+
+
+def _albedo_rel(cfg: TerrainConfig, m: int, texel_m: float, size_m: float, craters: np.ndarray,
+                freshness: np.ndarray, rng_albedo: np.random.Generator) -> np.ndarray:
+    """Albedo / albedo_mean at texture resolution, (m, m) float32 south-up (a property of the surface, no sun)."""
+    # Albedo / albedo_mean: low-contrast fBm, brighter in and around the freshest craters.
+    albedo_rel = fbm_surface(m, texel_m, cfg.albedo_contrast, cfg.albedo_hurst, rng_albedo)
+    albedo_rel += 1.0
+    span = 1.0 - cfg.crater_freshness_min
+    fresh_level = (freshness - cfg.crater_freshness_min) / span if span > 0 else np.ones_like(freshness)
+    halo_amp = cfg.crater_fresh_albedo_gain * np.clip(
+        (fresh_level - CRATER_FRESH_THRESHOLD) / (1.0 - CRATER_FRESH_THRESHOLD), 0.0, 1.0
+    )
+    fresh = halo_amp > 0
+    _stamp_radial(albedo_rel, size_m, craters[fresh, 0], craters[fresh, 1], craters[fresh, 2] / 2,
+                  halo_amp[fresh], _halo_rho2, CRATER_SUPPORT_R)
+    np.maximum(albedo_rel, ALBEDO_REL_FLOOR, out=albedo_rel)
+
+    return albedo_rel
+
+
+def generate_terrain(
+    cfg: TerrainConfig, rng: np.random.Generator, sun_elevation_deg: float, sun_azimuth_deg: float
+) -> Terrain:
+    """Build the terrain tile described by ``cfg``.
+
+    Args:
+        cfg: Terrain configuration.
+        rng: The only random source. Independent child streams are spawned
+            for craters, roughness, boulders and albedo, so changing one
+            part's parameters does not reshuffle the others.
+        sun_elevation_deg: Sun elevation for the baked shading, in (0, 90] [deg].
+        sun_azimuth_deg: Sun azimuth from north, clockwise toward east [deg].
+
+    Returns:
+        The terrain. For kind="dem" the tile side is dem_spacing_m * (n - 1)
+        with n the side of the DEM's central square crop, and the DEM is
+        centred on the origin.
+    """
+    if not (math.isfinite(sun_elevation_deg) and 0.0 < sun_elevation_deg <= 90.0):
+        raise ValueError(f"sun_elevation_deg={sun_elevation_deg} must be in (0, 90] [deg]")
+    if not math.isfinite(sun_azimuth_deg):
+        raise ValueError(f"sun_azimuth_deg={sun_azimuth_deg} must be finite [deg]")
+    rng_craters, rng_rough, rng_boulders, rng_albedo, rng_patch = rng.spawn(5)
+    sun = _sun_vector(sun_elevation_deg, sun_azimuth_deg)
+    m = cfg.texture_px
+    fine, size_m, texel_m, craters, freshness, boulders = _fine_dem(cfg, rng_craters, rng_rough, rng_boulders)
+
     # Geometry: tent-weighted area average at the vertices, origin shifted to 0.
     n = cfg.geometry_px
     verts, texels = _vertices_m(size_m, n), _texel_centres_m(size_m, m)
@@ -1037,18 +1070,7 @@ def generate_terrain(
     shade *= np.float32(1.0 - SHADOW_FLOOR)
     shade += np.float32(SHADOW_FLOOR)
 
-    # Albedo / albedo_mean: low-contrast fBm, brighter in and around the freshest craters.
-    albedo_rel = fbm_surface(m, texel_m, cfg.albedo_contrast, cfg.albedo_hurst, rng_albedo)
-    albedo_rel += 1.0
-    span = 1.0 - cfg.crater_freshness_min
-    fresh_level = (freshness - cfg.crater_freshness_min) / span if span > 0 else np.ones_like(freshness)
-    halo_amp = cfg.crater_fresh_albedo_gain * np.clip(
-        (fresh_level - CRATER_FRESH_THRESHOLD) / (1.0 - CRATER_FRESH_THRESHOLD), 0.0, 1.0
-    )
-    fresh = halo_amp > 0
-    _stamp_radial(albedo_rel, size_m, craters[fresh, 0], craters[fresh, 1], craters[fresh, 2] / 2,
-                  halo_amp[fresh], _halo_rho2, CRATER_SUPPORT_R)
-    np.maximum(albedo_rel, ALBEDO_REL_FLOOR, out=albedo_rel)
+    albedo_rel = _albedo_rel(cfg, m, texel_m, size_m, craters, freshness, rng_albedo)
 
     dn = albedo_rel
     dn *= shade
@@ -1063,6 +1085,56 @@ def generate_terrain(
     patch = _make_patch(terrain, cfg, sun, rng_patch)
     return Terrain(height_m=terrain.height_m, size_m=terrain.size_m, albedo=terrain.albedo,
                    craters=terrain.craters, boulders=terrain.boulders, patch=patch)
+
+
+@dataclass(frozen=True, eq=False)
+class Surface:
+    """The physical surface behind a terrain, at texture resolution, with no sun baked in.
+
+    Attributes:
+        height_m: (m, m) float32 fine DEM [m] on the texel grid (south-up, texel centres), in the same
+            datum as :class:`Terrain` (its geometry is the tent average of this).
+        albedo_rel: (m, m) float32 albedo / albedo_mean [-], on the same grid.
+        size_m: Side of the square [m], centred on the origin.
+        craters, boulders: The catalogs stamped, as in :class:`Terrain`.
+    """
+
+    height_m: np.ndarray
+    albedo_rel: np.ndarray
+    size_m: float
+    craters: np.ndarray
+    boulders: np.ndarray
+
+    @property
+    def texel_m(self) -> float:
+        """Texel size [m]."""
+        return self.size_m / self.height_m.shape[0]
+
+
+def generate_surface(cfg: TerrainConfig, rng: np.random.Generator) -> Surface:
+    """Regenerate the surface of :func:`generate_terrain` (same ``cfg``, a generator in the same state).
+
+    The fine DEM and the albedo are drawn exactly as :func:`generate_terrain` draws them (the same child
+    streams, the same code), so a product made from them under another sun (an orbital map) shows the
+    same ground the camera flies over, without the renderer's texture.
+
+    Args:
+        cfg: Terrain configuration.
+        rng: A generator in the state the terrain was generated from.
+
+    Returns:
+        The surface (about 8 bytes per texel).
+    """
+    rng_craters, rng_rough, rng_boulders, rng_albedo, _ = rng.spawn(5)
+    fine, size_m, texel_m, craters, freshness, boulders = _fine_dem(cfg, rng_craters, rng_rough, rng_boulders)
+    n, m = cfg.geometry_px, cfg.texture_px
+    verts, texels = _vertices_m(size_m, n), _texel_centres_m(size_m, m)
+    tent = _tent_matrix(texels, verts[[(n - 1) // 2]], size_m / (n - 1))
+    datum_m = float((tent @ fine @ tent.T)[0, 0])
+    fine -= np.float32(datum_m)
+    albedo_rel = _albedo_rel(cfg, m, texel_m, size_m, craters, freshness, rng_albedo)
+    return Surface(height_m=fine, albedo_rel=albedo_rel, size_m=float(size_m),
+                   craters=craters.astype(np.float64), boulders=boulders.astype(np.float64))
 
 
 def _make_patch(terrain: Terrain, cfg: TerrainConfig, sun: tuple[float, float, float],

@@ -31,11 +31,13 @@ from gnc.config import format_validation_error
 from gnc.control import ControlConfig
 from gnc.estimator import EstimatorConfig
 from gnc.guidance import GuidanceConfig
+from gnc.map_nav import MapNavConfig
 from gnc.vision_nav import VisionNavConfig
 from vision.tracker import TrackerConfig
 from models.camera import CameraConfig
 from models.lander import CONTACT_TIMECONST_S, LanderConfig
 from models.sensors import SensorsConfig
+from models.orbital_map import OrbitalMapConfig
 from models.terrain import TerrainConfig
 from models.sun import SunConfig  # not models.world: a scenario loads without MuJoCo
 
@@ -168,6 +170,11 @@ class Scenario(BaseModel):
         "vision", description="feature tracks from the paper's tracker on rendered frames, or exact truth tracks"
     )
     vision: Literal["on", "off"] = Field("on", description="use vision velocity measurements ('off': IMU + altimeter)")
+    nav_map: Literal["off", "on"] = Field(
+        "off",
+        description="map-relative navigation: position fixes of camera frames against the onboard map "
+                    "([onboard_map], [map_nav]); 'off' flies exactly as without it",
+    )
     realism: Literal["realistic", "ideal"] = Field(
         "realistic",
         description="'realistic': engine lag, slew limit, misalignment and centre-of-mass offset, PWM RCS with "
@@ -189,6 +196,14 @@ class Scenario(BaseModel):
     tracker: TrackerConfig = TrackerConfig()
     vision_nav: VisionNavConfig = VisionNavConfig()
     knowledge: KnowledgeConfig = KnowledgeConfig()
+    onboard_map: OrbitalMapConfig = Field(
+        OrbitalMapConfig(),
+        description="the onboard map product for map-relative navigation (orbital sun, resolution, noise, "
+                    "georeferencing error); see bench.maps",
+    )
+    map_nav: MapNavConfig = Field(
+        MapNavConfig(), description="when the flight software takes map fixes and how it matches (nav_map = 'on')"
+    )
     dispersions: dict[str, Dispersion] = Field(
         default_factory=dict,
         description="field path -> distribution, drawn per case in Monte Carlo campaigns (a single run flies nominal)",
@@ -247,6 +262,24 @@ class Scenario(BaseModel):
                 "vision = 'on' with tracks = 'vision' needs camera.enabled = true; allowed: enable the camera, "
                 "or set tracks = 'truth' or vision = 'off'"
             )
+        return self
+
+    @model_validator(mode="after")
+    def _map_nav_needs_camera_and_map(self) -> "Scenario":
+        if self.nav_map == "on":
+            if not self.camera.enabled:
+                raise ValueError("nav_map = 'on' needs camera.enabled = true; allowed: enable the camera, or "
+                                 "set nav_map = 'off'")
+            if self.nav != "estimator":
+                raise ValueError(f"nav_map = 'on' with nav = '{self.nav}': map fixes update the filter; allowed: "
+                                 "nav = 'estimator', or nav_map = 'off'")
+            size = self.terrain.size_m if self.terrain.kind == "procedural" else None
+            if size is not None and self.onboard_map.size_m > size:
+                raise ValueError(f"onboard_map.size_m = {self.onboard_map.size_m} is larger than the terrain "
+                                 f"(terrain.size_m = {size}); allowed: at most {size}")
+            if self.map_nav.period_ns % self.camera.period_ns:
+                raise ValueError(f"map_nav.period_ns = {self.map_nav.period_ns} is not a whole multiple of "
+                                 f"camera.period_ns = {self.camera.period_ns}; allowed: multiples of it")
         return self
 
     def periods_ns(self) -> dict[str, int]:

@@ -24,6 +24,7 @@ from gnc.control import VehicleParams, make_controller
 from gnc.estimator import make_estimator
 from gnc.flight import FlightSoftware, OnboardKnowledge
 from gnc.guidance import make_guidance
+from gnc.map_nav import MapNavigator, OnboardMap
 from models.camera import R_BC, intrinsics
 from models.lander import altimeter_position_B, camera_position_B
 from vision.tracker import Tracker
@@ -80,10 +81,12 @@ def handover_estimate(scenario: Scenario, truth: Any) -> tuple[np.ndarray, np.nd
     return r0, v0
 
 
-def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.ndarray) -> FlightSoftware:
+def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.ndarray,
+                          onboard_map: OnboardMap | None = None) -> FlightSoftware:
     """The flight computer of the run: onboard knowledge, configuration and the hand-over estimate.
 
-    Nothing of the truth reaches it but the hand-over estimate passed in.
+    Nothing of the truth reaches it but the hand-over estimate passed in. With ``nav_map = "on"``
+    it carries the onboard map (``onboard_map``, else made here from the scenario: plain data).
     """
     knowledge = onboard_knowledge(scenario)
     control = scenario.control
@@ -96,5 +99,12 @@ def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.nda
     nav_filter = make_estimator(scenario.estimator, x0_r_L, x0_v_L, 0, altimeter_mount_B_m=knowledge.r_alt_B_m,
                                 gyro_delta_angle=scenario.realism == "realistic")
     tracker = Tracker(scenario.tracker) if scenario.tracks == "vision" and scenario.vision == "on" else None
+    map_nav = None
+    if scenario.nav_map == "on":
+        if onboard_map is None:
+            from bench.maps import scenario_onboard_map
+
+            onboard_map = scenario_onboard_map(scenario)[0]
+        map_nav = MapNavigator(onboard_map, scenario.map_nav, knowledge.K, knowledge.R_BC, knowledge.r_cam_B_m)
     return FlightSoftware(guidance, controller, nav_filter, tracker, scenario.vision_nav, scenario.vision == "on",
-                          knowledge)
+                          knowledge, map_nav)

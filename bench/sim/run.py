@@ -199,16 +199,21 @@ def run(scenario: Scenario, frame_sink: FrameSink | None = None, progress: bool 
     terrain = build_terrain(scenario)
     world = build_world(scenario, terrain)
     sensors = build_sensors(scenario)
+    maps = None
+    if scenario.nav_map == "on":  # the onboard map (for the flight software) and its truth (for the bench)
+        from bench.maps import scenario_onboard_map
+
+        maps = scenario_onboard_map(scenario)
     setup_s = time.perf_counter() - t_setup
     try:
-        return _fly(scenario, terrain, world, sensors, frame_sink, progress, setup_s, recorder)
+        return _fly(scenario, terrain, world, sensors, frame_sink, progress, setup_s, recorder, maps)
     finally:
         world.close()
 
 
 def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuite,
          frame_sink: FrameSink | None, progress: bool, setup_s: float,
-         recorder: Recorder | None = None) -> RunResult:
+         recorder: Recorder | None = None, maps: tuple | None = None) -> RunResult:
     sim, cam, crit = scenario.sim, scenario.camera, scenario.landing
     dt_ns = sim.physics_dt_ns
     truth_tracks = scenario.vision == "on" and scenario.tracks == "truth"
@@ -224,7 +229,12 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
     steps_per_tick = tick_ns // dt_ns
     assert tick_ns % dt_ns == 0
 
-    fsw = build_flight_software(scenario, *handover_estimate(scenario, world.truth()))
+    fsw = build_flight_software(scenario, *handover_estimate(scenario, world.truth()),
+                                onboard_map=maps[0] if maps is not None else None)
+    map_truth_log: list[tuple[int, np.ndarray]] = []  # (t_ns, truth camera position) at each map-fix attempt
+    # With map fixes the flight software navigates in the map's frame: its errors are taken against the truth
+    # there (truth + the map's shift). Without them, against the truth in L.
+    nav_offset_L = np.array([*maps[1].shift_xy_m, 0.0]) if maps is not None else None
     tracker_truth = (TruthTracker(terrain, world.K, (cam.width_px, cam.height_px), TRUTH_TRACK_POINTS,
                                   component_rng(scenario.seed, "vision")) if truth_tracks else None)
     thrust_max = scenario.lander.engine.thrust_max_N
@@ -285,13 +295,17 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                 # Render only a frame that someone consumes: the video, a recording, or the tracker
                 # (above the cut-off). Each frame's noise is its own stream, so skipping changes nothing.
                 if cam.enabled and (frame_sink is not None or recorder is not None
-                                    or (tracker_truth is None and fsw.wants_image())):
+                                    or (tracker_truth is None and fsw.wants_image())
+                                    or fsw.wants_map_frame(t_ns)):
                     t0 = time.perf_counter()
                     frame = sensors.camera_frame_at(world, t_ns // cam.period_ns)
                     timing["render_s"] += time.perf_counter() - t0
                     frames_rendered += 1
                 t0 = time.perf_counter()
+                n_map = len(fsw.map_nav.stats.log) if fsw.map_nav is not None else 0
                 if tracker_truth is not None:
+                    if frame is not None and fsw.map_nav is not None:
+                        fsw.map_nav.on_frame(t_ns, frame, fsw.filter)
                     tracks = tracker_truth.step(*world.camera_pose())
                     fsw.on_tracks(t_ns, tracks)
                 elif frame is not None:
@@ -303,6 +317,8 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                 elif cam.enabled:
                     fsw.skip_image()  # what on_image does with a frame it does not use
                 timing["vision_s"] += time.perf_counter() - t0
+                if fsw.map_nav is not None and len(fsw.map_nav.stats.log) > n_map:
+                    map_truth_log.append((t_ns, world.camera_pose()[1]))
                 if frame is not None and frame_sink is not None:
                     frame_sink(t_ns, frame, truth, tracks)
             # Flight software at the control rate.
@@ -321,7 +337,7 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                 tel.rows.append(_row(t_ns, truth, act, fsw.last_guidance, legs, imu_msg, alt_msg, st_msg, thrust_max,
                                      world.propulsion.delivered_thrust_N(applied.thrust_N),
                                      PHASE_TOUCHDOWN if touchdown is not None else fsw.last_guidance.phase,
-                                     fsw, sensors.imu.accel_bias, applied, tel))
+                                     fsw, sensors.imu.accel_bias, applied, tel, nav_offset_L))
             # End conditions.
             if touchdown_ns is not None and t_ns - touchdown_ns >= settle_ns:
                 break
@@ -377,7 +393,58 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
         "platform": _platform(world),
         "error": error,
     }
+    if maps is not None:
+        summary["map_nav"] = _map_nav_summary(fsw, maps[1], map_truth_log, telemetry, touchdown)
     return RunResult(summary=summary, telemetry=telemetry, terrain=terrain)
+
+
+MAP_FALSE_LOCK_NIS = 25.0  # a fix the matcher accepted whose error is beyond 5 of its own sigmas (2-D NIS)
+
+
+def _map_nav_summary(fsw: FlightSoftware, map_truth: Any, truth_log: list[tuple[int, np.ndarray]],
+                     tel: dict[str, np.ndarray], touchdown: dict | None) -> dict[str, Any]:
+    """Map-relative navigation against truth (``nav_map = "on"``).
+
+    A fix's error is its measured camera position minus the truth camera position plus the map's
+    shift (the fix measures the position in the map frame). A false lock is a fix the matcher
+    accepted with an error beyond 5 of its own sigmas.
+    """
+    stats = fsw.map_nav.stats
+    shift = np.array(map_truth.shift_xy_m)
+    truth_at = dict(truth_log)
+    errs, nis, false_locks, used_false = [], [], 0, 0
+    for t_ns, fix, used, gate_ok in stats.log:
+        if not fix.ok or t_ns not in truth_at:
+            continue
+        e = fix.r_CM_xy_m - (truth_at[t_ns][:2] + shift)
+        errs.append(float(np.hypot(*e)))
+        n = float(e @ np.linalg.solve(fix.cov_xy_m2, e))
+        nis.append(n)
+        if n > MAP_FALSE_LOCK_NIS:
+            false_locks += 1
+            used_false += int(bool(used and gate_ok))
+    out: dict[str, Any] = {
+        "shift_xy_m": [float(c) for c in shift],
+        "target_xy_L_m": [float(c) for c in map_truth.target_xy_L_m],
+        "attempts": stats.attempts, "refused": dict(stats.refused), "unconfirmed": stats.unconfirmed,
+        "updates": stats.updates, "gate_rejected": stats.gate_rejected,
+        "fixes_accepted_by_matcher": len(errs),
+        "fix_err_rms_m": float(np.sqrt(np.mean(np.square(errs)))) if errs else None,
+        "fix_err_max_m": max(errs) if errs else None,
+        "fix_nis_mean": float(np.mean(nis)) if nis else None,
+        "false_locks": false_locks, "false_locks_used": used_false,
+        "miss_vs_map_target_m": None, "nav_err_map_frame_touchdown_m": None,
+    }
+    if touchdown is not None:
+        out["miss_vs_map_target_m"] = float(math.hypot(touchdown["x_m"] - map_truth.target_xy_L_m[0],
+                                                       touchdown["y_m"] - map_truth.target_xy_L_m[1]))
+    if tel:
+        t = tel["t_s"]
+        flying = t < touchdown["t_s"] if touchdown is not None else np.ones(t.size, bool)
+        k = int(np.flatnonzero(flying)[-1]) if flying.any() else 0
+        # The telemetry's navigation errors are already against the truth in the map frame.
+        out["nav_err_map_frame_touchdown_m"] = float(np.hypot(tel["nav_err_r_x_m"][k], tel["nav_err_r_y_m"][k]))
+    return out
 
 
 def _record_camera_truth(recorder: Recorder, t_ns: int, world: World) -> float:
@@ -508,11 +575,16 @@ def _classify(touchdown: dict | None, exhausted_ns: int | None, touchdown_ns: in
 
 
 def _row(t_ns, truth, act, cmd, legs, imu, alt, st, thrust_max, thrust_delivered, phase, fsw, accel_bias_B,
-         applied, tel: _Telemetry) -> tuple:
-    """One tick's ``_Telemetry.ROW_COLUMNS``; its NEES error and covariance block go to ``tel``."""
+         applied, tel: _Telemetry, nav_offset_L: np.ndarray | None = None) -> tuple:
+    """One tick's ``_Telemetry.ROW_COLUMNS``; its NEES error and covariance block go to ``tel``.
+
+    ``nav_offset_L``: where the flight software's navigation frame puts the truth, minus the truth (the
+    map's shift with map fixes); None: its frame is L.
+    """
     nan3 = (math.nan,) * 3
     x, P = fsw.filter.ekf.x, fsw.filter.ekf.P
-    e = np.concatenate([x[IDX_R] - truth.r_BL_L, x[IDX_V] - truth.v_BL_L, x[IDX_BA] - accel_bias_B])
+    r_ref = truth.r_BL_L if nav_offset_L is None else truth.r_BL_L + nav_offset_L
+    e = np.concatenate([x[IDX_R] - r_ref, x[IDX_V] - truth.v_BL_L, x[IDX_BA] - accel_bias_B])
     sig = np.sqrt(np.diag(P)[:6])  # position then velocity
     tel.nees_e.append(e)
     tel.nees_P.append(P[:9, :9].copy())

@@ -1,0 +1,584 @@
+"""Map-relative navigation (LVS-style): the onboard map and the map fix from one camera frame.
+
+Ports:
+    Inputs: an :class:`OnboardMap` (plain arrays and their georeferencing,
+        loaded before flight); one camera frame (H, W) uint8; the filter's
+        estimate of the camera pose (position ``r_CL_L`` and attitude
+        ``R_LC``), the camera calibration ``K``, and the 1-sigma of the
+        horizontal position prior; :class:`MapFixConfig`.
+    Output: :class:`MapFix`: the measured horizontal camera position in the
+        map frame, its 2x2 covariance, and the diagnostics (coarse peak,
+        peak-to-sidelobe ratio, inliers), or a refusal with its reason.
+    Rate: about 1-2 Hz from 500 m down to about 50 m (the caller chooses).
+
+Frames: the map frame M is the landing frame L as the map states it (x east,
+y north, z up); the flight software takes M for L, so a georeferencing error
+of the map is an error of the landing-site knowledge, not of the fix.
+Camera frame C is OpenCV's (x right, y down, z along the boresight).
+
+Algorithm (one frame):
+    1. **Orthorectify**: a grid of map points (map pixel centres, heights from
+       the map DEM) around the estimated ground footprint is projected through
+       the estimated pose into the frame and the frame sampled there
+       (``cv2.remap``). With a correct pose the result is the frame laid on the
+       map's pixel grid; a horizontal position error ``e`` (estimate minus
+       truth) shifts it by ``-e``: the ortho image at map point ``p`` shows the
+       ground at ``p - e``.
+    2. **Coarse fix**: the central part of the ortho image is correlated
+       (``cv2.matchTemplate``, ``TM_CCOEFF_NORMED``) over the map window that
+       the prior's ``search_sigmas``-sigma ellipse allows. The peak is accepted
+       only if it stands clear of its sidelobes: the peak-to-sidelobe ratio
+       (peak minus the mean of the correlation surface outside an exclusion
+       zone, over its standard deviation) and the ratio of the peak to the
+       highest sidelobe must pass their thresholds; otherwise the fix is
+       refused (no false lock on a featureless or repetitive map).
+    3. **Fine fix**: a grid of patches (about 30-60 with texture) is matched
+       each in a small window around the coarse offset, with a sub-pixel peak
+       (parabola through the peak and its neighbours on each axis). Outliers
+       are rejected by a robust median/MAD test, iterated.
+    4. **Covariance**: the inlier offsets' scatter over the effective number of
+       independent patches (neighbouring patches err together: their
+       correlation is estimated from the residuals of grid neighbours and
+       inflates the variance of the mean), plus the sub-pixel floor, plus the
+       attitude error and the map DEM's height error seen through the view
+       angle (relief parallax).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+# ------------------------------------------------------------------ the onboard map
+@dataclass(frozen=True, eq=False)
+class OnboardMap:
+    """The map the flight software carries: an orthoimage, a DEM and their georeferencing (no truth).
+
+    Arrays are south-up (row index increases with +y, column with +x).
+
+    Attributes:
+        image: (N, M) uint8 orthoimage; pixel (i, j) covers the square centred on
+            (x0 + (j + 0.5) res, y0 + (i + 0.5) res) in M, (x0, y0) = ``image_origin_xy_m``.
+        image_res_m: Orthoimage pixel size [m].
+        image_origin_xy_m: M coordinates of the image's south-west corner (pixel edge) [m].
+        dem_m: (K, L) float32 heights [m]; post (i, j) at (x0 + j s, y0 + i s), (x0, y0) = ``dem_origin_xy_m``.
+        dem_spacing_m: DEM post spacing s [m].
+        dem_origin_xy_m: M coordinates of post (0, 0) [m].
+        target_xy_m: The landing target in M [m].
+        georef_sigma_m: The map's stated georeferencing uncertainty, 1-sigma per axis [m] (its specification).
+        dem_sigma_m: The DEM's stated height uncertainty, 1-sigma [m].
+    """
+
+    image: np.ndarray
+    image_res_m: float
+    image_origin_xy_m: tuple[float, float]
+    dem_m: np.ndarray
+    dem_spacing_m: float
+    dem_origin_xy_m: tuple[float, float]
+    target_xy_m: tuple[float, float]
+    georef_sigma_m: float
+    dem_sigma_m: float
+
+    def __post_init__(self) -> None:
+        if self.image.ndim != 2 or self.image.dtype != np.uint8:
+            raise ValueError(f"image has shape {self.image.shape} and dtype {self.image.dtype}; expected 2-D uint8")
+        if self.dem_m.ndim != 2 or min(self.dem_m.shape) < 2:
+            raise ValueError(f"dem_m has shape {self.dem_m.shape}; expected a 2-D grid of at least 2 x 2 posts")
+        if not (self.image_res_m > 0 and self.dem_spacing_m > 0):
+            raise ValueError(f"image_res_m={self.image_res_m} and dem_spacing_m={self.dem_spacing_m} must be > 0")
+
+    def dem_height(self, x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
+        """Bilinear DEM height at M points [m] (clamped at the DEM's edge), float64 of the broadcast shape."""
+        x, y = np.broadcast_arrays(np.asarray(x_m, np.float64), np.asarray(y_m, np.float64))
+        rows, cols = self.dem_m.shape
+        u = np.clip((x - self.dem_origin_xy_m[0]) / self.dem_spacing_m, 0.0, cols - 1)
+        v = np.clip((y - self.dem_origin_xy_m[1]) / self.dem_spacing_m, 0.0, rows - 1)
+        j0 = np.minimum(np.floor(u).astype(np.intp), cols - 2)
+        i0 = np.minimum(np.floor(v).astype(np.intp), rows - 2)
+        fu, fv = u - j0, v - i0
+        h = self.dem_m
+        south = (1.0 - fu) * h[i0, j0] + fu * h[i0, j0 + 1]
+        north = (1.0 - fu) * h[i0 + 1, j0] + fu * h[i0 + 1, j0 + 1]
+        return (1.0 - fv) * south + fv * north
+
+    def pixel_of(self, x_m: np.ndarray | float, y_m: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+        """Image coordinates (column, row) of M points, pixel centres at integers [px]."""
+        col = (np.asarray(x_m, np.float64) - self.image_origin_xy_m[0]) / self.image_res_m - 0.5
+        row = (np.asarray(y_m, np.float64) - self.image_origin_xy_m[1]) / self.image_res_m - 0.5
+        return col, row
+
+
+# ------------------------------------------------------------------ the map fix
+import cv2  # noqa: E402  (kept next to its users; the map container above needs only NumPy)
+from pydantic import BaseModel, ConfigDict, Field  # noqa: E402
+
+# Why a fix is refused: MapFix.reason, and its identifier for summaries (MapNavStats.refused).
+REFUSALS = {
+    "camera not looking down": "not_looking_down",
+    "camera below the map's ground": "below_map_ground",
+    "footprint too small at the map's resolution": "footprint_too_small",
+    "too little of the frame on the map grid": "frame_off_map",
+    "search window leaves the map": "window_off_map",
+    "coarse peak not clear of its sidelobes": "peak_not_clear",
+    "coarse peak on the search window's edge": "peak_on_window_edge",
+    "too few textured patches matched": "few_patches",
+    "too few inlier patches": "few_inliers",
+}
+PARABOLA_EPS = 1e-12  # curvature below this: no sub-pixel step (flat top)
+MAD_TO_SIGMA = 1.4826  # sigma of a Gaussian over its median absolute deviation
+
+
+class MapFixConfig(BaseModel):
+    """Settings of the map fix (flight software: a specification, no truth)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    search_sigmas: float = Field(3.0, gt=0.0, le=10.0, description="half-width of the coarse search window [sigma]")
+    min_search_px: int = Field(
+        12, ge=2, le=256,
+        description="smallest half-width of the coarse search window [work px]: a tight prior still leaves the "
+                    "correlation surface enough sidelobes to judge the peak by",
+    )
+    max_ortho_px: int = Field(320, ge=32, le=2048, description="largest side of the orthorectified frame [work px]")
+    template_frac: float = Field(
+        0.7, gt=0.1, le=1.0, description="side of the coarse template as a fraction of the ortho image [-]"
+    )
+    gsd_ratio: float = Field(
+        1.25, gt=0.1, le=4.0,
+        description="work at the coarsest map pyramid level (res * 2^k) not coarser than this many of the frame's "
+                    "ground-sample distances at the boresight [-]",
+    )
+    min_psr: float = Field(4.0, ge=0.0, description="smallest peak-to-sidelobe ratio of the coarse peak [-]")
+    max_sidelobe_ratio: float = Field(
+        0.75, gt=0.0, le=1.0, description="largest ratio of the highest sidelobe to the coarse peak [-]"
+    )
+    min_peak: float = Field(0.3, ge=0.0, le=1.0, description="smallest coarse correlation peak [-]")
+    patch_grid: int = Field(7, ge=3, le=12, description="patches per side of the fine grid (grid^2 patches) [-]")
+    patch_search_px: int = Field(3, ge=1, le=16, description="fine search half-width around the coarse offset [work px]")
+    min_patch_corr: float = Field(0.5, gt=0.0, le=1.0, description="smallest fine correlation peak of a patch [-]")
+    min_patch_std_dn: float = Field(2.0, ge=0.0, description="smallest DN standard deviation of a patch (texture) [DN]")
+    outlier_mad_k: float = Field(3.0, gt=0.0, description="reject patches beyond this many robust sigmas [-]")
+    min_inliers: int = Field(12, ge=4, description="fewest inlier patches for a fix [-]")
+    subpixel_floor_px: float = Field(0.05, ge=0.0, description="floor of the fix's 1-sigma per axis [work px]")
+    common_mode_sigma_px: float = Field(
+        0.25, ge=0.0,
+        description="error common to all patches that their scatter cannot show (the frame's and the map's "
+                    "different illumination, the map's blur), 1-sigma per axis [work px]; a budget, to be "
+                    "calibrated in closed-loop campaigns",
+    )
+
+
+@dataclass(frozen=True)
+class MapFix:
+    """One map fix, or a refusal.
+
+    Attributes:
+        ok: Whether the fix was accepted.
+        reason: Why it was refused ("" when accepted).
+        r_CM_xy_m: Measured horizontal camera position in the map frame M (2,) [m] (NaN when refused).
+        cov_xy_m2: Its covariance (2, 2) [m^2] (NaN when refused).
+        offset_xy_m: Measured minus estimated camera position (2,) [m] (NaN when the coarse peak was refused).
+        psr: Peak-to-sidelobe ratio of the coarse peak [-].
+        sidelobe_ratio: Highest sidelobe over the coarse peak [-].
+        peak: Coarse correlation peak [-].
+        n_patches: Patches matched; n_inliers: kept after outlier rejection.
+        scale: Fitted scale of the patch offsets about the nadir point [-] (an altitude error shows here).
+        work_res_m: Resolution the fix worked at [m/px].
+    """
+
+    ok: bool
+    reason: str
+    r_CM_xy_m: np.ndarray
+    cov_xy_m2: np.ndarray
+    offset_xy_m: np.ndarray
+    psr: float = float("nan")
+    sidelobe_ratio: float = float("nan")
+    peak: float = float("nan")
+    n_patches: int = 0
+    n_inliers: int = 0
+    scale: float = float("nan")
+    work_res_m: float = float("nan")
+
+
+def _nan2() -> np.ndarray:
+    return np.full(2, np.nan)
+
+
+def _parabola_peak(left: float, centre: float, right: float) -> float:
+    """Sub-pixel offset of the vertex of the parabola through three samples at -1, 0, 1 [px] (within +-0.5)."""
+    curv = left - 2.0 * centre + right
+    if curv >= -PARABOLA_EPS:
+        return 0.0
+    return float(np.clip(0.5 * (left - right) / curv, -0.5, 0.5))
+
+
+def _subpixel_peak(c: np.ndarray, row: int, col: int) -> tuple[float, float]:
+    """(row, col) of the peak of a correlation surface refined by a parabola on each axis."""
+    dr = _parabola_peak(c[row - 1, col], c[row, col], c[row + 1, col]) if 0 < row < c.shape[0] - 1 else 0.0
+    dc = _parabola_peak(c[row, col - 1], c[row, col], c[row, col + 1]) if 0 < col < c.shape[1] - 1 else 0.0
+    return row + dr, col + dc
+
+
+def peak_to_sidelobe(c: np.ndarray) -> tuple[int, int, float, float, float]:
+    """The peak of a correlation surface and how clearly it stands out.
+
+    The main lobe is the connected region above half the peak that holds it,
+    grown by 2 px; the sidelobes are everything else.
+
+    Args:
+        c: (h, w) float32 correlation surface.
+
+    Returns:
+        (peak row, peak column, peak value, PSR = (peak - mean sidelobe) / std sidelobe,
+        highest sidelobe / peak). PSR is 0 and the ratio 1 when too few sidelobe samples remain.
+    """
+    _, peak, _, (col, row) = cv2.minMaxLoc(c)
+    above = (c > 0.5 * peak).astype(np.uint8)
+    _, labels = cv2.connectedComponents(above, connectivity=8)
+    lobe = (labels == labels[row, col]).astype(np.uint8)
+    lobe = cv2.dilate(lobe, np.ones((5, 5), np.uint8))
+    side = c[lobe == 0]
+    if side.size < 16 or peak <= 0:
+        return row, col, float(peak), 0.0, 1.0
+    psr = (peak - float(side.mean())) / max(float(side.std()), 1e-6)
+    return row, col, float(peak), float(psr), float(side.max()) / float(peak)
+
+
+class MapMatcher:
+    """Map fixes of camera frames against one onboard map (see the module's docstring).
+
+    Holds the map's image pyramid (built once, level k at ``res * 2^k``).
+
+    Args:
+        onboard_map: The map.
+        cfg: Settings.
+    """
+
+    def __init__(self, onboard_map: OnboardMap, cfg: MapFixConfig | None = None) -> None:
+        self.map = onboard_map
+        self.cfg = cfg if cfg is not None else MapFixConfig()
+        self._levels: list[np.ndarray] = [onboard_map.image.astype(np.float32)]
+
+    def _level(self, k: int) -> np.ndarray:
+        while len(self._levels) <= k:
+            prev = self._levels[-1]
+            h, w = prev.shape[0] // 2, prev.shape[1] // 2
+            self._levels.append(cv2.resize(prev[:2 * h, :2 * w], (w, h), interpolation=cv2.INTER_AREA))
+        return self._levels[k]
+
+    def orthorectify(self, frame: np.ndarray, K: np.ndarray, R_LC: np.ndarray, r_CL_L: np.ndarray,
+                     res_m: float, rows: np.ndarray, cols: np.ndarray, prefilter_px: float) -> np.ndarray:
+        """The frame sampled at map points (work-level pixel centres, heights from the map DEM).
+
+        Args:
+            frame: (H, W) uint8 or float image.
+            K: (3, 3) intrinsics [px].
+            R_LC: (3, 3) camera-to-L rotation (estimated).
+            r_CL_L: (3,) camera position in L (estimated) [m].
+            res_m: Work-level pixel size [m].
+            rows, cols: 1-D work-level pixel indices of the grid (row i is y = y0 + (i + 0.5) res).
+            prefilter_px: Gaussian sigma applied to the frame first (anti-aliasing) [frame px].
+
+        Returns:
+            (len(rows), len(cols)) float32; NaN where the point falls outside the frame or behind the camera.
+        """
+        x0, y0 = self.map.image_origin_xy_m
+        xs = x0 + (cols + 0.5) * res_m
+        ys = y0 + (rows + 0.5) * res_m
+        X, Y = np.meshgrid(xs, ys)
+        Z = self.map.dem_height(X, Y)
+        d = np.stack([X - r_CL_L[0], Y - r_CL_L[1], Z - r_CL_L[2]], axis=-1) @ R_LC  # rows: R_CL (P - r_C)
+        z = d[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = K[0, 0] * d[..., 0] / z + K[0, 2]
+            v = K[1, 1] * d[..., 1] / z + K[1, 2]
+        h, w = frame.shape
+        bad = ~((z > 0) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1))
+        img = frame.astype(np.float32)
+        if prefilter_px > 0.3:
+            img = cv2.GaussianBlur(img, (0, 0), prefilter_px)
+        u = np.where(bad, -10.0, u).astype(np.float32)
+        v = np.where(bad, -10.0, v).astype(np.float32)
+        ortho = cv2.remap(img, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+        ortho[bad] = np.nan
+        return ortho
+
+    def fix(self, frame: np.ndarray, K: np.ndarray, R_LC: np.ndarray, r_CL_L: np.ndarray,
+            sigma_xy_m: float, sigma_att_rad: float = 0.0) -> MapFix:
+        """One map fix.
+
+        Args:
+            frame: (H, W) uint8 camera frame.
+            K: (3, 3) camera intrinsics [px].
+            R_LC: (3, 3) estimated camera-to-L rotation.
+            r_CL_L: (3,) estimated camera position in L [m].
+            sigma_xy_m: 1-sigma of the horizontal position prior, per axis [m] (sets the search window).
+            sigma_att_rad: 1-sigma of the attitude estimate per axis [rad] (enters the covariance).
+
+        Returns:
+            The fix, or a refusal naming its reason.
+        """
+        cfg, m = self.cfg, self.map
+        r_C = np.asarray(r_CL_L, np.float64)
+        R_LC = np.asarray(R_LC, np.float64)
+        # Ground point of the boresight (fixed point on the DEM) and the height above it.
+        b = R_LC[:, 2]
+        if b[2] > -0.2:
+            return MapFix(False, "camera not looking down", _nan2(), np.full((2, 2), np.nan), _nan2())
+        ground_z = float(m.dem_height(r_C[0], r_C[1]))
+        for _ in range(4):
+            t = (ground_z - r_C[2]) / b[2]
+            g = r_C + t * b
+            ground_z = float(m.dem_height(g[0], g[1]))
+        height = r_C[2] - float(m.dem_height(r_C[0], r_C[1]))
+        slant = (ground_z - r_C[2]) / b[2]
+        if not (height > 0 and slant > 0):
+            return MapFix(False, "camera below the map's ground", _nan2(), np.full((2, 2), np.nan), _nan2())
+        gsd = slant / K[0, 0]
+        level = 0
+        while m.image_res_m * 2 ** (level + 1) <= cfg.gsd_ratio * gsd and level < 6:
+            level += 1
+        res = m.image_res_m * 2**level
+        img = self._level(level)
+        prefilter = 0.5 * res / gsd if res > gsd else 0.0
+        footprint_px = int(min(cfg.max_ortho_px, 0.9 * min(frame.shape) * gsd / res))
+        if footprint_px < 24:
+            return MapFix(False, "footprint too small at the map's resolution", _nan2(),
+                          np.full((2, 2), np.nan), _nan2(), work_res_m=res)
+        x0, y0 = m.image_origin_xy_m
+        gc, gr = (g[0] - x0) / res - 0.5, (g[1] - y0) / res - 0.5
+        c0, r0 = int(round(gc - footprint_px / 2)), int(round(gr - footprint_px / 2))
+        rows, cols = np.arange(r0, r0 + footprint_px), np.arange(c0, c0 + footprint_px)
+        ortho = self.orthorectify(frame, K, R_LC, r_C, res, rows, cols, prefilter)
+        # Coarse template: the central square, shrunk until it lies wholly inside the frame.
+        side = int(cfg.template_frac * footprint_px)
+        while side >= 24:
+            a = (footprint_px - side) // 2
+            tmpl = ortho[a:a + side, a:a + side]
+            if not np.isnan(tmpl).any():
+                break
+            side = int(side * 0.9)
+        else:
+            return MapFix(False, "too little of the frame on the map grid", _nan2(), np.full((2, 2), np.nan),
+                          _nan2(), work_res_m=res)
+        win = max(int(math.ceil(cfg.search_sigmas * sigma_xy_m / res)) + 1, cfg.min_search_px)
+        tr, tc = r0 + a, c0 + a  # map-level pixel of the template's top-left at zero offset
+        # The window, clipped to the map (a peak on a clipped edge is refused like one on the window's edge).
+        lo_r, lo_c = max(tr - win, 0), max(tc - win, 0)
+        hi_r, hi_c = min(tr + side + win, img.shape[0]), min(tc + side + win, img.shape[1])
+        if hi_r - lo_r < side + 2 or hi_c - lo_c < side + 2:
+            return MapFix(False, "search window leaves the map", _nan2(), np.full((2, 2), np.nan), _nan2(),
+                          work_res_m=res)
+        corr = cv2.matchTemplate(img[lo_r:hi_r, lo_c:hi_c], tmpl, cv2.TM_CCOEFF_NORMED)
+        prow, pcol, peak, psr, sidelobe = peak_to_sidelobe(corr)
+        diag = dict(psr=psr, sidelobe_ratio=sidelobe, peak=peak, work_res_m=res)
+        if peak < cfg.min_peak or psr < cfg.min_psr or sidelobe > cfg.max_sidelobe_ratio:
+            return MapFix(False, "coarse peak not clear of its sidelobes", _nan2(), np.full((2, 2), np.nan),
+                          _nan2(), **diag)
+        if prow in (0, corr.shape[0] - 1) or pcol in (0, corr.shape[1] - 1):
+            return MapFix(False, "coarse peak on the search window's edge", _nan2(), np.full((2, 2), np.nan),
+                          _nan2(), **diag)
+        srow, scol = _subpixel_peak(corr, prow, pcol)
+        d0r, d0c = int(round(srow + lo_r - tr)), int(round(scol + lo_c - tc))
+        # Fine: a grid of patches over the template, each searched around the coarse offset.
+        g_n, s = cfg.patch_grid, cfg.patch_search_px
+        patch = max(9, side // g_n)
+        starts = np.linspace(0, side - patch, g_n).round().astype(int)
+        offs, centres, grid_ij = [], [], []
+        for i, pr in enumerate(starts):
+            for j, pc in enumerate(starts):
+                p = tmpl[pr:pr + patch, pc:pc + patch]
+                if float(p.std()) < cfg.min_patch_std_dn:
+                    continue
+                mr, mc = tr + pr + d0r - s, tc + pc + d0c - s
+                if mr < 0 or mc < 0 or mr + patch + 2 * s > img.shape[0] or mc + patch + 2 * s > img.shape[1]:
+                    continue
+                cc = cv2.matchTemplate(img[mr:mr + patch + 2 * s, mc:mc + patch + 2 * s], p, cv2.TM_CCOEFF_NORMED)
+                _, pk, _, (qc, qr) = cv2.minMaxLoc(cc)
+                if pk < cfg.min_patch_corr or qr in (0, 2 * s) or qc in (0, 2 * s):
+                    continue
+                fr, fc = _subpixel_peak(cc, qr, qc)
+                offs.append((fc - s + d0c, fr - s + d0r))  # (x, y) offset [work px]
+                centres.append((x0 + (tc + pc + patch / 2) * res, y0 + (tr + pr + patch / 2) * res))
+                grid_ij.append((i, j))
+        n_patches = len(offs)
+        if n_patches < cfg.min_inliers:
+            return MapFix(False, "too few textured patches matched", _nan2(), np.full((2, 2), np.nan), _nan2(),
+                          n_patches=n_patches, **diag)
+        d = np.asarray(offs) * res  # [m]
+        rel = np.asarray(centres) - r_C[:2]  # patch centre relative to the nadir point [m]
+        ij = np.asarray(grid_ij)
+        # Robust fit d_i = t + s * rel_i (translation at the nadir point + scale), MAD rejection, iterated.
+        keep = np.ones(n_patches, bool)
+        for _ in range(4):
+            A = np.zeros((2 * keep.sum(), 3))
+            A[0::2, 0] = 1.0
+            A[1::2, 1] = 1.0
+            A[:, 2] = rel[keep].ravel()
+            sol = np.linalg.lstsq(A, d[keep].ravel(), rcond=None)[0]
+            resid = d - sol[:2] - sol[2] * rel
+            rn = np.hypot(resid[:, 0], resid[:, 1])
+            sig = max(MAD_TO_SIGMA * float(np.median(rn[keep])), cfg.subpixel_floor_px * res)
+            new = rn <= cfg.outlier_mad_k * sig
+            if np.array_equal(new, keep) or new.sum() < cfg.min_inliers:
+                break
+            keep = new
+        n_in = int(keep.sum())
+        if n_in < cfg.min_inliers:
+            return MapFix(False, "too few inlier patches", _nan2(), np.full((2, 2), np.nan), _nan2(),
+                          n_patches=n_patches, n_inliers=n_in, **diag)
+        t, scale = sol[:2], float(sol[2])
+        r_in = resid[keep]
+        var = (r_in**2).sum(axis=0) / max(n_in - 2, 1)  # per-axis scatter [m^2]
+        # Neighbouring patches err together: correlation of grid neighbours' residuals inflates the variance.
+        pos = {tuple(p): k for k, p in enumerate(ij[keep])}
+        prod, pairs = np.zeros(2), 0
+        for (i, j), k in pos.items():
+            for nb in ((i + 1, j), (i, j + 1)):
+                if nb in pos:
+                    prod += r_in[k] * r_in[pos[nb]]
+                    pairs += 1
+        rho = np.clip(prod / (pairs * np.maximum(var, 1e-18)), 0.0, 0.95) if pairs else np.zeros(2)
+        vif = 1.0 + 2.0 * rho * pairs / n_in
+        var_t = var * vif / n_in + (cfg.subpixel_floor_px * res) ** 2 + (cfg.common_mode_sigma_px * res) ** 2
+        # Attitude error moves the whole ortho image by height * angle; map DEM error by its view angle.
+        tan_view = float(np.mean(np.hypot(rel[keep, 0], rel[keep, 1]))) / height
+        var_t = var_t + (sigma_att_rad * height) ** 2 + (m.dem_sigma_m * tan_view) ** 2 * vif / n_in
+        return MapFix(True, "", r_C[:2] + t, np.diag(var_t), t, n_patches=n_patches, n_inliers=n_in,
+                      scale=scale, **diag)
+
+
+# ------------------------------------------------------------------ map navigation in flight
+NS_PER_S = 1_000_000_000
+ARCSEC_TO_RAD = math.pi / (180.0 * 3600.0)
+
+
+class MapNavConfig(BaseModel):
+    """When the flight software takes map fixes, and how a first fix must be confirmed."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    period_ns: int = Field(1_000_000_000, gt=0, description="time between map fixes [ns] (default 1 Hz)")
+    max_altitude_m: float = Field(600.0, gt=0.0, description="no fixes above this estimated height [m]")
+    min_altitude_m: float = Field(50.0, ge=0.0, description="no fixes below this estimated height [m]")
+    confirm_sigmas: float = Field(
+        3.0, gt=0.0,
+        description="before the first fix is used, two consecutive fixes' offsets must agree to this many "
+                    "sigmas of their difference [-]",
+    )
+    confirm_drift_m: float = Field(
+        1.0, ge=0.0,
+        description="1-sigma per axis of the filter's own drift between two fixes, added to the difference's "
+                    "covariance in the confirmation [m]",
+    )
+    fix: MapFixConfig = MapFixConfig()
+
+
+@dataclass
+class MapNavStats:
+    """Map-fix bookkeeping (flight side): every attempt, its outcome and the filter's verdict."""
+
+    attempts: int = 0
+    refused: dict[str, int] = None  # type: ignore[assignment]
+    unconfirmed: int = 0  # accepted by the matcher, waiting for or failing the consecutive-frame check
+    updates: int = 0  # handed to the filter
+    gate_rejected: int = 0
+    locked: bool = False
+    log: list = None  # type: ignore[assignment]  # (t_ns, MapFix, used: bool, gate_accepted: bool | None)
+
+    def __post_init__(self) -> None:
+        self.refused = dict.fromkeys(REFUSALS.values(), 0) if self.refused is None else self.refused
+        self.log = [] if self.log is None else self.log
+
+
+class MapNavigator:
+    """Map-relative position fixes for the navigation filter (flight software).
+
+    Ports:
+        Input: camera frames (the caller asks :meth:`wants_frame` first), the filter's
+            state, covariance and attitude, and the camera calibration.
+        Output: horizontal position updates of the filter (``update_map_position``), through
+            its chi-square gate, and :class:`MapNavStats`.
+        Rate: ``period_ns`` (default 1 Hz) while the estimated height is within
+            [``min_altitude_m``, ``max_altitude_m``].
+
+    A first fix is used only when the next one agrees with it (their offsets from the
+    filter's estimate differ by at most ``confirm_sigmas`` of the difference's sigma): one
+    fix alone may be a false lock. Once locked, every fix goes to the filter's gate.
+
+    Args:
+        onboard_map: The map.
+        cfg: Settings.
+        K: Camera intrinsics (3, 3) [px]; R_BC: camera-to-body rotation; r_cam_B_m: camera position in B [m].
+    """
+
+    def __init__(self, onboard_map: OnboardMap, cfg: MapNavConfig, K: np.ndarray, R_BC: np.ndarray,
+                 r_cam_B_m: np.ndarray) -> None:
+        self.cfg = cfg
+        self.matcher = MapMatcher(onboard_map, cfg.fix)
+        self.K = np.asarray(K, float)
+        self.R_BC = np.asarray(R_BC, float)
+        self.r_cam_B = np.asarray(r_cam_B_m, float)
+        self.stats = MapNavStats()
+        self._last_t_ns: int | None = None
+        self._pending: tuple[np.ndarray, np.ndarray] | None = None  # (offset, covariance) awaiting confirmation
+
+    def wants_frame(self, t_ns: int, height_m: float) -> bool:
+        """Would :meth:`on_frame` take a fix now?"""
+        if not (self.cfg.min_altitude_m <= height_m <= self.cfg.max_altitude_m):
+            return False
+        return self._last_t_ns is None or t_ns - self._last_t_ns >= self.cfg.period_ns
+
+    def on_frame(self, t_ns: int, frame: np.ndarray, nav_filter) -> MapFix | None:
+        """Take a map fix from the frame and update the filter with it (see the class docstring).
+
+        Args:
+            t_ns: The frame's time [ns].
+            frame: (H, W) uint8.
+            nav_filter: The :class:`gnc.estimator.NavFilter` (its state, covariance and attitude).
+
+        Returns:
+            The fix (accepted or refused), or None when no fix was due or no attitude is known yet.
+        """
+        from gnc.estimator import quat_to_matrix  # gnc-internal; here to keep the matcher importable alone
+
+        x = nav_filter.ekf.x
+        if not self.wants_frame(t_ns, float(x[2])) or nav_filter.q_LB is None:
+            return None
+        self._last_t_ns = t_ns
+        P = nav_filter.ekf.P
+        R_LB = quat_to_matrix(nav_filter.q_LB)
+        lag_s = (t_ns - nav_filter.time_ns) / NS_PER_S
+        lever = R_LB @ self.r_cam_B
+        r_C = x[0:3] + x[3:6] * lag_s + lever
+        sigma_xy = math.sqrt(max(float(np.linalg.eigvalsh(P[0:2, 0:2])[-1]), 0.0))
+        sigma_att = nav_filter.cfg.attitude_sigma_arcsec * ARCSEC_TO_RAD
+        self.stats.attempts += 1
+        fix = self.matcher.fix(frame, self.K, R_LB @ self.R_BC, r_C, sigma_xy, sigma_att)
+        if not fix.ok:
+            key = REFUSALS[fix.reason]
+            self.stats.refused[key] = self.stats.refused.get(key, 0) + 1
+            self._pending = None
+            self.stats.log.append((t_ns, fix, False, None))
+            return fix
+        if not self.stats.locked:
+            pending, self._pending = self._pending, (fix.offset_xy_m.copy(), fix.cov_xy_m2.copy())
+            if pending is None:
+                self.stats.unconfirmed += 1
+                self.stats.log.append((t_ns, fix, False, None))
+                return fix
+            d = fix.offset_xy_m - pending[0]
+            S = fix.cov_xy_m2 + pending[1] + np.eye(2) * self.cfg.confirm_drift_m**2
+            if not float(d @ np.linalg.solve(S, d)) <= self.cfg.confirm_sigmas**2:
+                self.stats.unconfirmed += 1
+                self.stats.log.append((t_ns, fix, False, None))
+                return fix
+            self.stats.locked = True
+        rec = nav_filter.update_map_position(t_ns, fix.r_CM_xy_m, fix.cov_xy_m2, lever[:2])
+        self.stats.updates += 1
+        self.stats.gate_rejected += int(not rec.accepted)
+        self.stats.log.append((t_ns, fix, True, bool(rec.accepted)))
+        return fix

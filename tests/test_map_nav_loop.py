@@ -1,0 +1,134 @@
+"""Map fixes in the filter (issue 14): the EKF position update, the first-fix confirmation, the scenario switch."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from bench.maps import onboard_map_from_product
+from bench.maps.synthetic import render_map_frame
+from bench.scenario import ScenarioError, load_scenario
+from bench.scenario.seeding import component_rng
+from bench.sim.flight_build import build_flight_software
+from gnc.estimator import KIND_MAP, make_estimator
+from gnc.map_nav import REFUSALS, MapNavConfig, MapNavigator
+from gnc.messages import AttitudeMessage
+from models.orbital_map import OrbitalMapConfig, render_orbital_map
+from models.terrain import TerrainConfig, generate_surface
+
+TERRAIN = TerrainConfig(size_m=320.0, texture_px=1280, geometry_px=81, patch_size_m=0.0, target_clear_radius_m=20.0)
+MAPCFG = OrbitalMapConfig(size_m=300.0, image_noise_dn=1.0, dem_noise_m=0.0)
+F_PX = 128.0 / math.tan(math.radians(30.0))
+K = np.array([[F_PX, 0.0, 127.5], [0.0, F_PX, 127.5], [0.0, 0.0, 1.0]])
+R_BC = np.diag([1.0, -1.0, -1.0])
+LEVER_B = np.array([0.3, -0.2, -1.0])  # camera position in B [m]
+
+
+@pytest.fixture(scope="module")
+def onboard():
+    surface = generate_surface(TERRAIN, component_rng(21, "terrain"))
+    return onboard_map_from_product(render_orbital_map(surface, MAPCFG, (0.0, 0.0), np.random.default_rng(1)),
+                                    MAPCFG)
+
+
+def _filter(r0, q_LB):
+    f = make_estimator(None, r0, np.zeros(3), 0, altimeter_mount_B_m=np.zeros(3))
+    f.set_attitude(AttitudeMessage(0, np.asarray(q_LB, float)))
+    return f
+
+
+def test_map_position_update_is_the_kalman_update_under_the_gate():
+    f = _filter(np.array([10.0, -5.0, 300.0]), [1.0, 0.0, 0.0, 0.0])
+    assert KIND_MAP not in f.counters  # counted only once a fix is made: summaries without maps are unchanged
+    x0, P0 = f.x, f.P
+    lever = np.array([0.4, -0.1])
+    z = x0[:2] + lever + np.array([3.0, -2.0])
+    R = np.array([[0.5, 0.1], [0.1, 0.3]])
+    rec = f.update_map_position(0, z, R, lever)
+    assert rec.accepted and f.counters[KIND_MAP]["accepted"] == 1
+    # Independent: the textbook update with H picking the horizontal position.
+    H = np.zeros((2, x0.size))
+    H[0, 0] = H[1, 1] = 1.0
+    S = H @ P0 @ H.T + R
+    Kg = P0 @ H.T @ np.linalg.inv(S)
+    y = z - (x0[:2] + lever)
+    assert np.allclose(f.x, x0 + Kg @ y, atol=1e-9)
+    assert np.allclose(f.P, (np.eye(x0.size) - Kg @ H) @ P0, atol=1e-6)
+    assert rec.nis == pytest.approx(float(y @ np.linalg.solve(S, y)))
+    # A fix far outside the gate changes nothing.
+    x1 = f.x
+    far = f.update_map_position(0, x1[:2] + lever + 500.0, R, lever)
+    assert not far.accepted and far.reason == "gate" and np.array_equal(f.x, x1)
+    assert f.counters[KIND_MAP]["rejected"] == 1
+
+
+def _attitude(yaw_deg):
+    return Rotation.from_euler("xyz", [2.0, -1.0, yaw_deg], degrees=True)
+
+
+def test_first_fix_waits_for_a_consecutive_agreeing_one_then_updates_the_filter(onboard):
+    rot = _attitude(25.0)
+    q = rot.as_quat(scalar_first=True)
+    R_LB = rot.as_matrix()
+    r_B = np.array([12.0, -8.0, float(onboard.dem_height(12.0, -8.0)) + 150.0])
+    est = r_B + np.array([9.0, -6.0, 0.0])  # a hand-over error well inside the filter's own sigma
+    f = _filter(est, q)
+    nav = MapNavigator(onboard, MapNavConfig(period_ns=100_000_000), K, R_BC, LEVER_B)
+    frame = render_map_frame(onboard, K, r_B + R_LB @ LEVER_B, R_LB @ R_BC, np.random.default_rng(0))
+    fix = nav.on_frame(0, frame, f)
+    assert fix is not None and fix.ok and nav.stats.unconfirmed == 1 and nav.stats.updates == 0
+    assert np.array_equal(f.x[:3], est)  # not used yet
+    assert nav.on_frame(50_000_000, frame, f) is None  # not due: period 100 ms
+    fix2 = nav.on_frame(100_000_000, frame, f)
+    assert fix2.ok and nav.stats.locked and nav.stats.updates == 1 and nav.stats.gate_rejected == 0
+    # The body position moved to the truth (the map has no shift here), within the fix's own sigma.
+    err = f.x[:2] - r_B[:2]
+    assert np.all(np.abs(err) < 3.0 * np.sqrt(np.diag(fix2.cov_xy_m2)) + 0.05), err
+
+
+def test_disagreeing_consecutive_fixes_are_not_used(onboard):
+    rot = _attitude(-40.0)
+    R_LB = rot.as_matrix()
+    r_B = np.array([-20.0, 10.0, float(onboard.dem_height(-20.0, 10.0)) + 140.0])
+    f = _filter(r_B + np.array([4.0, 3.0, 0.0]), rot.as_quat(scalar_first=True))
+    nav = MapNavigator(onboard, MapNavConfig(period_ns=100_000_000), K, R_BC, LEVER_B)
+    frame_a = render_map_frame(onboard, K, r_B + R_LB @ LEVER_B, R_LB @ R_BC, np.random.default_rng(0))
+    r_B2 = r_B + np.array([15.0, 0.0, 0.0])  # the second frame shows ground 15 m away: a jump no filter makes
+    frame_b = render_map_frame(onboard, K, r_B2 + R_LB @ LEVER_B, R_LB @ R_BC, np.random.default_rng(1))
+    assert nav.on_frame(0, frame_a, f).ok
+    assert nav.on_frame(100_000_000, frame_b, f).ok
+    assert nav.stats.updates == 0 and nav.stats.unconfirmed == 2 and not nav.stats.locked
+    # Refusals are counted under fixed identifiers (a campaign's columns do not depend on what happened).
+    assert set(nav.stats.refused) == set(REFUSALS.values()) and sum(nav.stats.refused.values()) == 0
+    blank = np.full_like(frame_a, 120)
+    assert not nav.on_frame(200_000_000, blank, f).ok and nav.stats.refused["peak_not_clear"] == 1
+
+
+def test_nav_map_switch_is_off_by_default_and_checked():
+    s = load_scenario(None)
+    assert s.nav_map == "off"
+    assert build_flight_software(s, np.array([0.0, 0.0, 500.0]), np.zeros(3)).map_nav is None
+    with pytest.raises(ScenarioError, match="nav_map = 'on' needs camera.enabled = true"):
+        load_scenario(None, ["nav_map=on", "camera.enabled=false", "vision=off"])
+    with pytest.raises(ScenarioError, match="onboard_map.size_m = 2000.0 is larger than the terrain"):
+        load_scenario(None, ["nav_map=on", "onboard_map.size_m=2000.0"])
+    with pytest.raises(ScenarioError, match="map_nav.period_ns = 150000000"):
+        load_scenario(None, ["nav_map=on", "map_nav.period_ns=150000000"])
+
+
+@pytest.mark.slow
+def test_default_landing_with_map_navigation_lands_on_the_map_target():
+    from bench.sim.run import run
+
+    res = run(load_scenario(None, ["nav_map=on"]))
+    m = res.summary["map_nav"]
+    assert res.summary["outcome"] == "landed"
+    assert m["false_locks"] == 0 and m["updates"] >= 10
+    assert m["miss_vs_map_target_m"] < 3.0
+    assert m["fix_err_max_m"] < 1.5
+    # Navigation errors are taken in the map frame: the same figure both ways.
+    assert res.summary["nav"]["pos_err_touchdown_m"] < 3.0
+    assert m["nav_err_map_frame_touchdown_m"] <= res.summary["nav"]["pos_err_touchdown_m"] + 1e-9

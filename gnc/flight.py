@@ -31,13 +31,15 @@ delivers a different thrust makes the gauge drift from the truth.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from gnc.control import ActuatorCommand, Controller, VehicleParams
-from gnc.estimator import IDX_C, IDX_G, IDX_R, IDX_SV, IDX_V, NavFilter, UpdateRecord, quat_to_matrix
+from gnc.estimator import IDX_C, IDX_G, IDX_H, IDX_R, IDX_SV, IDX_V, NavFilter, UpdateRecord, quat_to_matrix
+from gnc.fdir import HealthMonitor
 from gnc.guidance import GuidanceCommand, GuidanceLaw, LandingTarget
 from gnc.messages import AltimeterMessage, AttitudeMessage, ContactMessage, ImageMessage, ImuMessage
 from gnc.navstate import NavState
@@ -135,11 +137,13 @@ class FlightSoftware:
         vision_enabled: Use vision measurements at all.
         knowledge: The onboard knowledge of the vehicle. (The gyro's specification,
             for the relative rotation's uncertainty, is the filter's configuration.)
+        fdir: Sensor health monitoring and recovery (:mod:`gnc.fdir`); None: none
+            (every message goes to the filter as it comes).
     """
 
     def __init__(self, guidance: GuidanceLaw, controller: Controller, nav_filter: NavFilter,
                  tracker: Tracker | None, vision_cfg: VisionNavConfig, vision_enabled: bool,
-                 knowledge: OnboardKnowledge):
+                 knowledge: OnboardKnowledge, fdir: HealthMonitor | None = None):
         self.guidance = guidance
         self.controller = controller
         self.filter = nav_filter
@@ -157,16 +161,59 @@ class FlightSoftware:
         self._last_cmd_t_ns: int | None = None
         self._last_thrust_N = 0.0
         self.last_guidance: GuidanceCommand | None = None
+        self.fdir = fdir
+        self._on_ground = False  # footpad contact seen: health monitoring ends (the descent is over)
+        # Non-volatile memory: (t_ns, position (3,), velocity (3,), mass) written at every control tick.
+        self.checkpoint: tuple[int, np.ndarray, np.ndarray, float] | None = None
 
     # ------------------------------------------------------------------ sensors
     def on_imu(self, msg: ImuMessage) -> None:
+        if self._monitoring():
+            msg = self.fdir.imu(msg)
+            if msg is None:
+                return
         self.filter.propagate_imu(msg)
 
     def on_attitude(self, msg: AttitudeMessage) -> None:
+        if self._monitoring():
+            msg = self.fdir.attitude(msg)
+            if msg is None:
+                return
         self.filter.set_attitude(msg)
 
     def on_altimeter(self, msg: AltimeterMessage) -> None:
-        self.filter.update_altimeter(msg)
+        if not self._monitoring():
+            self.filter.update_altimeter(msg)
+            return
+        x = self.filter.ekf.x
+        est_range = float(x[2] - x[IDX_H])  # the altimeter's height above the filter's ground (nadir)
+        sigma = self.filter.altimeter_sigma_m(max(est_range, 0.0), include_relief=False)
+        used = self.fdir.altimeter(msg, est_range, float(x[5]), sigma)
+        if used is None:
+            return
+        record = self.filter.update_altimeter(used)
+        if record is not None and record.reason in ("", "gate"):
+            var = self.filter.altimeter_sigma_m(float(used.range_m), include_relief=False) ** 2
+            self.fdir.altimeter_record(used.t_ns, record.accepted, float(record.nis), float(used.range_m), est_range, var)
+            if self.fdir.terrain_reinit is not None:
+                self._reinit_terrain(used)
+
+    def _reinit_terrain(self, msg: AltimeterMessage) -> None:
+        """The Hakuto-R recovery: the filter's ground height re-initialised to the one this range measures."""
+        rho, var = self.fdir.terrain_reinit
+        self.fdir.terrain_reinit = None
+        q = self.filter.q_LB
+        if q is None:
+            return
+        R_LB = quat_to_matrix(q)
+        b_L = R_LB @ np.asarray(msg.boresight_B, float)
+        b_L = b_L / np.linalg.norm(b_L)
+        x, P = self.filter.ekf.x, self.filter.ekf.P
+        p_alt_z = float(x[2] + (R_LB @ self.knowledge.r_alt_B_m)[2])
+        x[IDX_H] = p_alt_z + rho * float(b_L[2])  # the ground the beam hits, relative to the target's elevation
+        P[IDX_H, :] = 0.0
+        P[:, IDX_H] = 0.0
+        P[IDX_H, IDX_H] = P[2, 2] + var
 
     def wants_image(self) -> bool:
         """Would :meth:`on_image` use a frame now (a tracker, vision enabled, above the cut-off)?
@@ -177,12 +224,16 @@ class FlightSoftware:
         """
         return self.tracker is not None and self.vision_active()
 
-    def skip_image(self) -> None:
-        """A camera frame went by that :meth:`wants_image` said would not be used."""
+    def skip_image(self, t_ns: int | None = None) -> None:
+        """A camera frame went by that :meth:`wants_image` said would not be used (``t_ns``: its time)."""
+        if self._monitoring() and t_ns is not None:
+            self.fdir.image(t_ns, None)
         self._end_vision()
 
     def on_image(self, msg: ImageMessage) -> Tracks | None:
         """Run the paper's tracker on a frame (above the cut-off) and use its tracks."""
+        if self._monitoring():
+            self.fdir.image(msg.t_ns, float(msg.image.mean()))
         if not self.wants_image():
             self._end_vision()
             return None
@@ -251,12 +302,52 @@ class FlightSoftware:
     def control(self, t_ns: int, contact: ContactMessage, nav: NavState | None = None) -> ActuatorCommand:
         """One control step; ``nav`` overrides the filter (perfect navigation)."""
         self._advance_mass_gauge(t_ns)
+        if self.fdir is not None and np.any(contact.legs):
+            self._on_ground = True
+        if self._monitoring():
+            self._fdir_tick(t_ns, contact)
         nav = nav if nav is not None else self.filter.nav_state(self.mass_kg)
-        cmd = self.guidance.update(nav, self.target)
+        if self.fdir is not None and self.fdir.abort is not None:
+            cmd = self._abort_command(nav)
+        else:
+            cmd = self.guidance.update(nav, self.target)
         act = self.controller.update(nav, cmd, contact)
         self.last_guidance = cmd
         self._hold_thrust(t_ns, act.thrust_N if act.engine_on else 0.0)
+        if self._monitoring():
+            self.fdir.control_tick(t_ns, act.thrust_N if act.engine_on else 0.0, self._thrust_scale, self.mass_kg,
+                                   bool(np.any(contact.legs)))
+            x = self.filter.ekf.x
+            self.checkpoint = (t_ns, x[IDX_R].copy(), x[IDX_V].copy(), self.mass_kg)
         return act
+
+    # ------------------------------------------------------------------ fault detection and recovery
+    def _monitoring(self) -> bool:
+        """Health monitoring runs (there is a monitor, and no footpad has touched the ground yet)."""
+        return self.fdir is not None and not self._on_ground
+
+    def _fdir_tick(self, t_ns: int, contact: ContactMessage) -> None:
+        """The clocked checks and recoveries of :mod:`gnc.fdir` at a control tick."""
+        fd = self.fdir
+        fd.start(t_ns)
+        if fd.cfg.recovery and fd.imu_missing(t_ns) and t_ns > self.filter.time_ns:
+            self.filter.propagate_imu(fd.synthetic_imu(t_ns))  # dead reckoning on the thrust command
+        fd.camera_check(t_ns, self.vision_active())
+        if fd.thrust_efficiency is not None:  # the engine delivers less: re-plan within what it gives
+            eff, fd.thrust_efficiency = fd.thrust_efficiency, None
+            self._thrust_scale *= eff
+            self.controller.vehicle = dataclasses.replace(
+                self.controller.vehicle, thrust_scale=self.controller.vehicle.thrust_scale * eff)
+        x, P = self.filter.ekf.x, self.filter.ekf.P
+        observed = not fd.altitude_lost(t_ns, float(x[2] - x[IDX_H]))
+        fd.abort_reason(t_ns, float(x[2]), math.sqrt(max(float(P[2, 2]), 0.0)), observed, bool(np.any(contact.legs)))
+
+    def _abort_command(self, nav: NavState) -> GuidanceCommand:
+        """Safe abort: null the horizontal velocity and climb at ``abort_climb_mps`` (never descend blind)."""
+        c = self.fdir.cfg
+        v = np.asarray(nav.v_BL_L, float)
+        a = c.abort_hover_gain_per_s * (np.array([0.0, 0.0, c.abort_climb_mps]) - v)
+        return GuidanceCommand(int(nav.t_ns), np.clip(a, -2.0, 2.0), "abort", math.nan)
 
     def on_flown_command(self, t_ns: int, thrust_cmd_N: float, engine_on: bool) -> None:
         """Open-loop replay's control tick: the mass gauge takes the command that was flown.

@@ -30,6 +30,7 @@ from bench.scenario.dispersions import Dispersion, check_dispersion_paths, draw_
 from gnc.config import format_validation_error
 from gnc.control import ControlConfig
 from gnc.estimator import EstimatorConfig
+from gnc.fdir import FdirConfig
 from gnc.guidance import GuidanceConfig
 from gnc.vision_nav import VisionNavConfig
 from vision.tracker import TrackerConfig
@@ -38,6 +39,7 @@ from models.lander import CONTACT_TIMECONST_S, LanderConfig
 from models.sensors import SensorsConfig
 from models.terrain import TerrainConfig
 from models.sun import SunConfig  # not models.world: a scenario loads without MuJoCo
+from models.faults import FaultConfig, check_fault
 
 NS_PER_S = 1_000_000_000
 DEFAULT_SCENARIO = "default.toml"
@@ -188,7 +190,13 @@ class Scenario(BaseModel):
     estimator: EstimatorConfig = EstimatorConfig()
     tracker: TrackerConfig = TrackerConfig()
     vision_nav: VisionNavConfig = VisionNavConfig()
+    fdir: FdirConfig = FdirConfig()
     knowledge: KnowledgeConfig = KnowledgeConfig()
+    faults: list[FaultConfig] = Field(
+        default_factory=list,
+        description="truth-side faults ([[faults]] tables; models.faults): sensors, camera, engine, flight computer, "
+                    "terrain; each with a kind, a trigger, a duration and its parameters",
+    )
     dispersions: dict[str, Dispersion] = Field(
         default_factory=dict,
         description="field path -> distribution, drawn per case in Monte Carlo campaigns (a single run flies nominal)",
@@ -232,6 +240,22 @@ class Scenario(BaseModel):
                     f"{name} = {value} differs from sim.gravity_mps2 = {g}; allowed: the same value "
                     "(the flight software's gravity model is the world's; set them together)"
                 )
+        return self
+
+    @model_validator(mode="after")
+    def _faults_consistent(self) -> "Scenario":
+        for i, f in enumerate(self.faults):
+            try:
+                check_fault(f)
+            except ValueError as exc:
+                raise ValueError(f"faults.{i}: {exc}") from None
+            if f.kind == "terrain_step":
+                keep_m = self.terrain.patch_size_m / math.sqrt(2.0)  # the target and its texture patch stay as they are
+                if math.hypot(*f.center_xy_m) - f.radius_m <= keep_m:
+                    raise ValueError(
+                        f"faults.{i}.center_xy_m = {list(f.center_xy_m)} with radius_m = {f.radius_m}: the step reaches "
+                        f"within {keep_m:.1f} m of the target (its texture patch); allowed: "
+                        f"|center_xy_m| - radius_m > {keep_m:.1f} m")
         return self
 
     @model_validator(mode="after")
@@ -426,6 +450,8 @@ def _toml_value(v: Any) -> str:
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     if isinstance(v, str):
         return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, dict):  # an inline table (the entries of [[faults]]); None fields are omitted
+        return "{" + ", ".join(f"{_toml_key(k)} = {_toml_value(x)}" for k, x in v.items() if x is not None) + "}"
     raise TypeError(f"cannot write {type(v).__name__} to TOML")
 
 

@@ -21,6 +21,7 @@ COMPONENTS: tuple[str, ...] = (
     "dispersions",
     "estimator",
     "vision",
+    "faults",
 )
 
 

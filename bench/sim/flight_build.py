@@ -22,6 +22,7 @@ from bench.scenario import Scenario
 from bench.scenario.seeding import component_rng
 from gnc.control import VehicleParams, make_controller
 from gnc.estimator import make_estimator
+from gnc.fdir import COMPUTER, FdirEvent, HealthMonitor, SensorSpec, restart_estimate
 from gnc.flight import FlightSoftware, OnboardKnowledge
 from gnc.guidance import make_guidance
 from models.camera import R_BC, intrinsics
@@ -80,10 +81,19 @@ def handover_estimate(scenario: Scenario, truth: Any) -> tuple[np.ndarray, np.nd
     return r0, v0
 
 
-def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.ndarray) -> FlightSoftware:
+def sensor_spec(scenario: Scenario) -> SensorSpec:
+    """The sensors' periods and the altimeter's range, as their specification gives them to the flight software."""
+    s = scenario.sensors
+    return SensorSpec(imu_period_ns=s.imu.period_ns, altimeter_period_ns=s.altimeter.period_ns,
+                      star_tracker_period_ns=s.star_tracker.period_ns,
+                      camera_period_ns=scenario.camera.period_ns if scenario.camera.enabled else None,
+                      altimeter_max_range_m=s.altimeter.max_range_m)
+
+
+def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.ndarray, t0_ns: int = 0) -> FlightSoftware:
     """The flight computer of the run: onboard knowledge, configuration and the hand-over estimate.
 
-    Nothing of the truth reaches it but the hand-over estimate passed in.
+    Nothing of the truth reaches it but the hand-over estimate passed in (at ``t0_ns``).
     """
     knowledge = onboard_knowledge(scenario)
     control = scenario.control
@@ -92,7 +102,27 @@ def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.nda
     controller = make_controller(control, knowledge.vehicle)
     limits = dataclasses.replace(controller.guidance_limits(), isp_s=knowledge.isp_s)  # G-FOLD models the mass flow
     guidance = make_guidance(scenario.guidance, limits)
-    nav_filter = make_estimator(scenario.estimator, x0_r_L, x0_v_L, 0, altimeter_mount_B_m=knowledge.r_alt_B_m)
+    nav_filter = make_estimator(scenario.estimator, x0_r_L, x0_v_L, int(t0_ns), altimeter_mount_B_m=knowledge.r_alt_B_m)
     tracker = Tracker(scenario.tracker) if scenario.tracks == "vision" and scenario.vision == "on" else None
     return FlightSoftware(guidance, controller, nav_filter, tracker, scenario.vision_nav, scenario.vision == "on",
-                          knowledge)
+                          knowledge, HealthMonitor(scenario.fdir, sensor_spec(scenario)))
+
+
+def restart_flight_software(scenario: Scenario, old: FlightSoftware, t_ns: int) -> FlightSoftware:
+    """The flight software after a computer reset at ``t_ns``: everything volatile is lost.
+
+    It restarts from its own non-volatile checkpoint (the last control tick's
+    estimate and mass, carried ballistically over the outage: the engine was
+    off), never from the truth; the detections of its earlier life are kept
+    in the telemetry, and the restart is one more.
+    """
+    if old.checkpoint is None:  # never flew a tick: restart from the hand-over's own data
+        raise RuntimeError("flight computer reset before its first control tick")
+    t0, r0, v0, mass = old.checkpoint
+    r, v = restart_estimate(r0, v0, (t_ns - t0) / 1e9, scenario.estimator.gravity_mps2)
+    new = build_flight_software(scenario, r, v, t0_ns=t_ns)
+    new.mass_kg = mass
+    new.fdir.carry_events([*old.fdir.events, FdirEvent(
+        t_ns, COMPUTER, f"computer restarted after {(t_ns - t0) / 1e9:.2f} s down",
+        "state restored from the non-volatile checkpoint, carried ballistically")])
+    return new

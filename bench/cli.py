@@ -25,6 +25,11 @@ def _add_scenario_args(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_preset_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--preset", default=None, metavar="NAME",
+                   help="lay a named fault preset over the scenario, under --set (landbench faults list)")
+
+
 def _check_out(path: str, suffixes: tuple[str, ...], flag: str) -> Path:
     out = Path(path)
     if out.suffix.lower() not in suffixes:
@@ -126,7 +131,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {args.out!r} is a file; give a folder")
-    scenario = load_scenario(args.scenario, args.overrides)
+    scenario = load_scenario(args.scenario, args.overrides, args.preset)
     summary, table = run_and_write(scenario, out, video=not args.no_video, progress=True)
     print(table)
     return 0 if summary["landed"] else EXIT_NOT_LANDED
@@ -154,7 +159,7 @@ def cmd_mc(args: argparse.Namespace) -> int:
     else:
         if args.runs is None:
             raise ValueError("--runs N is required for a new campaign")
-        base = load_scenario(args.scenario, args.overrides)
+        base = load_scenario(args.scenario, args.overrides, args.preset)
         runs, seed = args.runs, (args.seed if args.seed is not None else base.seed)
     args.runs = runs
     rows = mc.run_campaign(base, args.runs, directory, seed, workers=args.workers, resume=bool(args.resume),
@@ -299,12 +304,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="fly one closed-loop landing and write its results",
                        description="Fly one landing. Exit status: 0 landed, 3 not landed, 2 bad input.")
     _add_scenario_args(p)
+    _add_preset_arg(p)
     p.add_argument("--out", default="out/run", help="output folder (default out/run)")
     p.add_argument("--no-video", action="store_true", help="skip camera.mp4 (then frames that vision does not use are not rendered)")
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("mc", help="Monte Carlo campaign of dispersed landings")
     _add_scenario_args(p)
+    _add_preset_arg(p)
     p.add_argument("--runs", type=int, help="number of cases")
     p.add_argument("--workers", type=int, default=None,
                    help="cases run at once (default: 1 with local; every cluster CPU with ray)")

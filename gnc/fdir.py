@@ -124,6 +124,17 @@ class FdirConfig(BaseModel):
     negative_altitude_m: float = Field(5.0, gt=0.0, description="estimated height below ground, no contact [m]")
     abort_sigma_z_frac: float = Field(0.2, gt=0.0, description="abort: vertical 1-sigma over the estimated height [-]")
     abort_sigma_z_min_m: float = Field(3.0, gt=0.0, description="abort: smallest vertical 1-sigma that aborts [m]")
+    vision_window: int = Field(20, ge=5, description="vision measurements in the rejection-rate window [-]")
+    vision_rejected_max: float = Field(0.5, gt=0.0, le=1.0,
+                                       description="largest fraction of them the filter's gate may reject [-]")
+    abort_check_height_m: float = Field(
+        35.0, gt=0.0, description="below this estimated height (just above the vision cut-off, where vision stops "
+                                  "improving it), the horizontal velocity must be known well enough to land [m]")
+    abort_sigma_vh_mps: float = Field(0.3, gt=0.0, description="abort: horizontal velocity 1-sigma beyond this [m/s]")
+    synthetic_accel_sigma_mps2: float = Field(
+        0.15, gt=0.0, description="1-sigma error of the synthetic accelerometer (thrust command over mass), added to "
+                                  "the filter's velocity covariance while it is used [m/s^2]")
+    average_max: int = Field(100, ge=2, description="noisy altimeter: most samples averaged into one update [-]")
     abort_hover_gain_per_s: float = Field(0.5, gt=0.0, description="safe abort: velocity feedback gain [1/s]")
     abort_climb_mps: float = Field(3.0, ge=0.0, le=20.0, description="safe abort: climb rate commanded [m/s]")
 
@@ -226,6 +237,7 @@ class HealthMonitor:
         self._lateral_run = 0
         self._axial_run = 0
         self.last_gyro_B = np.zeros(3)
+        self.last_imu_synthetic = False  # the message returned by imu() carries a synthetic specific force
         # star tracker
         self._st_last: AttitudeMessage | None = None
         self._st_gap_open = False
@@ -254,6 +266,8 @@ class HealthMonitor:
         self._cam_last_t: int | None = None
         self._cam_gap_open = False
         self.thrust_efficiency: float | None = None
+        self._vision_hist: list[bool] = []
+        self.alt_average_n: int | None = None  # noisy altimeter: samples averaged into one update (None: off)
 
     # ------------------------------------------------------------------ events
     def _event(self, t_ns: int, subsystem: str, reason: str, action: str = "", once_key: str | None = None) -> None:
@@ -288,8 +302,10 @@ class HealthMonitor:
                 self._fail(t, "imu.accel", "IMU flags its data invalid", "synthetic IMU")
                 if self.cfg.recovery:
                     self.failed.add("imu.gyro")
+            self.last_imu_synthetic = self.cfg.recovery
             return self.synthetic_imu(t) if self.cfg.recovery else None
         self._imu_invalid = 0
+        self.last_imu_synthetic = False
         f_B, w_B = np.asarray(msg.f_B, float), np.asarray(msg.omega_B, float)
         if np.any(self._acc_stuck.step(f_B) >= c.stuck_samples - 1):
             self._fail(t, "imu.accel", "accelerometer output frozen (bit-identical samples)",
@@ -308,6 +324,7 @@ class HealthMonitor:
             return msg
         if "imu.accel" in self.failed:
             f_B = np.array([0.0, 0.0, self._thrust_expect_mps2])
+            self.last_imu_synthetic = True
         if "imu.gyro" in self.failed and self.st_rate_B is not None:
             w_B = self.st_rate_B
         return ImuMessage(t, f_B, w_B)
@@ -498,9 +515,20 @@ class HealthMonitor:
             alternating = ch.size >= 10 and float(np.mean(ch[1:] * ch[:-1])) < -0.25 * float(np.mean(ch * ch))
             noisy = len(hist) >= c.nis_window // 2 and hist.count(False) / len(hist) > c.noisy_fraction and alternating
             if len(self._alt_nis) == c.nis_window and float(np.mean(self._alt_nis)) > c.nis_mean_max \
-                    and noisy:  # a consistent sensor the gate refuses is the guard's case, not noise
-                self._fail(t_ns, ALTIMETER, f"altimeter innovations too large (mean NIS {np.mean(self._alt_nis):.1f})",
-                           "altimeter excluded")
+                    and noisy and self.alt_average_n is None:  # a consistent sensor the gate refuses: the guard's case
+                # The noise's factor over the specification, from the spread of the changes between samples.
+                k2 = float(np.mean(ch * ch)) / (2.0 * var_m2) if var_m2 > 0.0 else math.inf
+                n = int(math.ceil(k2)) if math.isfinite(k2) else c.average_max + 1
+                if c.recovery and n <= c.average_max:
+                    self.alt_average_n = max(n, 2)
+                    nis_mean = float(np.mean(self._alt_nis))
+                    self._alt_nis.clear()
+                    self._event(t_ns, ALTIMETER, f"altimeter innovations too large (mean NIS {nis_mean:.1f}), "
+                                                 f"its noise about {math.sqrt(k2):.1f} x the specification",
+                                f"ranges averaged {self.alt_average_n} at a time", once_key="noisy")
+                else:
+                    self._fail(t_ns, ALTIMETER, f"altimeter innovations too large (mean NIS "
+                                                f"{np.mean(self._alt_nis):.1f})", "altimeter excluded")
         if accepted:
             self._alt_reject_since = None
             return
@@ -536,6 +564,17 @@ class HealthMonitor:
             return True
         in_range = est_range_m is not None and est_range_m < 0.9 * self.spec.altimeter_max_range_m
         return in_range and self._alt_invalid >= c.invalid_streak and not self._alt_override
+
+    def vision_record(self, t_ns: int, accepted: bool) -> None:
+        """The filter's verdict on a vision measurement (the rejection rate over a window)."""
+        c = self.cfg
+        self._vision_hist.append(accepted)
+        del self._vision_hist[:-c.vision_window]
+        if len(self._vision_hist) == c.vision_window:
+            frac = self._vision_hist.count(False) / c.vision_window
+            if frac > c.vision_rejected_max:
+                self._fail(t_ns, "vision", f"vision measurements {100 * frac:.0f} % rejected by the gate",
+                           "vision excluded")
 
     # ------------------------------------------------------------------ camera
     def image(self, t_ns: int, mean_dn: float | None) -> None:
@@ -586,7 +625,7 @@ class HealthMonitor:
             self._event(t_ns, STAR_TRACKER, "loss of data: star-tracker fixes missing", once_key="gap")
 
     def abort_reason(self, t_ns: int, height_m: float, sigma_z_m: float, altitude_observed: bool,
-                     contact: bool) -> str | None:
+                     contact: bool, sigma_vh_mps: float = 0.0) -> str | None:
         """The safe-abort criterion (module docstring); the first reason declares the abort."""
         if self.abort is not None or contact or not self.cfg.recovery:
             return None
@@ -599,13 +638,43 @@ class HealthMonitor:
         elif not altitude_observed and sigma_z_m > max(c.abort_sigma_z_min_m, c.abort_sigma_z_frac * max(height_m, 0.0)):
             reason = (f"altitude not observed and its 1-sigma {sigma_z_m:.1f} m is beyond "
                       f"{100 * c.abort_sigma_z_frac:.0f} % of the height {height_m:.1f} m")
+        elif height_m < c.abort_check_height_m and sigma_vh_mps > c.abort_sigma_vh_mps:
+            reason = (f"horizontal velocity 1-sigma {sigma_vh_mps:.2f} m/s at {height_m:.0f} m, beyond "
+                      f"{c.abort_sigma_vh_mps:g} m/s")
         if reason is not None:
             self.abort = FdirEvent(int(t_ns), NAVIGATION, reason, "safe abort: hover")
             self.events.append(self.abort)
         return reason
 
 
-def restart_estimate(r_L: np.ndarray, v_L: np.ndarray, dt_s: float, gravity_mps2: float) -> tuple[np.ndarray, np.ndarray]:
-    """A checkpointed position and velocity carried ballistically (engine off) over ``dt_s``: (r (3,), v (3,))."""
+def restart_estimate(x: np.ndarray, P: np.ndarray, dt_s: float, gravity_mps2: float,
+                     accel_sigma_mps2: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """A checkpointed filter state carried ballistically (engine off) over an outage of ``dt_s``.
+
+    Position and velocity follow free fall; their covariance grows by the
+    carried velocity uncertainty and an unknown acceleration of
+    ``accel_sigma_mps2`` (engine tail-off, RCS) over the outage.
+
+    Args:
+        x: Filter state (24,): position (0:3) and velocity (3:6) first.
+        P: Its covariance (24, 24).
+        dt_s: Outage [s].
+        gravity_mps2: Surface gravity [m/s^2].
+        accel_sigma_mps2: 1-sigma of the unmodelled acceleration [m/s^2].
+
+    Returns:
+        (x (24,), P (24, 24)), new arrays.
+    """
+    x, P = np.array(x, float), np.array(P, float)
     g_L = np.array([0.0, 0.0, -gravity_mps2])
-    return np.asarray(r_L, float) + np.asarray(v_L, float) * dt_s + 0.5 * g_L * dt_s**2, np.asarray(v_L, float) + g_L * dt_s
+    x[0:3] += x[3:6] * dt_s + 0.5 * g_L * dt_s**2
+    x[3:6] += g_L * dt_s
+    F = np.eye(P.shape[0])
+    F[0:3, 3:6] = np.eye(3) * dt_s
+    P = F @ P @ F.T
+    q = accel_sigma_mps2**2
+    P[0:3, 0:3] += np.eye(3) * q * dt_s**4 / 4.0
+    P[0:3, 3:6] += np.eye(3) * q * dt_s**3 / 2.0
+    P[3:6, 0:3] += np.eye(3) * q * dt_s**3 / 2.0
+    P[3:6, 3:6] += np.eye(3) * q * dt_s**2
+    return x, P

@@ -163,15 +163,21 @@ class FlightSoftware:
         self.last_guidance: GuidanceCommand | None = None
         self.fdir = fdir
         self._on_ground = False  # footpad contact seen: health monitoring ends (the descent is over)
-        # Non-volatile memory: (t_ns, position (3,), velocity (3,), mass) written at every control tick.
-        self.checkpoint: tuple[int, np.ndarray, np.ndarray, float] | None = None
+        self._alt_buffer: list[float] = []
+        # Non-volatile memory, written at every control tick: (t_ns, filter state (24,), covariance (24, 24),
+        # mass [kg], attitude q_LB (4,) or None).
+        self.checkpoint: tuple[int, np.ndarray, np.ndarray, float, np.ndarray | None] | None = None
 
     # ------------------------------------------------------------------ sensors
     def on_imu(self, msg: ImuMessage) -> None:
         if self._monitoring():
+            t_prev = self.filter.time_ns
             msg = self.fdir.imu(msg)
             if msg is None:
                 return
+            if self.filter.propagate_imu(msg) and self.fdir.last_imu_synthetic:
+                self._inflate_velocity(msg.t_ns - t_prev)
+            return
         self.filter.propagate_imu(msg)
 
     def on_attitude(self, msg: AttitudeMessage) -> None:
@@ -191,12 +197,27 @@ class FlightSoftware:
         used = self.fdir.altimeter(msg, est_range, float(x[5]), sigma)
         if used is None:
             return
+        if self.fdir.alt_average_n is not None:  # a noisy altimeter: one update from n samples' mean
+            used = self._averaged(used, est_range)
+            if used is None:
+                return
         record = self.filter.update_altimeter(used)
         if record is not None and record.reason in ("", "gate"):
             var = self.filter.altimeter_sigma_m(float(used.range_m), include_relief=False) ** 2
             self.fdir.altimeter_record(used.t_ns, record.accepted, float(record.nis), float(used.range_m), est_range, var)
             if self.fdir.terrain_reinit is not None:
                 self._reinit_terrain(used)
+
+    def _averaged(self, msg: AltimeterMessage, est_range_m: float) -> AltimeterMessage | None:
+        """Collect each range's difference from the range the navigation expects at its time; every n-th sample,
+        the expected range now plus their mean (else None): the motion between the samples is the IMU's."""
+        buf = self._alt_buffer
+        buf.append(float(msg.range_m) - est_range_m)
+        if len(buf) < self.fdir.alt_average_n:
+            return None
+        mean = est_range_m + float(np.mean(buf))
+        buf.clear()
+        return AltimeterMessage(msg.t_ns, mean, True, msg.boresight_B)
 
     def _reinit_terrain(self, msg: AltimeterMessage) -> None:
         """The Hakuto-R recovery: the filter's ground height re-initialised to the one this range measures."""
@@ -285,6 +306,8 @@ class FlightSoftware:
         self.vision.last_record = record
         if not record.accepted:
             self.vision.rejected += 1
+        if self._monitoring():
+            self.fdir.vision_record(m.t_ns, record.accepted)
 
     def _end_vision(self) -> None:
         """No vision at this frame: the next frame starts a new pair."""
@@ -294,7 +317,7 @@ class FlightSoftware:
 
     def vision_active(self) -> bool:
         """Vision is enabled and the estimated altitude is above the cut-off."""
-        if not self.vision_enabled:
+        if not self.vision_enabled or (self.fdir is not None and "vision" in self.fdir.failed):
             return False
         return float(self.filter.ekf.x[2]) > self.vision_cfg.cutoff_altitude_m
 
@@ -317,8 +340,7 @@ class FlightSoftware:
         if self._monitoring():
             self.fdir.control_tick(t_ns, act.thrust_N if act.engine_on else 0.0, self._thrust_scale, self.mass_kg,
                                    bool(np.any(contact.legs)))
-            x = self.filter.ekf.x
-            self.checkpoint = (t_ns, x[IDX_R].copy(), x[IDX_V].copy(), self.mass_kg)
+            self.checkpoint = (t_ns, self.filter.ekf.x.copy(), self.filter.ekf.P.copy(), self.mass_kg, self.filter.q_LB)
         return act
 
     # ------------------------------------------------------------------ fault detection and recovery
@@ -331,7 +353,9 @@ class FlightSoftware:
         fd = self.fdir
         fd.start(t_ns)
         if fd.cfg.recovery and fd.imu_missing(t_ns) and t_ns > self.filter.time_ns:
-            self.filter.propagate_imu(fd.synthetic_imu(t_ns))  # dead reckoning on the thrust command
+            t_prev = self.filter.time_ns
+            if self.filter.propagate_imu(fd.synthetic_imu(t_ns)):  # dead reckoning on the thrust command
+                self._inflate_velocity(t_ns - t_prev)
         fd.camera_check(t_ns, self.vision_active())
         if fd.thrust_efficiency is not None:  # the engine delivers less: re-plan within what it gives
             eff, fd.thrust_efficiency = fd.thrust_efficiency, None
@@ -340,7 +364,16 @@ class FlightSoftware:
                 self.controller.vehicle, thrust_scale=self.controller.vehicle.thrust_scale * eff)
         x, P = self.filter.ekf.x, self.filter.ekf.P
         observed = not fd.altitude_lost(t_ns, float(x[2] - x[IDX_H]))
-        fd.abort_reason(t_ns, float(x[2]), math.sqrt(max(float(P[2, 2]), 0.0)), observed, bool(np.any(contact.legs)))
+        fd.abort_reason(t_ns, float(x[2]), math.sqrt(max(float(P[2, 2]), 0.0)), observed, bool(np.any(contact.legs)),
+                        math.sqrt(max(float(P[3, 3] + P[4, 4]), 0.0)))
+
+    def _inflate_velocity(self, dt_ns: int) -> None:
+        """Add the synthetic accelerometer's error over ``dt_ns`` to the filter's velocity (and position) covariance."""
+        dt = max(dt_ns, 0) / NS_PER_S
+        q = self.fdir.cfg.synthetic_accel_sigma_mps2 ** 2
+        P = self.filter.ekf.P
+        P[IDX_V, IDX_V] += np.eye(3) * q * dt
+        P[IDX_R, IDX_R] += np.eye(3) * q * dt**3 / 3.0
 
     def _abort_command(self, nav: NavState) -> GuidanceCommand:
         """Safe abort: null the horizontal velocity and climb at ``abort_climb_mps`` (never descend blind)."""

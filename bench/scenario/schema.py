@@ -388,15 +388,17 @@ def apply_dispersions(scenario: Scenario, rng: np.random.Generator | None = None
     return scenario_from_dict(data), drawn
 
 
-def load_scenario(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Scenario:
-    """Load a scenario file (or the bundled default) and apply overrides.
+def load_scenario(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = (),
+                  preset: str | None = None) -> Scenario:
+    """Load a scenario file (or the bundled default), lay a named preset over it and apply overrides.
 
     Relative paths inside the file (``terrain.dem_path``) are resolved against
     the file's folder, so a scenario can travel with its DEM.
 
     Args:
         path: TOML file, or None for the bundled default.
-        overrides: ``a.b=value`` assignments, applied in order.
+        overrides: ``a.b=value`` assignments, applied in order (after the preset).
+        preset: A named layer of :mod:`bench.scenario.presets` (``--preset``), or None.
 
     Returns:
         The validated scenario.
@@ -405,7 +407,7 @@ def load_scenario(path: str | Path | None = None, overrides: list[str] | tuple[s
         ScenarioError: One line naming the field, the bad value and what is allowed.
     """
     data, base = read_scenario_data(path)
-    return scenario_from_data(data, base, overrides)
+    return scenario_from_data(data, base, overrides, preset)
 
 
 def read_scenario_data(path: str | Path | None) -> tuple[dict[str, Any], Path]:
@@ -420,14 +422,17 @@ def read_scenario_data(path: str | Path | None) -> tuple[dict[str, Any], Path]:
     return _read_toml(path), path.parent
 
 
-def scenario_from_data(data: dict[str, Any], base: Path, overrides: list[str] | tuple[str, ...] = ()) -> Scenario:
-    """Apply overrides to a raw scenario table, resolve ``terrain.dem_path`` against ``base``, validate.
+def scenario_from_data(data: dict[str, Any], base: Path, overrides: list[str] | tuple[str, ...] = (),
+                       preset: str | None = None) -> Scenario:
+    """Lay a preset over a raw scenario table, apply overrides, resolve ``terrain.dem_path`` against ``base``, validate.
 
     ``data`` is copied, not changed. (``landbench sweep`` takes its ``[sweep]`` table out of the file first.)
     """
     import copy
 
-    data = copy.deepcopy(data)
+    from bench.scenario.presets import apply_preset
+
+    data = apply_preset(data, preset) if preset is not None else copy.deepcopy(data)
     for assignment in overrides:
         apply_override(data, assignment)
     dem = data.get("terrain", {}).get("dem_path") if isinstance(data.get("terrain"), dict) else None

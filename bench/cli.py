@@ -225,6 +225,34 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_faults(args: argparse.Namespace) -> int:
+    from bench.campaign import faults
+
+    if args.action == "list":
+        print(faults.list_presets())
+        return 0
+    if args.resume:
+        doc = faults.run_faults([], 1, Path(args.resume), None, workers=args.workers, resume=True,
+                                retention=args.retention, case_timeout_s=args.case_timeout, progress=True,
+                                backend=args.backend, address=args.address)
+        directory = Path(args.resume)
+    else:
+        if not args.out:
+            raise ValueError("give --out DIR for a new fault matrix, or --resume DIR")
+        if args.runs is None:
+            raise ValueError("--runs N is required (cases per preset)")
+        presets = faults.parse_presets(args.presets)
+        directory = Path(args.out)
+        doc = faults.run_faults(presets, args.runs, directory, args.seed, args.scenario, args.overrides,
+                                workers=args.workers, retention=args.retention, case_timeout_s=args.case_timeout,
+                                progress=True, backend=args.backend, address=args.address)
+    print(faults.format_matrix(doc))
+    print(f"matrix: {directory / faults.MATRIX_PARQUET}, {directory / faults.FAULTS_JSON}, "
+          f"{directory / faults.MATRIX_MD}; cases: {directory / faults.CASES_PARQUET}; "
+          f"report: {directory / faults.REPORT}")
+    return 0
+
+
 def _mc_replay(directory: Path, case: int, out: Path) -> int:
     from bench.campaign import mc
     from bench.report.run_outputs import run_and_write
@@ -362,6 +390,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--case-timeout", type=float, default=None, metavar="S", help="per-case wall-clock limit [s]")
     p.add_argument("--dry-run", action="store_true", help="write every point's dispersed case scenarios, run nothing")
     p.set_defaults(func=cmd_sweep)
+
+    p = sub.add_parser(
+        "faults", help="fault presets: list them, or run each preset x N seeds (the fault matrix)",
+        description="`landbench faults list` prints every preset with its provenance. `landbench faults --presets "
+                    "all --runs N --out DIR` runs a Monte Carlo campaign of N cases per preset (the same case seeds "
+                    "for every preset), then writes the matrix: outcome counts, success and landed-or-safe-abort "
+                    "rates with Wilson intervals, fault detection rate and latency, unseen failures, false alarms "
+                    "and touchdown figures: DIR/matrix.parquet, DIR/faults.json, DIR/matrix.md, DIR/cases.parquet, "
+                    "DIR/report.png and each preset's campaign in DIR/presets/NAME/.")
+    p.add_argument("action", nargs="?", choices=("list", "run"), default="run",
+                   help="list: print the presets; run (default): the fault matrix")
+    _add_scenario_args(p)
+    p.add_argument("--presets", default="all", metavar="all|NAME,...", help="presets to run (default all)")
+    p.add_argument("--runs", type=int, default=None, help="cases per preset")
+    p.add_argument("--workers", type=int, default=None, help="cases run at once (as landbench mc)")
+    p.add_argument("--backend", default="local", choices=("local", "ray"), help="as landbench mc")
+    p.add_argument("--address", default=None, help="Ray cluster address for --backend ray")
+    p.add_argument("--seed", type=int, default=None, help="campaign seed, the same for every preset "
+                                                          "(default: the scenario's seed)")
+    p.add_argument("--out", default=None, metavar="DIR", help="matrix folder")
+    p.add_argument("--resume", default=None, metavar="DIR", help="finish an interrupted matrix")
+    p.add_argument("--retention", default="summary", choices=("summary", "failed", "all"),
+                   help="whose telemetry and video are kept")
+    p.add_argument("--case-timeout", type=float, default=None, metavar="S", help="per-case wall-clock limit [s]")
+    p.set_defaults(func=cmd_faults)
 
     p = sub.add_parser(
         "compare", help="paired A/B comparison of two Monte Carlo campaigns (case by case) or two replays "

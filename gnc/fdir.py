@@ -47,7 +47,9 @@ Checks (thresholds in :class:`FdirConfig`):
   gate that rejects a true measurement: detected as a fault of its own, and the
   filter's terrain height is re-initialised to the measured ground.
 
-Recovery: a failed altimeter (stuck, noisy, out of range, rejected and not
+Recovery: vision whose measurements the gate mostly rejects is excluded for
+``vision_retry_s``, then tried again once (excluded for good the second
+time); a failed altimeter (stuck, noisy, out of range, rejected and not
 consistent with itself) and a failed star tracker (stuck, invalid) are no
 longer fed to the filter; a failed gyro is replaced by the star tracker's
 rate, a failed accelerometer by the commanded thrust over the estimated mass
@@ -60,9 +62,12 @@ Safe abort (:meth:`HealthMonitor.abort_reason`): declared when the
 navigation cannot support a landing within the criteria: the altitude is no
 longer observed (altimeter failed or lost, and vision inactive) and the
 filter's vertical 1-sigma is above ``abort_sigma_z_frac`` of the estimated
-height (and above ``abort_sigma_z_min_m``); or the estimated height is
-implausibly negative. The flight software then hovers (velocity to zero)
-instead of descending blind.
+height (and above ``abort_sigma_z_min_m``); below ``abort_check_height_m``
+(just above the vision cut-off) the horizontal velocity's 1-sigma is above
+``abort_sigma_vh_mps``; the estimated descent cannot be stopped above the
+ground at full thrust (``v^2 / (2 a_max) > stop_margin h``); or the estimated
+height is implausibly negative. The flight software then nulls its horizontal
+velocity and climbs at ``abort_climb_mps`` instead of descending blind.
 """
 
 from __future__ import annotations
@@ -127,6 +132,8 @@ class FdirConfig(BaseModel):
     vision_window: int = Field(20, ge=5, description="vision measurements in the rejection-rate window [-]")
     vision_rejected_max: float = Field(0.5, gt=0.0, le=1.0,
                                        description="largest fraction of them the filter's gate may reject [-]")
+    vision_retry_s: float = Field(5.0, gt=0.0, description="an excluded vision is tried again once, after this [s] "
+                                                           "(its cause may have passed: a gyro or IMU outage)")
     abort_check_height_m: float = Field(
         35.0, gt=0.0, description="below this estimated height (just above the vision cut-off, where vision stops "
                                   "improving it), the horizontal velocity must be known well enough to land [m]")
@@ -134,7 +141,9 @@ class FdirConfig(BaseModel):
     synthetic_accel_sigma_mps2: float = Field(
         0.15, gt=0.0, description="1-sigma error of the synthetic accelerometer (thrust command over mass), added to "
                                   "the filter's velocity covariance while it is used [m/s^2]")
-    average_max: int = Field(100, ge=2, description="noisy altimeter: most samples averaged into one update [-]")
+    average_max: int = Field(400, ge=4, description="noisy altimeter: most samples fitted into one update [-]")
+    stop_margin: float = Field(1.0, gt=0.0, description="abort when the stopping distance at full thrust exceeds "
+                                                           "this fraction of the height [-]")
     abort_hover_gain_per_s: float = Field(0.5, gt=0.0, description="safe abort: velocity feedback gain [1/s]")
     abort_climb_mps: float = Field(3.0, ge=0.0, le=20.0, description="safe abort: climb rate commanded [m/s]")
 
@@ -267,7 +276,10 @@ class HealthMonitor:
         self._cam_gap_open = False
         self.thrust_efficiency: float | None = None
         self._vision_hist: list[bool] = []
-        self.alt_average_n: int | None = None  # noisy altimeter: samples averaged into one update (None: off)
+        self._vision_excluded_ns: int | None = None
+        self._vision_exclusions = 0
+        self.alt_average_n: int | None = None  # noisy altimeter: samples fitted into one update (None: off)
+        self.alt_noise_factor = 1.0  # its noise over the specification's
 
     # ------------------------------------------------------------------ events
     def _event(self, t_ns: int, subsystem: str, reason: str, action: str = "", once_key: str | None = None) -> None:
@@ -518,14 +530,17 @@ class HealthMonitor:
                     and noisy and self.alt_average_n is None:  # a consistent sensor the gate refuses: the guard's case
                 # The noise's factor over the specification, from the spread of the changes between samples.
                 k2 = float(np.mean(ch * ch)) / (2.0 * var_m2) if var_m2 > 0.0 else math.inf
-                n = int(math.ceil(k2)) if math.isfinite(k2) else c.average_max + 1
+                # A line's endpoint over n samples has about 4/n of one sample's variance: n = 2 k^2 brings it
+                # to within sqrt(2) of the specification the filter weighs it with.
+                n = int(math.ceil(2.0 * k2)) if math.isfinite(k2) else c.average_max + 1
                 if c.recovery and n <= c.average_max:
-                    self.alt_average_n = max(n, 2)
+                    self.alt_average_n = max(n, 4)
+                    self.alt_noise_factor = math.sqrt(k2)
                     nis_mean = float(np.mean(self._alt_nis))
                     self._alt_nis.clear()
                     self._event(t_ns, ALTIMETER, f"altimeter innovations too large (mean NIS {nis_mean:.1f}), "
                                                  f"its noise about {math.sqrt(k2):.1f} x the specification",
-                                f"ranges averaged {self.alt_average_n} at a time", once_key="noisy")
+                                f"ranges fitted {self.alt_average_n} at a time", once_key="noisy")
                 else:
                     self._fail(t_ns, ALTIMETER, f"altimeter innovations too large (mean NIS "
                                                 f"{np.mean(self._alt_nis):.1f})", "altimeter excluded")
@@ -572,9 +587,12 @@ class HealthMonitor:
         del self._vision_hist[:-c.vision_window]
         if len(self._vision_hist) == c.vision_window:
             frac = self._vision_hist.count(False) / c.vision_window
-            if frac > c.vision_rejected_max:
+            if frac > c.vision_rejected_max and "vision" not in self.failed:
+                self._vision_exclusions += 1
+                retry = self._vision_exclusions == 1
                 self._fail(t_ns, "vision", f"vision measurements {100 * frac:.0f} % rejected by the gate",
-                           "vision excluded")
+                           f"vision excluded for {c.vision_retry_s:g} s" if retry else "vision excluded")
+                self._vision_excluded_ns = t_ns if retry else None
 
     # ------------------------------------------------------------------ camera
     def image(self, t_ns: int, mean_dn: float | None) -> None:
@@ -616,6 +634,10 @@ class HealthMonitor:
                      contact: bool) -> None:
         """Record the command in force (for the accelerometer check) and run the clocked checks."""
         self._thrusting = thrust_cmd_N > 0.0 and not contact and mass_kg > 0.0
+        if self._vision_excluded_ns is not None and t_ns - self._vision_excluded_ns >= self.cfg.vision_retry_s * NS_PER_S:
+            self.failed.discard("vision")  # tried again; a new streak of rejections excludes it again
+            self._vision_excluded_ns = None
+            self._vision_hist.clear()
         self._thrust_expect_mps2 = thrust_cmd_N * thrust_scale / mass_kg if self._thrusting else 0.0
         p = self.spec.star_tracker_period_ns
         last = self._st_last.t_ns if self._st_last is not None else self._st_silent_since
@@ -625,8 +647,14 @@ class HealthMonitor:
             self._event(t_ns, STAR_TRACKER, "loss of data: star-tracker fixes missing", once_key="gap")
 
     def abort_reason(self, t_ns: int, height_m: float, sigma_z_m: float, altitude_observed: bool,
-                     contact: bool, sigma_vh_mps: float = 0.0) -> str | None:
-        """The safe-abort criterion (module docstring); the first reason declares the abort."""
+                     contact: bool, sigma_vh_mps: float = 0.0, v_z_mps: float = 0.0,
+                     decel_max_mps2: float = math.inf) -> str | None:
+        """The safe-abort criterion (module docstring); the first reason declares the abort.
+
+        ``decel_max_mps2``: the largest net upward acceleration the engine can give now (thrust limit over
+        the mass, less gravity) [m/s^2]; with the descent rate ``v_z_mps`` it says whether the lander can
+        still stop above the ground.
+        """
         if self.abort is not None or contact or not self.cfg.recovery:
             return None
         c = self.cfg
@@ -638,6 +666,10 @@ class HealthMonitor:
         elif not altitude_observed and sigma_z_m > max(c.abort_sigma_z_min_m, c.abort_sigma_z_frac * max(height_m, 0.0)):
             reason = (f"altitude not observed and its 1-sigma {sigma_z_m:.1f} m is beyond "
                       f"{100 * c.abort_sigma_z_frac:.0f} % of the height {height_m:.1f} m")
+        elif v_z_mps < 0.0 and height_m > 0.0 and (decel_max_mps2 <= 0.0 or
+                                                   v_z_mps**2 / (2.0 * decel_max_mps2) > c.stop_margin * height_m):
+            reason = (f"cannot stop before the ground: {-v_z_mps:.1f} m/s down at {height_m:.0f} m with "
+                      f"{decel_max_mps2:.2f} m/s^2 of net deceleration")
         elif height_m < c.abort_check_height_m and sigma_vh_mps > c.abort_sigma_vh_mps:
             reason = (f"horizontal velocity 1-sigma {sigma_vh_mps:.2f} m/s at {height_m:.0f} m, beyond "
                       f"{c.abort_sigma_vh_mps:g} m/s")

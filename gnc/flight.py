@@ -163,7 +163,8 @@ class FlightSoftware:
         self.last_guidance: GuidanceCommand | None = None
         self.fdir = fdir
         self._on_ground = False  # footpad contact seen: health monitoring ends (the descent is over)
-        self._alt_buffer: list[float] = []
+        self._alt_buffer: list[tuple[int, float]] = []
+        self._discounted = False  # the vertical covariance was re-inflated on a noisy-altimeter detection
         # Non-volatile memory, written at every control tick: (t_ns, filter state (24,), covariance (24, 24),
         # mass [kg], attitude q_LB (4,) or None).
         self.checkpoint: tuple[int, np.ndarray, np.ndarray, float, np.ndarray | None] | None = None
@@ -197,7 +198,14 @@ class FlightSoftware:
         used = self.fdir.altimeter(msg, est_range, float(x[5]), sigma)
         if used is None:
             return
-        if self.fdir.alt_average_n is not None:  # a noisy altimeter: one update from n samples' mean
+        if self.fdir.alt_average_n is not None:  # a noisy altimeter: one update from n samples' fit
+            if not self._discounted:  # the noisy ranges it took as precise before the detection
+                self._discounted = True
+                k2 = self.fdir.alt_noise_factor ** 2
+                window_s = self.fdir.cfg.nis_window * self.fdir.spec.altimeter_period_ns / NS_PER_S
+                P = self.filter.ekf.P
+                P[2, 2] += k2 * sigma**2  # one noisy range's error, and its slope over the detection window
+                P[5, 5] += k2 * sigma**2 / window_s**2
             used = self._averaged(used, est_range)
             if used is None:
                 return
@@ -210,14 +218,21 @@ class FlightSoftware:
 
     def _averaged(self, msg: AltimeterMessage, est_range_m: float) -> AltimeterMessage | None:
         """Collect each range's difference from the range the navigation expects at its time; every n-th sample,
-        the expected range now plus their mean (else None): the motion between the samples is the IMU's."""
+        the expected range now plus the straight-line fit of those differences evaluated now (else None).
+
+        The motion between the samples is the IMU's; the line's slope takes up a vertical-velocity error of
+        the navigation, so the update is not biased by it (its endpoint has about 4/n of one sample's variance;
+        :mod:`gnc.fdir` chooses n = 2 k^2 for a noise k times the specification).
+        """
         buf = self._alt_buffer
-        buf.append(float(msg.range_m) - est_range_m)
+        buf.append((msg.t_ns, float(msg.range_m) - est_range_m))
         if len(buf) < self.fdir.alt_average_n:
             return None
-        mean = est_range_m + float(np.mean(buf))
+        t = np.array([b[0] - msg.t_ns for b in buf], float) / NS_PER_S
+        d = np.array([b[1] for b in buf])
+        slope, intercept = np.polyfit(t, d, 1)
         buf.clear()
-        return AltimeterMessage(msg.t_ns, mean, True, msg.boresight_B)
+        return AltimeterMessage(msg.t_ns, est_range_m + float(intercept), True, msg.boresight_B)
 
     def _reinit_terrain(self, msg: AltimeterMessage) -> None:
         """The Hakuto-R recovery: the filter's ground height re-initialised to the one this range measures."""
@@ -364,8 +379,11 @@ class FlightSoftware:
                 self.controller.vehicle, thrust_scale=self.controller.vehicle.thrust_scale * eff)
         x, P = self.filter.ekf.x, self.filter.ekf.P
         observed = not fd.altitude_lost(t_ns, float(x[2] - x[IDX_H]))
+        veh = self.controller.vehicle
+        decel = veh.thrust_max_N * self._thrust_scale / self.mass_kg - float(-self.controller.g_L[2]) \
+            if self.mass_kg > 0.0 else -math.inf
         fd.abort_reason(t_ns, float(x[2]), math.sqrt(max(float(P[2, 2]), 0.0)), observed, bool(np.any(contact.legs)),
-                        math.sqrt(max(float(P[3, 3] + P[4, 4]), 0.0)))
+                        math.sqrt(max(float(P[3, 3] + P[4, 4]), 0.0)), float(x[5]), decel)
 
     def _inflate_velocity(self, dt_ns: int) -> None:
         """Add the synthetic accelerometer's error over ``dt_ns`` to the filter's velocity (and position) covariance."""

@@ -15,8 +15,9 @@ The matrix (one row per preset): outcome counts; the success rate (landed)
 and the landed-or-safe-abort rate, each with its Wilson interval; the
 injected faults that triggered, the fraction the flight software detected and
 the detection latency (median, max); the cases whose failure the flight
-software did not see coming (not landed, no abort declared and no detection
-before the end: ``unseen``); the cases with a detection although nothing was
+software did not see coming (neither landed nor safely aborted, and no abort
+declared before the end: ``unseen``; a declared abort that still ends on the
+ground too hard counts as seen, not as safe); the cases with a detection although nothing was
 injected (``false_alarm``, the ``nominal`` row); touchdown figures (p95
 vertical and horizontal speed, median miss) and fuel.
 
@@ -111,8 +112,8 @@ def preset_stats(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
                     if f["latency_s"] is not None:
                         latencies.append(float(f["latency_s"]))
     lat = np.array(latencies, float)
-    unseen = sum(1 for r in rows if r.get("outcome") not in ("landed", "safe_abort")
-                 and not r.get("fdir_abort_declared") and not (r.get("fdir_n_events") or 0))
+    failed = [r for r in rows if r.get("outcome") not in ("landed", "safe_abort")]
+    unseen = sum(1 for r in failed if not r.get("fdir_abort_declared"))
     false_alarm = sum(1 for r in rows if not _case_faults(r) and (r.get("fdir_n_events") or 0))
     vv, vh = column(rows, "touchdown_v_vertical_mps"), column(rows, "touchdown_v_horizontal_mps")
     return {
@@ -123,7 +124,7 @@ def preset_stats(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "faults_injected": injected, "faults_detected": detected,
         "detection_rate": detected / injected if injected else None,
         "latency_median_s": _p(lat, 50), "latency_max_s": float(lat.max()) if lat.size else None,
-        "unseen": unseen, "false_alarm": false_alarm,
+        "failed": len(failed), "unseen": unseen, "false_alarm": false_alarm,
         "td_v_vertical_p95_mps": _p(vv, 95), "td_v_horizontal_p95_mps": _p(vh, 95),
         "miss_median_m": _p(column(rows, "touchdown_miss_distance_m"), 50),
         "fuel_mean_kg": _mean(column(rows, "fuel_used_kg")),
@@ -243,7 +244,7 @@ def _num(v: float | None, spec: str = ".2f") -> str:
 def format_matrix(doc: Mapping[str, Any]) -> str:
     """The matrix as Markdown (the CLI prints it; the README quotes it)."""
     head = ["preset", "outcomes", "landed", "95 % CI", "landed or safe abort", "95 % CI", "faults detected",
-            "latency median / max [s]", "unseen", "false alarms", "p95 v_v / v_h [m/s]", "miss median [m]"]
+            "latency median / max [s]", "failed / unseen", "false alarms", "p95 v_v / v_h [m/s]", "miss median [m]"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for m in doc["matrix"]:
         outcomes = ", ".join(f"{o} {c}" for o, c in m["outcomes"].items())
@@ -251,7 +252,7 @@ def format_matrix(doc: Mapping[str, Any]) -> str:
         lines.append("| " + " | ".join([
             m["preset"], outcomes, _pct(m["success_rate"]), _wilson(m["success_wilson_low"], m["success_wilson_high"]),
             _pct(m["land_or_abort_rate"]), _wilson(m["land_or_abort_wilson_low"], m["land_or_abort_wilson_high"]),
-            det, f"{_num(m['latency_median_s'])} / {_num(m['latency_max_s'])}", str(m["unseen"]),
+            det, f"{_num(m['latency_median_s'])} / {_num(m['latency_max_s'])}", f"{m['failed']} / {m['unseen']}",
             str(m["false_alarm"]),
             f"{_num(m['td_v_vertical_p95_mps'])} / {_num(m['td_v_horizontal_p95_mps'])}", _num(m["miss_median_m"], ".1f"),
         ]) + " |")

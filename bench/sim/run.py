@@ -429,7 +429,7 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
         "consistency": run_consistency(telemetry, touchdown, fsw.filter.log),
         "fdir": _fdir_summary(fsw, fdir_events),
         "fdir_events": fdir_events,
-        "faults": _fault_summary(scenario, faults, fdir_events),
+        "faults": _fault_summary(scenario, faults, fdir_events, telemetry),
         "time_split_s": {**timing, "frames_rendered": frames_rendered},  # what was rendered depends on the outputs
         "platform": _platform(world),
         "error": error,
@@ -462,18 +462,28 @@ DETECTS = {"imu": ("imu", "accel_thrust"), "altimeter": ("altimeter",), "star_tr
            "terrain": ("altimeter",)}
 
 
-def _fault_summary(scenario: Scenario, faults: Any, events: list[dict]) -> list[dict[str, Any]]:
+def _over_disc_ns(tel: dict[str, np.ndarray], step: Any) -> int | None:
+    """The first control tick with the body over a terrain step's disc [ns]; None: never."""
+    if not tel:
+        return None
+    inside = np.hypot(tel["r_x_m"] - step.center_xy_m[0], tel["r_y_m"] - step.center_xy_m[1]) <= step.radius_m
+    return int(round(float(tel["t_s"][np.argmax(inside)]) * NS_PER_S)) if inside.any() else None
+
+
+def _fault_summary(scenario: Scenario, faults: Any, events: list[dict],
+                   tel: dict[str, np.ndarray]) -> list[dict[str, Any]]:
     """Per fault: its window and whether (and how late) the flight software detected it.
 
     Detected: a detection of a subsystem the fault's target maps to (``DETECTS``)
-    at or after the fault's start and before its end plus 5 s.
+    at or after the fault's start and before its end plus 5 s. A terrain step
+    starts when the body first flies over it (never: not triggered).
     """
     if faults is None:
         return []
     out = []
     for f, (start, end) in zip(scenario.faults, faults.windows()):
-        if f.kind == "terrain_step":
-            start, end = 0, None
+        if f.kind == "terrain_step":  # it acts from when the lander first flies over it
+            start, end = _over_disc_ns(tel, f), None
         subs = DETECTS[f.subsystem]
         hit = None
         if start is not None:

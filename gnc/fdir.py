@@ -65,7 +65,9 @@ filter's vertical 1-sigma is above ``abort_sigma_z_frac`` of the estimated
 height (and above ``abort_sigma_z_min_m``); below ``abort_check_height_m``
 (just above the vision cut-off) the horizontal velocity's 1-sigma is above
 ``abort_sigma_vh_mps``; the estimated descent cannot be stopped above the
-ground at full thrust (``v^2 / (2 a_max) > stop_margin h``); or the estimated
+ground at full thrust (``v^2 / (2 a_max) > stop_margin h``); below
+``touchdown_check_height_m`` it descends with a horizontal speed above
+``touchdown_vh_max_mps``; or the estimated
 height is implausibly negative. The flight software then nulls its horizontal
 velocity and climbs at ``abort_climb_mps`` instead of descending blind.
 """
@@ -142,6 +144,11 @@ class FdirConfig(BaseModel):
         0.15, gt=0.0, description="1-sigma error of the synthetic accelerometer (thrust command over mass), added to "
                                   "the filter's velocity covariance while it is used [m/s^2]")
     average_max: int = Field(400, ge=4, description="noisy altimeter: most samples fitted into one update [-]")
+    touchdown_check_height_m: float = Field(
+        10.0, gt=0.0, description="below this estimated height, the horizontal speed must be within the touchdown "
+                                  "limit [m]")
+    touchdown_vh_max_mps: float = Field(0.4, gt=0.0, description="... of this (the 0.5 m/s criterion less a margin) "
+                                                                   "[m/s]")
     stop_margin: float = Field(1.0, gt=0.0, description="abort when the stopping distance at full thrust exceeds "
                                                            "this fraction of the height [-]")
     abort_hover_gain_per_s: float = Field(0.5, gt=0.0, description="safe abort: velocity feedback gain [1/s]")
@@ -648,7 +655,7 @@ class HealthMonitor:
 
     def abort_reason(self, t_ns: int, height_m: float, sigma_z_m: float, altitude_observed: bool,
                      contact: bool, sigma_vh_mps: float = 0.0, v_z_mps: float = 0.0,
-                     decel_max_mps2: float = math.inf) -> str | None:
+                     decel_max_mps2: float = math.inf, v_h_mps: float = 0.0) -> str | None:
         """The safe-abort criterion (module docstring); the first reason declares the abort.
 
         ``decel_max_mps2``: the largest net upward acceleration the engine can give now (thrust limit over
@@ -670,6 +677,9 @@ class HealthMonitor:
                                                    v_z_mps**2 / (2.0 * decel_max_mps2) > c.stop_margin * height_m):
             reason = (f"cannot stop before the ground: {-v_z_mps:.1f} m/s down at {height_m:.0f} m with "
                       f"{decel_max_mps2:.2f} m/s^2 of net deceleration")
+        elif height_m < c.touchdown_check_height_m and v_z_mps < 0.0 and v_h_mps > c.touchdown_vh_max_mps:
+            reason = (f"descending at {height_m:.1f} m with {v_h_mps:.2f} m/s of horizontal speed, beyond "
+                      f"{c.touchdown_vh_max_mps:g} m/s")
         elif height_m < c.abort_check_height_m and sigma_vh_mps > c.abort_sigma_vh_mps:
             reason = (f"horizontal velocity 1-sigma {sigma_vh_mps:.2f} m/s at {height_m:.0f} m, beyond "
                       f"{c.abort_sigma_vh_mps:g} m/s")

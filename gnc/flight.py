@@ -23,6 +23,15 @@ current position relative to that clone (:mod:`gnc.vision_nav`), with the
 rotation between the frames from the integrated gyro. Below the cut-off, IMU
 and altimeter carry navigation to touchdown.
 
+Health (:mod:`gnc.fdir`): every message passes the health monitor before
+the filter; it may substitute (a synthetic IMU sample, the star tracker's rate
+for a failed gyro), withhold (an excluded sensor) or average (a noisy
+altimeter) it, re-initialise the filter's terrain height (the Hakuto-R
+guard), recalibrate the thrust, and declare a safe abort, after which
+guidance is replaced by a climb. Monitoring ends at the first leg contact.
+The state, covariance, mass and attitude are checkpointed at every control
+tick (non-volatile memory, for a restart after a computer reset).
+
 Mass is the flight computer's own propellant gauging: the mass estimate at
 hand-over minus the integral of the thrust it believes it commanded,
 ``thrust_cmd * thrust_scale``, over the nominal ``Isp g0``. A real engine that
@@ -383,7 +392,7 @@ class FlightSoftware:
         decel = veh.thrust_max_N * self._thrust_scale / self.mass_kg - float(-self.controller.g_L[2]) \
             if self.mass_kg > 0.0 else -math.inf
         fd.abort_reason(t_ns, float(x[2]), math.sqrt(max(float(P[2, 2]), 0.0)), observed, bool(np.any(contact.legs)),
-                        math.sqrt(max(float(P[3, 3] + P[4, 4]), 0.0)), float(x[5]), decel)
+                        math.sqrt(max(float(P[3, 3] + P[4, 4]), 0.0)), float(x[5]), decel, math.hypot(x[3], x[4]))
 
     def _inflate_velocity(self, dt_ns: int) -> None:
         """Add the synthetic accelerometer's error over ``dt_ns`` to the filter's velocity (and position) covariance."""

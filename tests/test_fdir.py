@@ -163,6 +163,12 @@ def test_abort_criterion():
     m = _monitor()
     assert m.abort_reason(0, 20.0, 1.0, True, False, sigma_vh_mps=0.5).startswith("horizontal velocity")
     m = _monitor()
+    assert m.abort_reason(0, 8.0, 1.0, True, False, v_z_mps=-0.8, v_h_mps=0.3) is None
+    assert m.abort_reason(0, 8.0, 1.0, True, False, v_z_mps=-0.8, v_h_mps=0.6).startswith("descending at 8.0 m")
+    m = _monitor()
+    assert m.abort_reason(0, 60.0, 1.0, True, False, v_z_mps=-15.0, decel_max_mps2=2.0) is None  # stops in 56 m
+    assert "cannot stop" in m.abort_reason(0, 50.0, 1.0, True, False, v_z_mps=-15.0, decel_max_mps2=2.0)
+    m = _monitor()
     assert m.abort_reason(0, -8.0, 1.0, True, False) == "implausible negative altitude estimate"
     m = _monitor()
     assert m.abort_reason(0, -8.0, 1.0, True, True) is None  # on the ground

@@ -58,7 +58,9 @@ with that synthetic sample at the control rate. An engine that delivers less
 than commanded updates the flight software's thrust calibration (the mass
 gauge and the controller re-plan within the lower thrust).
 
-Safe abort (:meth:`HealthMonitor.abort_reason`): declared when the
+Safe abort (:meth:`HealthMonitor.abort_reason`; not judged when guidance flies on
+a navigation state given from outside, and the horizontal-velocity knowledge
+only when vision is configured on): declared when the
 navigation cannot support a landing within the criteria: the altitude is no
 longer observed (altimeter failed or lost, and vision inactive) and the
 filter's vertical 1-sigma is above ``abort_sigma_z_frac`` of the estimated
@@ -126,6 +128,9 @@ class FdirConfig(BaseModel):
     accel_lateral_max_mps2: float = Field(0.25, gt=0.0, description="largest mean lateral specific force [m/s^2]")
     accel_axial_frac: float = Field(0.15, gt=0.0, lt=1.0, description="largest relative axial specific-force error [-]")
     thrust_efficiency_min: float = Field(0.85, gt=0.0, lt=1.0, description="re-plan below this delivered/commanded [-]")
+    engine_out_frac: float = Field(0.2, ge=0.0, lt=1.0,
+                                   description="at or below this delivered/commanded the engine is out: reported, "
+                                               "no recalibration [-]")
     image_mean_min: float = Field(15.0, ge=0.0, description="darkest plausible mean frame level [DN]")
     image_mean_max: float = Field(235.0, le=255.0, description="brightest plausible mean frame level [DN]")
     negative_altitude_m: float = Field(5.0, gt=0.0, description="estimated height below ground, no contact [m]")
@@ -387,8 +392,12 @@ class HealthMonitor:
             if self._axial_run >= persist:
                 self._event(t, ACCEL_THRUST, f"axial specific force {eff:.2f} x the commanded thrust's "
                                              "(accelerometer or engine)",
-                            "thrust calibration updated" if eff < c.thrust_efficiency_min else "", once_key="axial")
-                if c.recovery and eff < c.thrust_efficiency_min and self.thrust_efficiency is None:
+                            "thrust calibration updated" if c.engine_out_frac < eff < c.thrust_efficiency_min else "",
+                            once_key="axial")
+                if eff <= c.engine_out_frac:
+                    self._event(t, ENGINE, f"engine delivers {100 * eff:.0f} % of the commanded thrust (out)",
+                                once_key="out")
+                elif c.recovery and eff < c.thrust_efficiency_min and self.thrust_efficiency is None:
                     self.thrust_efficiency = float(eff)  # relative to the calibration in force
                     self._acc_win.clear()  # the next estimate starts afresh, under the new calibration
                     self._axial_run = 0

@@ -352,7 +352,7 @@ class FlightSoftware:
         if self.fdir is not None and np.any(contact.legs):
             self._on_ground = True
         if self._monitoring():
-            self._fdir_tick(t_ns, contact)
+            self._fdir_tick(t_ns, contact, oracle=nav is not None)
         nav = nav if nav is not None else self.filter.nav_state(self.mass_kg)
         if self.fdir is not None and self.fdir.abort is not None:
             cmd = self._abort_command(nav)
@@ -372,8 +372,12 @@ class FlightSoftware:
         """Health monitoring runs (there is a monitor, and no footpad has touched the ground yet)."""
         return self.fdir is not None and not self._on_ground
 
-    def _fdir_tick(self, t_ns: int, contact: ContactMessage) -> None:
-        """The clocked checks and recoveries of :mod:`gnc.fdir` at a control tick."""
+    def _fdir_tick(self, t_ns: int, contact: ContactMessage, oracle: bool = False) -> None:
+        """The clocked checks and recoveries of :mod:`gnc.fdir` at a control tick.
+
+        ``oracle``: guidance flies on a navigation state given from outside (the bench's truth), so the
+        abort criteria, which judge the filter's estimate, are not applied.
+        """
         fd = self.fdir
         fd.start(t_ns)
         if fd.cfg.recovery and fd.imu_missing(t_ns) and t_ns > self.filter.time_ns:
@@ -388,11 +392,15 @@ class FlightSoftware:
                 self.controller.vehicle, thrust_scale=self.controller.vehicle.thrust_scale * eff)
         x, P = self.filter.ekf.x, self.filter.ekf.P
         observed = not fd.altitude_lost(t_ns, float(x[2] - x[IDX_H]))
+        if oracle:
+            return
         veh = self.controller.vehicle
         decel = veh.thrust_max_N * self._thrust_scale / self.mass_kg - float(-self.controller.g_L[2]) \
             if self.mass_kg > 0.0 else -math.inf
         fd.abort_reason(t_ns, float(x[2]), math.sqrt(max(float(P[2, 2]), 0.0)), observed, bool(np.any(contact.legs)),
-                        math.sqrt(max(float(P[3, 3] + P[4, 4]), 0.0)), float(x[5]), decel, math.hypot(x[3], x[4]))
+                        # the horizontal-velocity knowledge is judged when vision is meant to provide it
+                        math.sqrt(max(float(P[3, 3] + P[4, 4]), 0.0)) if self.vision_enabled else 0.0,
+                        float(x[5]), decel, math.hypot(x[3], x[4]))
 
     def _inflate_velocity(self, dt_ns: int) -> None:
         """Add the synthetic accelerometer's error over ``dt_ns`` to the filter's velocity (and position) covariance."""

@@ -13,7 +13,6 @@ from bench.scenario import ScenarioError, apply_dispersions, load_scenario, scen
 from bench.scenario.presets import PRESETS, REFERENCE, apply_preset, get_preset
 from bench.scenario.schema import scenario_from_dict
 from bench.sim.world_builder import build_fault_injector, with_terrain_steps
-from gnc.messages import AltimeterMessage, AttitudeMessage, ImuMessage
 from models.faults import terrain_step_heights
 from models.sensors import AltimeterConfig, AltimeterModel, ImuConfig, ImuModel, StarTrackerConfig, StarTrackerModel
 from tests.conftest import SMALL_SET, make_terrain
@@ -360,7 +359,7 @@ def test_fault_matrix_of_two_presets(tmp_path, capsys):
     assert (out / "report.png").stat().st_size > 0 and (out / "presets" / "nominal" / "report.png").exists()
     assert format_matrix(doc) in capsys.readouterr().out
     # The statistics from rows built here: one detected, one missed, a false alarm in a faultless case.
-    stats = preset_stats([
+    rows = [
         {"outcome": "landed", "faults_0_kind": "dropout", "faults_0_triggered": True, "faults_0_detected": True,
          "faults_0_latency_s": 0.4, "fdir_n_events": 1},
         {"outcome": "hard_landing", "faults_0_kind": "dropout", "faults_0_triggered": True,
@@ -368,9 +367,12 @@ def test_fault_matrix_of_two_presets(tmp_path, capsys):
         {"outcome": "hard_landing", "faults_0_kind": "dropout", "faults_0_triggered": False,
          "fdir_n_events": 1, "fdir_abort_declared": True},
         {"outcome": "safe_abort", "fdir_n_events": 2, "fdir_abort_declared": True},
-    ])
+    ]
+    stats = preset_stats(rows)
     assert (stats["faults_injected"], stats["faults_detected"], stats["failed"], stats["unseen"],
-            stats["false_alarm"]) == (2, 1, 2, 1, 1)
+            stats["false_alarm"]) == (2, 1, 2, 1, None)
+    assert preset_stats([{"outcome": "landed", "fdir_n_events": 0}, {"outcome": "landed", "fdir_n_events": 3}],
+                        reference=True)["false_alarm"] == 1
     assert stats["land_or_abort_rate"] == pytest.approx(2 / 4) and stats["latency_median_s"] == 0.4
     # Resuming a finished matrix reruns nothing and gives the same matrix.
     assert main(["faults", "--resume", str(out)]) == 0

@@ -17,8 +17,9 @@ injected faults that triggered, the fraction the flight software detected and
 the detection latency (median, max); the cases whose failure the flight
 software did not see coming (neither landed nor safely aborted, and no abort
 declared before the end: ``unseen``; a declared abort that still ends on the
-ground too hard counts as seen, not as safe); the cases with a detection although nothing was
-injected (``false_alarm``, the ``nominal`` row); touchdown figures (p95
+ground too hard counts as seen, not as safe); the cases with a detection
+although nothing was injected (``false_alarm``, on the ``nominal`` row only:
+a stress preset without faults has true detections); touchdown figures (p95
 vertical and horizontal speed, median miss) and fuel.
 
 Outputs in ``DIR``: ``faults.json`` (settings and matrix), ``matrix.parquet``,
@@ -48,6 +49,7 @@ PRESETS_DIR = "presets"
 MATRIX_PARQUET = "matrix.parquet"
 CASES_PARQUET = "cases.parquet"
 MATRIX_MD = "matrix.md"
+PRESET_JSON = "preset.json"  # per preset: its wall time so far (a resume adds to it)
 REPORT = "report.png"
 CONFIDENCE = 0.95
 MAX_FAULTS_PER_CASE = 8  # fault columns read from a case row (faults_0_... to faults_7_...)
@@ -90,8 +92,12 @@ def _p(x: np.ndarray, q: float) -> float | None:
     return float(np.percentile(x, q)) if x.size else None
 
 
-def preset_stats(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
-    """One matrix row from a preset's case rows."""
+def preset_stats(rows: Sequence[Mapping[str, Any]], reference: bool = False) -> dict[str, Any]:
+    """One matrix row from a preset's case rows.
+
+    ``reference``: the no-fault preset, whose detections are false alarms (``false_alarm`` is None for the
+    others: a stress preset without ``[[faults]]`` has true detections, of the vision it degrades).
+    """
     from bench.campaign.rows import column
     from bench.report.mc_report import outcome_counts, wilson_interval
 
@@ -114,7 +120,7 @@ def preset_stats(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     lat = np.array(latencies, float)
     failed = [r for r in rows if r.get("outcome") not in ("landed", "safe_abort")]
     unseen = sum(1 for r in failed if not r.get("fdir_abort_declared"))
-    false_alarm = sum(1 for r in rows if not _case_faults(r) and (r.get("fdir_n_events") or 0))
+    false_alarm = sum(1 for r in rows if (r.get("fdir_n_events") or 0)) if reference else None
     vv, vh = column(rows, "touchdown_v_vertical_mps"), column(rows, "touchdown_v_horizontal_mps")
     return {
         "n_cases": n, "outcomes": counts, "landed": landed, "safe_abort": counts.get("safe_abort", 0),
@@ -189,9 +195,14 @@ def run_faults(presets: Sequence[str], runs: int, out: Path, campaign_seed: int 
                                resume=(pdir / mc.CAMPAIGN).exists(), retention=retention,
                                case_timeout_s=case_timeout_s, progress=progress, backend=backend, address=address)
         walls[name] = time.perf_counter() - t0
+        done_path = pdir / PRESET_JSON
+        if done_path.exists():  # a resumed preset: its wall time is the earlier runs' plus this one's
+            walls[name] += json.loads(done_path.read_text()).get("wall_time_s") or 0.0
+        atomic_write_text(done_path, json.dumps({"preset": name, "wall_time_s": walls[name]}) + "\n")
         all_rows[name] = rows
         _preset_report(sc, rows, pdir, name, campaign_seed)
-    matrix = [{"preset": name, "provenance": get_preset(name).provenance, **preset_stats(rows),
+    matrix = [{"preset": name, "provenance": get_preset(name).provenance,
+               **preset_stats(rows, reference=name == REFERENCE.name),
                "wall_time_s": walls[name]} for name, rows in all_rows.items()]
     doc = {"presets": list(presets), "runs": runs, "campaign_seed": campaign_seed, "matrix": matrix}
     _write_tables(doc, all_rows, out)
@@ -253,7 +264,7 @@ def format_matrix(doc: Mapping[str, Any]) -> str:
             m["preset"], outcomes, _pct(m["success_rate"]), _wilson(m["success_wilson_low"], m["success_wilson_high"]),
             _pct(m["land_or_abort_rate"]), _wilson(m["land_or_abort_wilson_low"], m["land_or_abort_wilson_high"]),
             det, f"{_num(m['latency_median_s'])} / {_num(m['latency_max_s'])}", f"{m['failed']} / {m['unseen']}",
-            str(m["false_alarm"]),
+            "—" if m["false_alarm"] is None else str(m["false_alarm"]),
             f"{_num(m['td_v_vertical_p95_mps'])} / {_num(m['td_v_horizontal_p95_mps'])}", _num(m["miss_median_m"], ".1f"),
         ]) + " |")
     return "\n".join(lines)

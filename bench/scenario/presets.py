@@ -42,7 +42,7 @@ PRESETS: dict[str, Preset] = {p.name: p for p in (
                        {"kind": "computer_reset", "altitude_m": 120.0, "down_s": 3.0}]}),
     Preset("hakuto_r", "Hakuto-R M1 (Apr 2023): a 3 km altimeter jump at a crater rim was rejected as a sensor "
                        "failure and the lander ran out of fuel believing it was on the ground. Here: a 150 m "
-                       "plateau under the first 8 s of the track that the onboard terrain model lacks",
+                       "plateau under the start of the track that the onboard terrain model lacks",
            {"faults": [{"kind": "terrain_step", "height_m": 150.0, "center_xy_m": [-130.0, 90.0],
                         "radius_m": 60.0}]}),
     Preset("slim", "SLIM (Jan 2024): lost part of one of its two main-engine nozzles at about 50 m: thrust loss "

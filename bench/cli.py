@@ -25,6 +25,11 @@ def _add_scenario_args(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_preset_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--preset", default=None, metavar="NAME",
+                   help="lay a named fault preset over the scenario, under --set (landbench faults list)")
+
+
 def _check_out(path: str, suffixes: tuple[str, ...], flag: str) -> Path:
     out = Path(path)
     if out.suffix.lower() not in suffixes:
@@ -126,7 +131,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {args.out!r} is a file; give a folder")
-    scenario = load_scenario(args.scenario, args.overrides)
+    scenario = load_scenario(args.scenario, args.overrides, args.preset)
     summary, table = run_and_write(scenario, out, video=not args.no_video, progress=True)
     print(table)
     return 0 if summary["landed"] else EXIT_NOT_LANDED
@@ -154,7 +159,7 @@ def cmd_mc(args: argparse.Namespace) -> int:
     else:
         if args.runs is None:
             raise ValueError("--runs N is required for a new campaign")
-        base = load_scenario(args.scenario, args.overrides)
+        base = load_scenario(args.scenario, args.overrides, args.preset)
         runs, seed = args.runs, (args.seed if args.seed is not None else base.seed)
     args.runs = runs
     rows = mc.run_campaign(base, args.runs, directory, seed, workers=args.workers, resume=bool(args.resume),
@@ -217,6 +222,34 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     print(sweep.format_points(doc))
     print(f"points: {directory / sweep.POINTS_PARQUET}, cases: {directory / sweep.CASES_PARQUET}, "
           f"report: {directory / 'report.html'}")
+    return 0
+
+
+def cmd_faults(args: argparse.Namespace) -> int:
+    from bench.campaign import faults
+
+    if args.action == "list":
+        print(faults.list_presets())
+        return 0
+    if args.resume:
+        doc = faults.run_faults([], 1, Path(args.resume), None, workers=args.workers, resume=True,
+                                retention=args.retention, case_timeout_s=args.case_timeout, progress=True,
+                                backend=args.backend, address=args.address)
+        directory = Path(args.resume)
+    else:
+        if not args.out:
+            raise ValueError("give --out DIR for a new fault matrix, or --resume DIR")
+        if args.runs is None:
+            raise ValueError("--runs N is required (cases per preset)")
+        presets = faults.parse_presets(args.presets)
+        directory = Path(args.out)
+        doc = faults.run_faults(presets, args.runs, directory, args.seed, args.scenario, args.overrides,
+                                workers=args.workers, retention=args.retention, case_timeout_s=args.case_timeout,
+                                progress=True, backend=args.backend, address=args.address)
+    print(faults.format_matrix(doc))
+    print(f"matrix: {directory / faults.MATRIX_PARQUET}, {directory / faults.FAULTS_JSON}, "
+          f"{directory / faults.MATRIX_MD}; cases: {directory / faults.CASES_PARQUET}; "
+          f"report: {directory / faults.REPORT}")
     return 0
 
 
@@ -299,12 +332,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="fly one closed-loop landing and write its results",
                        description="Fly one landing. Exit status: 0 landed, 3 not landed, 2 bad input.")
     _add_scenario_args(p)
+    _add_preset_arg(p)
     p.add_argument("--out", default="out/run", help="output folder (default out/run)")
     p.add_argument("--no-video", action="store_true", help="skip camera.mp4 (then frames that vision does not use are not rendered)")
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("mc", help="Monte Carlo campaign of dispersed landings")
     _add_scenario_args(p)
+    _add_preset_arg(p)
     p.add_argument("--runs", type=int, help="number of cases")
     p.add_argument("--workers", type=int, default=None,
                    help="cases run at once (default: 1 with local; every cluster CPU with ray)")
@@ -355,6 +390,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--case-timeout", type=float, default=None, metavar="S", help="per-case wall-clock limit [s]")
     p.add_argument("--dry-run", action="store_true", help="write every point's dispersed case scenarios, run nothing")
     p.set_defaults(func=cmd_sweep)
+
+    p = sub.add_parser(
+        "faults", help="fault presets: list them, or run each preset x N seeds (the fault matrix)",
+        description="`landbench faults list` prints every preset with its provenance. `landbench faults --presets "
+                    "all --runs N --out DIR` runs a Monte Carlo campaign of N cases per preset (the same case seeds "
+                    "for every preset), then writes the matrix: outcome counts, success and landed-or-safe-abort "
+                    "rates with Wilson intervals, fault detection rate and latency, unseen failures, false alarms "
+                    "and touchdown figures: DIR/matrix.parquet, DIR/faults.json, DIR/matrix.md, DIR/cases.parquet, "
+                    "DIR/report.png and each preset's campaign in DIR/presets/NAME/.")
+    p.add_argument("action", nargs="?", choices=("list", "run"), default="run",
+                   help="list: print the presets; run (default): the fault matrix")
+    _add_scenario_args(p)
+    p.add_argument("--presets", default="all", metavar="all|NAME,...", help="presets to run (default all)")
+    p.add_argument("--runs", type=int, default=None, help="cases per preset")
+    p.add_argument("--workers", type=int, default=None, help="cases run at once (as landbench mc)")
+    p.add_argument("--backend", default="local", choices=("local", "ray"), help="as landbench mc")
+    p.add_argument("--address", default=None, help="Ray cluster address for --backend ray")
+    p.add_argument("--seed", type=int, default=None, help="campaign seed, the same for every preset "
+                                                          "(default: the scenario's seed)")
+    p.add_argument("--out", default=None, metavar="DIR", help="matrix folder")
+    p.add_argument("--resume", default=None, metavar="DIR", help="finish an interrupted matrix")
+    p.add_argument("--retention", default="summary", choices=("summary", "failed", "all"),
+                   help="whose telemetry and video are kept")
+    p.add_argument("--case-timeout", type=float, default=None, metavar="S", help="per-case wall-clock limit [s]")
+    p.set_defaults(func=cmd_faults)
 
     p = sub.add_parser(
         "compare", help="paired A/B comparison of two Monte Carlo campaigns (case by case) or two replays "

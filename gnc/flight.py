@@ -23,6 +23,15 @@ current position relative to that clone (:mod:`gnc.vision_nav`), with the
 rotation between the frames from the integrated gyro. Below the cut-off, IMU
 and altimeter carry navigation to touchdown.
 
+Health (:mod:`gnc.fdir`): every message passes the health monitor before
+the filter; it may substitute (a synthetic IMU sample, the star tracker's rate
+for a failed gyro), withhold (an excluded sensor) or average (a noisy
+altimeter) it, re-initialise the filter's terrain height (the Hakuto-R
+guard), recalibrate the thrust, and declare a safe abort, after which
+guidance is replaced by a climb. Monitoring ends at the first leg contact.
+The state, covariance, mass and attitude are checkpointed at every control
+tick (non-volatile memory, for a restart after a computer reset).
+
 Mass is the flight computer's own propellant gauging: the mass estimate at
 hand-over minus the integral of the thrust it believes it commanded,
 ``thrust_cmd * thrust_scale``, over the nominal ``Isp g0``. A real engine that
@@ -31,13 +40,15 @@ delivers a different thrust makes the gauge drift from the truth.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from gnc.control import ActuatorCommand, Controller, VehicleParams
-from gnc.estimator import IDX_C, IDX_G, IDX_R, IDX_SV, IDX_V, NavFilter, UpdateRecord, quat_to_matrix
+from gnc.estimator import IDX_C, IDX_G, IDX_H, IDX_R, IDX_SV, IDX_V, NavFilter, UpdateRecord, quat_to_matrix
+from gnc.fdir import HealthMonitor
 from gnc.guidance import GuidanceCommand, GuidanceLaw, LandingTarget
 from gnc.map_nav import MapNavigator
 from gnc.messages import AltimeterMessage, AttitudeMessage, ContactMessage, ImageMessage, ImuMessage
@@ -137,11 +148,14 @@ class FlightSoftware:
         knowledge: The onboard knowledge of the vehicle. (The gyro's specification,
             for the relative rotation's uncertainty, is the filter's configuration.)
         map_nav: Map-relative position fixes (``nav_map = "on"``), or None.
+        fdir: Sensor health monitoring and recovery (:mod:`gnc.fdir`); None: none
+            (every message goes to the filter as it comes).
     """
 
     def __init__(self, guidance: GuidanceLaw, controller: Controller, nav_filter: NavFilter,
                  tracker: Tracker | None, vision_cfg: VisionNavConfig, vision_enabled: bool,
-                 knowledge: OnboardKnowledge, map_nav: MapNavigator | None = None):
+                 knowledge: OnboardKnowledge, map_nav: MapNavigator | None = None,
+                 fdir: HealthMonitor | None = None):
         self.guidance = guidance
         self.controller = controller
         self.filter = nav_filter
@@ -160,16 +174,95 @@ class FlightSoftware:
         self._last_thrust_N = 0.0
         self.last_guidance: GuidanceCommand | None = None
         self.map_nav = map_nav
+        self.fdir = fdir
+        self._on_ground = False  # footpad contact seen: health monitoring ends (the descent is over)
+        self._alt_buffer: list[tuple[int, float]] = []
+        self._discounted = False  # the vertical covariance was re-inflated on a noisy-altimeter detection
+        # Non-volatile memory, written at every control tick: (t_ns, filter state (24,), covariance (24, 24),
+        # mass [kg], attitude q_LB (4,) or None).
+        self.checkpoint: tuple[int, np.ndarray, np.ndarray, float, np.ndarray | None] | None = None
 
     # ------------------------------------------------------------------ sensors
     def on_imu(self, msg: ImuMessage) -> None:
+        if self._monitoring():
+            t_prev = self.filter.time_ns
+            msg = self.fdir.imu(msg)
+            if msg is None:
+                return
+            if self.filter.propagate_imu(msg) and self.fdir.last_imu_synthetic:
+                self._inflate_velocity(msg.t_ns - t_prev)
+            return
         self.filter.propagate_imu(msg)
 
     def on_attitude(self, msg: AttitudeMessage) -> None:
+        if self._monitoring():
+            msg = self.fdir.attitude(msg)
+            if msg is None:
+                return
         self.filter.set_attitude(msg)
 
     def on_altimeter(self, msg: AltimeterMessage) -> None:
-        self.filter.update_altimeter(msg)
+        if not self._monitoring():
+            self.filter.update_altimeter(msg)
+            return
+        x = self.filter.ekf.x
+        est_range = float(x[2] - x[IDX_H])  # the altimeter's height above the filter's ground (nadir)
+        sigma = self.filter.altimeter_sigma_m(max(est_range, 0.0), include_relief=False)
+        used = self.fdir.altimeter(msg, est_range, float(x[5]), sigma)
+        if used is None:
+            return
+        if self.fdir.alt_average_n is not None:  # a noisy altimeter: one update from n samples' fit
+            if not self._discounted:  # the noisy ranges it took as precise before the detection
+                self._discounted = True
+                k2 = self.fdir.alt_noise_factor ** 2
+                window_s = self.fdir.cfg.nis_window * self.fdir.spec.altimeter_period_ns / NS_PER_S
+                P = self.filter.ekf.P
+                P[2, 2] += k2 * sigma**2  # one noisy range's error, and its slope over the detection window
+                P[5, 5] += k2 * sigma**2 / window_s**2
+            used = self._averaged(used, est_range)
+            if used is None:
+                return
+        record = self.filter.update_altimeter(used)
+        if record is not None and record.reason in ("", "gate"):
+            var = self.filter.altimeter_sigma_m(float(used.range_m), include_relief=False) ** 2
+            self.fdir.altimeter_record(used.t_ns, record.accepted, float(record.nis), float(used.range_m), est_range, var)
+            if self.fdir.terrain_reinit is not None:
+                self._reinit_terrain(used)
+
+    def _averaged(self, msg: AltimeterMessage, est_range_m: float) -> AltimeterMessage | None:
+        """Collect each range's difference from the range the navigation expects at its time; every n-th sample,
+        the expected range now plus the straight-line fit of those differences evaluated now (else None).
+
+        The motion between the samples is the IMU's; the line's slope takes up a vertical-velocity error of
+        the navigation, so the update is not biased by it (its endpoint has about 4/n of one sample's variance;
+        :mod:`gnc.fdir` chooses n = 2 k^2 for a noise k times the specification).
+        """
+        buf = self._alt_buffer
+        buf.append((msg.t_ns, float(msg.range_m) - est_range_m))
+        if len(buf) < self.fdir.alt_average_n:
+            return None
+        t = np.array([b[0] - msg.t_ns for b in buf], float) / NS_PER_S
+        d = np.array([b[1] for b in buf])
+        slope, intercept = np.polyfit(t, d, 1)
+        buf.clear()
+        return AltimeterMessage(msg.t_ns, est_range_m + float(intercept), True, msg.boresight_B)
+
+    def _reinit_terrain(self, msg: AltimeterMessage) -> None:
+        """The Hakuto-R recovery: the filter's ground height re-initialised to the one this range measures."""
+        rho, var = self.fdir.terrain_reinit
+        self.fdir.terrain_reinit = None
+        q = self.filter.q_LB
+        if q is None:
+            return
+        R_LB = quat_to_matrix(q)
+        b_L = R_LB @ np.asarray(msg.boresight_B, float)
+        b_L = b_L / np.linalg.norm(b_L)
+        x, P = self.filter.ekf.x, self.filter.ekf.P
+        p_alt_z = float(x[2] + (R_LB @ self.knowledge.r_alt_B_m)[2])
+        x[IDX_H] = p_alt_z + rho * float(b_L[2])  # the ground the beam hits, relative to the target's elevation
+        P[IDX_H, :] = 0.0
+        P[:, IDX_H] = 0.0
+        P[IDX_H, IDX_H] = P[2, 2] + var
 
     def wants_image(self) -> bool:
         """Would :meth:`on_image` use a frame now (a tracker, vision enabled, above the cut-off)?
@@ -184,12 +277,16 @@ class FlightSoftware:
         """Would :meth:`on_image` take a map fix from a frame now (``map_nav`` set, due, in its height window)?"""
         return self.map_nav is not None and self.map_nav.wants_frame(t_ns, float(self.filter.ekf.x[2]))
 
-    def skip_image(self) -> None:
-        """A camera frame went by that :meth:`wants_image` said would not be used."""
+    def skip_image(self, t_ns: int | None = None) -> None:
+        """A camera frame went by that :meth:`wants_image` said would not be used (``t_ns``: its time)."""
+        if self._monitoring() and t_ns is not None:
+            self.fdir.image(t_ns, None)
         self._end_vision()
 
     def on_image(self, msg: ImageMessage) -> Tracks | None:
         """A map fix when one is due (``map_nav``), then the paper's tracker (above the cut-off) and its tracks."""
+        if self._monitoring():
+            self.fdir.image(msg.t_ns, float(msg.image.mean()))
         if self.map_nav is not None:
             self.map_nav.on_frame(msg.t_ns, msg.image, self.filter)
         if not self.wants_image():
@@ -243,6 +340,8 @@ class FlightSoftware:
         self.vision.last_record = record
         if not record.accepted:
             self.vision.rejected += 1
+        if self._monitoring():
+            self.fdir.vision_record(m.t_ns, record.accepted)
 
     def _end_vision(self) -> None:
         """No vision at this frame: the next frame starts a new pair."""
@@ -252,7 +351,7 @@ class FlightSoftware:
 
     def vision_active(self) -> bool:
         """Vision is enabled and the estimated altitude is above the cut-off."""
-        if not self.vision_enabled:
+        if not self.vision_enabled or (self.fdir is not None and "vision" in self.fdir.failed):
             return False
         return float(self.filter.ekf.x[2]) > self.vision_cfg.cutoff_altitude_m
 
@@ -260,12 +359,73 @@ class FlightSoftware:
     def control(self, t_ns: int, contact: ContactMessage, nav: NavState | None = None) -> ActuatorCommand:
         """One control step; ``nav`` overrides the filter (perfect navigation)."""
         self._advance_mass_gauge(t_ns)
+        if self.fdir is not None and np.any(contact.legs):
+            self._on_ground = True
+        if self._monitoring():
+            self._fdir_tick(t_ns, contact, oracle=nav is not None)
         nav = nav if nav is not None else self.filter.nav_state(self.mass_kg)
-        cmd = self.guidance.update(nav, self.target)
+        if self.fdir is not None and self.fdir.abort is not None:
+            cmd = self._abort_command(nav)
+        else:
+            cmd = self.guidance.update(nav, self.target)
         act = self.controller.update(nav, cmd, contact)
         self.last_guidance = cmd
         self._hold_thrust(t_ns, act.thrust_N if act.engine_on else 0.0)
+        if self._monitoring():
+            self.fdir.control_tick(t_ns, act.thrust_N if act.engine_on else 0.0, self._thrust_scale, self.mass_kg,
+                                   bool(np.any(contact.legs)))
+            self.checkpoint = (t_ns, self.filter.ekf.x.copy(), self.filter.ekf.P.copy(), self.mass_kg, self.filter.q_LB)
         return act
+
+    # ------------------------------------------------------------------ fault detection and recovery
+    def _monitoring(self) -> bool:
+        """Health monitoring runs (there is a monitor, and no footpad has touched the ground yet)."""
+        return self.fdir is not None and not self._on_ground
+
+    def _fdir_tick(self, t_ns: int, contact: ContactMessage, oracle: bool = False) -> None:
+        """The clocked checks and recoveries of :mod:`gnc.fdir` at a control tick.
+
+        ``oracle``: guidance flies on a navigation state given from outside (the bench's truth), so the
+        abort criteria, which judge the filter's estimate, are not applied.
+        """
+        fd = self.fdir
+        fd.start(t_ns)
+        if fd.cfg.recovery and fd.imu_missing(t_ns) and t_ns > self.filter.time_ns:
+            t_prev = self.filter.time_ns
+            if self.filter.propagate_imu(fd.synthetic_imu(t_ns)):  # dead reckoning on the thrust command
+                self._inflate_velocity(t_ns - t_prev)
+        fd.camera_check(t_ns, self.vision_active())
+        if fd.thrust_efficiency is not None:  # the engine delivers less: re-plan within what it gives
+            eff, fd.thrust_efficiency = fd.thrust_efficiency, None
+            self._thrust_scale *= eff
+            self.controller.vehicle = dataclasses.replace(
+                self.controller.vehicle, thrust_scale=self.controller.vehicle.thrust_scale * eff)
+        x, P = self.filter.ekf.x, self.filter.ekf.P
+        observed = not fd.altitude_lost(t_ns, float(x[2] - x[IDX_H]))
+        if oracle:
+            return
+        veh = self.controller.vehicle
+        decel = veh.thrust_max_N * self._thrust_scale / self.mass_kg - float(-self.controller.g_L[2]) \
+            if self.mass_kg > 0.0 else -math.inf
+        fd.abort_reason(t_ns, float(x[2]), math.sqrt(max(float(P[2, 2]), 0.0)), observed, bool(np.any(contact.legs)),
+                        # the horizontal-velocity knowledge is judged when vision is meant to provide it
+                        math.sqrt(max(float(P[3, 3] + P[4, 4]), 0.0)) if self.vision_enabled else 0.0,
+                        float(x[5]), decel, math.hypot(x[3], x[4]))
+
+    def _inflate_velocity(self, dt_ns: int) -> None:
+        """Add the synthetic accelerometer's error over ``dt_ns`` to the filter's velocity (and position) covariance."""
+        dt = max(dt_ns, 0) / NS_PER_S
+        q = self.fdir.cfg.synthetic_accel_sigma_mps2 ** 2
+        P = self.filter.ekf.P
+        P[IDX_V, IDX_V] += np.eye(3) * q * dt
+        P[IDX_R, IDX_R] += np.eye(3) * q * dt**3 / 3.0
+
+    def _abort_command(self, nav: NavState) -> GuidanceCommand:
+        """Safe abort: null the horizontal velocity and climb at ``abort_climb_mps`` (never descend blind)."""
+        c = self.fdir.cfg
+        v = np.asarray(nav.v_BL_L, float)
+        a = c.abort_hover_gain_per_s * (np.array([0.0, 0.0, c.abort_climb_mps]) - v)
+        return GuidanceCommand(int(nav.t_ns), np.clip(a, -2.0, 2.0), "abort", math.nan)
 
     def on_flown_command(self, t_ns: int, thrust_cmd_N: float, engine_on: bool) -> None:
         """Open-loop replay's control tick: the mass gauge takes the command that was flown.

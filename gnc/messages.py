@@ -32,11 +32,13 @@ class ImuMessage:
         t_ns: Time of validity [ns].
         f_B: Specific force (non-gravitational acceleration) in B, (3,) [m/s^2].
         omega_B: Angular rate of B relative to L, in B, (3,) [rad/s].
+        valid: The IMU's own validity flag (False: the unit reports its data invalid).
     """
 
     t_ns: int
     f_B: np.ndarray
     omega_B: np.ndarray
+    valid: bool = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -63,10 +65,12 @@ class AttitudeMessage:
     Attributes:
         t_ns: Time of validity [ns].
         q_LB: Measured attitude quaternion, (4,) scalar-first.
+        valid: The tracker's own validity flag (False: the unit reports its solution invalid).
     """
 
     t_ns: int
     q_LB: np.ndarray
+    valid: bool = True
 
 
 @dataclass(frozen=True, slots=True)

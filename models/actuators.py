@@ -11,7 +11,8 @@ Ports:
 Engine logic: a command <= 0 (or ``cut()``) means the engine is off; any
 positive command is clamped to ``[thrust_min_N, thrust_max_N]``, because a
 lit deep-throttle engine cannot go below its minimum. The delivered thrust is
-``clamped * (1 + thrust_error_frac)``. Mass flows at ``T / (Isp * g0)``.
+``clamped * (1 + thrust_error_frac)`` (times ``fault_gain`` under a thrust-loss
+fault, :mod:`models.faults`). Mass flows at ``T / (Isp * g0)``.
 
 Two paths (:attr:`PropulsionModel.instant`):
 
@@ -83,6 +84,7 @@ class PropulsionModel:
         self.cfg = cfg
         self.propellant_kg = cfg.propellant_kg
         self.is_cut = False
+        self.fault_gain = 1.0  # factor on the delivered thrust set by a thrust-loss fault (models.faults)
         eng, rcs = cfg.engine, cfg.rcs
         self.instant = (eng.time_constant_s == 0.0 and math.isinf(eng.slew_rate_Nps)
                         and rcs.mode == "continuous" and not rcs.draws_propellant)
@@ -97,6 +99,8 @@ class PropulsionModel:
     def delivered_thrust_N(self, thrust_cmd_N: float) -> float:
         """Thrust the engine delivers now for a command [N] (instant path: the clamped command times the error)."""
         gain = 1.0 + self.cfg.engine.thrust_error_frac
+        if self.fault_gain != 1.0:
+            gain *= self.fault_gain
         if self.instant:
             return self.clamp_thrust(thrust_cmd_N) * gain
         if self.engine_thrust_N is None:
@@ -141,6 +145,8 @@ class PropulsionModel:
             The delivered output; ``self.propellant_kg`` is decreased.
         """
         thrust = self.clamp_thrust(thrust_cmd_N) * (1.0 + self.cfg.engine.thrust_error_frac)
+        if self.fault_gain != 1.0:
+            thrust *= self.fault_gain
         torque = self.clamp_torque(torque_cmd_B_Nm)
         if thrust <= 0.0:
             return PropulsionOutput(0.0, torque, 0, 0.0, False)
@@ -219,6 +225,8 @@ class PropulsionModel:
             self.engine_thrust_N = 0.0
             return 0.0, (np.zeros(3) if rcs.draws_propellant else self._rcs_step(torque_cmd_B_Nm, step_index, dt_ns)), False
         thrust = self._engine_step(thrust_cmd_N, dt_s) * (1.0 + self.cfg.engine.thrust_error_frac)
+        if self.fault_gain != 1.0:
+            thrust *= self.fault_gain
         torque = self._rcs_step(torque_cmd_B_Nm, step_index, dt_ns)
         used = self.mass_flow_kgps(thrust) * dt_s
         if rcs.draws_propellant:

@@ -219,6 +219,7 @@ class World:
         self._imu_sum = np.zeros(3)  # integrating accelerometer: sum of the steps' specific forces [m/s^2]
         self._gyro_sum = np.zeros(3)  # integrating gyro: sum of the steps' integrated body rates [rad/s]
         self._imu_steps = 0
+        self._fault_torque_B: np.ndarray | None = None
         self._set_clip_planes()
         mujoco.mj_forward(self.model, self.data)
 
@@ -325,8 +326,10 @@ class World:
         self.data.ctrl[self._act_rcs] = out.torque_B_Nm
         self.data.ctrl[self._act_engine] = out.thrust_N
         if out.burn_steps > 0:
+            self._apply_fault_torque(True)
             self._advance(out.burn_steps)
         if out.burn_steps < n_steps:
+            self._apply_fault_torque(False)
             self.data.ctrl[self._act_engine] = 0.0
             self._advance(n_steps - out.burn_steps)
         self._set_propellant(self.propulsion.propellant_kg)
@@ -349,6 +352,7 @@ class World:
             impulse_B += torque
             self.data.ctrl[self._act_rcs] = torque
             self.data.ctrl[self._act_engine] = thrust
+            self._apply_fault_torque(thrust > 0.0)
             self._advance(1)
             # mj_step evaluated the sensors at the step's start with this step's controls: the specific
             # force that acts over the step, summed for the integrating accelerometer (imu_mean_B).
@@ -392,6 +396,36 @@ class World:
                     f"The physics step (sim.physics_dt_ns = {self.physics_dt_ns}) is probably too large "
                     "for the contact and actuator dynamics; reduce it."
                 )
+
+    # ----------------------------------------------------------------- engine faults (models.faults)
+    def set_engine_fault(self, thrust_gain: float, torque_B_Nm: np.ndarray | None,
+                         misalignment: tuple[float, float] | None) -> None:
+        """Apply the engine faults active now (held until the next call).
+
+        Args:
+            thrust_gain: Factor on the delivered thrust (1: none).
+            torque_B_Nm: Off-axis torque (3,) [N m] in B while the engine fires; None: none.
+            misalignment: (angle_deg, azimuth_deg) of the thrust line from body +z; None: the configured one.
+        """
+        self.propulsion.fault_gain = float(thrust_gain)
+        self._fault_torque_B = None if torque_B_Nm is None else np.asarray(torque_B_Nm, float)
+        if misalignment is None:
+            d = self.lander_cfg.engine.thrust_direction_B()
+        else:
+            a, az = (math.radians(v) for v in misalignment)
+            d = np.array([math.sin(a) * math.cos(az), math.sin(a) * math.sin(az), math.cos(a)])
+        self.model.actuator_gear[self._act_engine, :3] = d
+
+    def _apply_fault_torque(self, firing: bool) -> None:
+        """Hold the thrust-loss fault's torque on the lander (in L) while the engine fires, else none."""
+        tau = getattr(self, "_fault_torque_B", None)
+        if tau is None:
+            return
+        if firing:
+            R_LB = self.data.xmat[self._body_lander].reshape(3, 3)
+            self.data.xfrc_applied[self._body_lander, 3:6] = R_LB @ tau
+        else:
+            self.data.xfrc_applied[self._body_lander, 3:6] = 0.0
 
     # ----------------------------------------------------------------- truth signals
     def specific_force_B(self) -> np.ndarray:

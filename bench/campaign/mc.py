@@ -77,7 +77,7 @@ def _flatten(prefix: str, value: Any, out: dict[str, Any]) -> None:
 
 
 # Summary entries that describe the setup, not the landing (kept out of the row).
-_SUMMARY_SKIP = ("criteria", "modes", "time_split_s")
+_SUMMARY_SKIP = ("criteria", "modes", "time_split_s", "fdir_events")
 
 
 def summary_row(summary: dict[str, Any]) -> dict[str, Any]:

@@ -1,7 +1,7 @@
 """Dispersions and per-case seeds for Monte Carlo campaigns.
 
 A scenario's ``[dispersions]`` table maps a dotted field path to a
-distribution. A single ``landbench run`` flies the nominal scenario; a
+distribution (an array's entries by index: ``faults.0.value``). A single ``landbench run`` flies the nominal scenario; a
 campaign draws each case's values and applies them **to the scenario object
 itself** (then re-validates it), so the truth (world, sensors) sees the
 dispersed values and a case is reproduced by its own resolved
@@ -122,21 +122,28 @@ class Choice(_Dist):
 Dispersion = Annotated[Union[Normal, TruncNormal, Uniform, Integers, Choice], Field(discriminator="dist")]
 
 
+def _step(node: Any, part: str, path: str) -> Any:
+    """One part of a dotted path: a table's key, or an array's index (``faults.0.value``)."""
+    if isinstance(node, dict) and part in node:
+        return node[part]
+    if isinstance(node, list) and part.isdigit() and int(part) < len(node):
+        return node[int(part)]
+    raise KeyError(path)
+
+
 def _get(data: dict[str, Any], path: str) -> Any:
     node: Any = data
     for part in path.split("."):
-        if not isinstance(node, dict) or part not in node:
-            raise KeyError(path)
-        node = node[part]
+        node = _step(node, part, path)
     return node
 
 
 def _set(data: dict[str, Any], path: str, value: Any) -> None:
     parts = path.split(".")
-    node = data
+    node: Any = data
     for part in parts[:-1]:
-        node = node[part]
-    node[parts[-1]] = value
+        node = _step(node, part, path)
+    node[int(parts[-1]) if isinstance(node, list) else parts[-1]] = value
 
 
 def check_dispersion_paths(scenario_data: dict[str, Any], dispersions: dict[str, Any]) -> None:

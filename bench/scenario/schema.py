@@ -30,6 +30,7 @@ from bench.scenario.dispersions import Dispersion, check_dispersion_paths, draw_
 from gnc.config import format_validation_error
 from gnc.control import ControlConfig
 from gnc.estimator import EstimatorConfig
+from gnc.fdir import FdirConfig
 from gnc.guidance import GuidanceConfig
 from gnc.map_nav import MapNavConfig
 from gnc.vision_nav import VisionNavConfig
@@ -40,6 +41,7 @@ from models.sensors import SensorsConfig
 from models.orbital_map import OrbitalMapConfig
 from models.terrain import TerrainConfig
 from models.sun import SunConfig  # not models.world: a scenario loads without MuJoCo
+from models.faults import FaultConfig, check_fault
 
 NS_PER_S = 1_000_000_000
 DEFAULT_SCENARIO = "default.toml"
@@ -195,6 +197,7 @@ class Scenario(BaseModel):
     estimator: EstimatorConfig = EstimatorConfig()
     tracker: TrackerConfig = TrackerConfig()
     vision_nav: VisionNavConfig = VisionNavConfig()
+    fdir: FdirConfig = FdirConfig()
     knowledge: KnowledgeConfig = KnowledgeConfig()
     onboard_map: OrbitalMapConfig = Field(
         OrbitalMapConfig(),
@@ -203,6 +206,11 @@ class Scenario(BaseModel):
     )
     map_nav: MapNavConfig = Field(
         MapNavConfig(), description="when the flight software takes map fixes and how it matches (nav_map = 'on')"
+    )
+    faults: list[FaultConfig] = Field(
+        default_factory=list,
+        description="truth-side faults ([[faults]] tables; models.faults): sensors, camera, engine, flight computer, "
+                    "terrain; each with a kind, a trigger, a duration and its parameters",
     )
     dispersions: dict[str, Dispersion] = Field(
         default_factory=dict,
@@ -247,6 +255,22 @@ class Scenario(BaseModel):
                     f"{name} = {value} differs from sim.gravity_mps2 = {g}; allowed: the same value "
                     "(the flight software's gravity model is the world's; set them together)"
                 )
+        return self
+
+    @model_validator(mode="after")
+    def _faults_consistent(self) -> "Scenario":
+        for i, f in enumerate(self.faults):
+            try:
+                check_fault(f)
+            except ValueError as exc:
+                raise ValueError(f"faults.{i}: {exc}") from None
+            if f.kind == "terrain_step":
+                keep_m = self.terrain.patch_size_m / math.sqrt(2.0)  # the target and its texture patch stay as they are
+                if math.hypot(*f.center_xy_m) - f.radius_m <= keep_m:
+                    raise ValueError(
+                        f"faults.{i}.center_xy_m = {list(f.center_xy_m)} with radius_m = {f.radius_m}: the step reaches "
+                        f"within {keep_m:.1f} m of the target (its texture patch); allowed: "
+                        f"|center_xy_m| - radius_m > {keep_m:.1f} m")
         return self
 
     @model_validator(mode="after")
@@ -397,15 +421,17 @@ def apply_dispersions(scenario: Scenario, rng: np.random.Generator | None = None
     return scenario_from_dict(data), drawn
 
 
-def load_scenario(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Scenario:
-    """Load a scenario file (or the bundled default) and apply overrides.
+def load_scenario(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = (),
+                  preset: str | None = None) -> Scenario:
+    """Load a scenario file (or the bundled default), lay a named preset over it and apply overrides.
 
     Relative paths inside the file (``terrain.dem_path``) are resolved against
     the file's folder, so a scenario can travel with its DEM.
 
     Args:
         path: TOML file, or None for the bundled default.
-        overrides: ``a.b=value`` assignments, applied in order.
+        overrides: ``a.b=value`` assignments, applied in order (after the preset).
+        preset: A named layer of :mod:`bench.scenario.presets` (``--preset``), or None.
 
     Returns:
         The validated scenario.
@@ -414,7 +440,7 @@ def load_scenario(path: str | Path | None = None, overrides: list[str] | tuple[s
         ScenarioError: One line naming the field, the bad value and what is allowed.
     """
     data, base = read_scenario_data(path)
-    return scenario_from_data(data, base, overrides)
+    return scenario_from_data(data, base, overrides, preset)
 
 
 def read_scenario_data(path: str | Path | None) -> tuple[dict[str, Any], Path]:
@@ -429,14 +455,17 @@ def read_scenario_data(path: str | Path | None) -> tuple[dict[str, Any], Path]:
     return _read_toml(path), path.parent
 
 
-def scenario_from_data(data: dict[str, Any], base: Path, overrides: list[str] | tuple[str, ...] = ()) -> Scenario:
-    """Apply overrides to a raw scenario table, resolve ``terrain.dem_path`` against ``base``, validate.
+def scenario_from_data(data: dict[str, Any], base: Path, overrides: list[str] | tuple[str, ...] = (),
+                       preset: str | None = None) -> Scenario:
+    """Lay a preset over a raw scenario table, apply overrides, resolve ``terrain.dem_path`` against ``base``, validate.
 
     ``data`` is copied, not changed. (``landbench sweep`` takes its ``[sweep]`` table out of the file first.)
     """
     import copy
 
-    data = copy.deepcopy(data)
+    from bench.scenario.presets import apply_preset
+
+    data = apply_preset(data, preset) if preset is not None else copy.deepcopy(data)
     for assignment in overrides:
         apply_override(data, assignment)
     dem = data.get("terrain", {}).get("dem_path") if isinstance(data.get("terrain"), dict) else None
@@ -459,6 +488,8 @@ def _toml_value(v: Any) -> str:
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     if isinstance(v, str):
         return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, dict):  # an inline table (the entries of [[faults]]); None fields are omitted
+        return "{" + ", ".join(f"{_toml_key(k)} = {_toml_value(x)}" for k, x in v.items() if x is not None) + "}"
     raise TypeError(f"cannot write {type(v).__name__} to TOML")
 
 

@@ -22,6 +22,7 @@ COMPONENTS: tuple[str, ...] = (
     "estimator",
     "vision",
     "map",
+    "faults",
 )
 
 

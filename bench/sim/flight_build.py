@@ -21,7 +21,8 @@ import numpy as np
 from bench.scenario import Scenario
 from bench.scenario.seeding import component_rng
 from gnc.control import VehicleParams, make_controller
-from gnc.estimator import make_estimator
+from gnc.estimator import IDX_H, make_estimator
+from gnc.fdir import COMPUTER, FdirEvent, HealthMonitor, SensorSpec, restart_estimate
 from gnc.flight import FlightSoftware, OnboardKnowledge
 from gnc.guidance import make_guidance
 from gnc.map_nav import MapNavigator, OnboardMap
@@ -81,12 +82,22 @@ def handover_estimate(scenario: Scenario, truth: Any) -> tuple[np.ndarray, np.nd
     return r0, v0
 
 
-def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.ndarray,
-                          onboard_map: OnboardMap | None = None) -> FlightSoftware:
+def sensor_spec(scenario: Scenario) -> SensorSpec:
+    """The sensors' periods and the altimeter's range, as their specification gives them to the flight software."""
+    s = scenario.sensors
+    return SensorSpec(imu_period_ns=s.imu.period_ns, altimeter_period_ns=s.altimeter.period_ns,
+                      star_tracker_period_ns=s.star_tracker.period_ns,
+                      camera_period_ns=scenario.camera.period_ns if scenario.camera.enabled else None,
+                      altimeter_max_range_m=s.altimeter.max_range_m)
+
+
+def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.ndarray, t0_ns: int = 0,
+                          q0_LB: np.ndarray | None = None, onboard_map: OnboardMap | None = None) -> FlightSoftware:
     """The flight computer of the run: onboard knowledge, configuration and the hand-over estimate.
 
-    Nothing of the truth reaches it but the hand-over estimate passed in. With ``nav_map = "on"``
-    it carries the onboard map (``onboard_map``, else made here from the scenario: plain data).
+    Nothing of the truth reaches it but the hand-over estimate passed in (at ``t0_ns``; ``q0_LB``: an initial
+    attitude the flight software holds itself, after a reset; None: from the first star-tracker fix). With
+    ``nav_map = "on"`` it carries the onboard map (``onboard_map``, else made here from the scenario: plain data).
     """
     knowledge = onboard_knowledge(scenario)
     control = scenario.control
@@ -96,7 +107,8 @@ def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.nda
     limits = dataclasses.replace(controller.guidance_limits(), isp_s=knowledge.isp_s)  # G-FOLD models the mass flow
     guidance = make_guidance(scenario.guidance, limits)
     # The realistic vehicle's IMU integrates (delta-velocity and delta-angle); the ideal one point-samples.
-    nav_filter = make_estimator(scenario.estimator, x0_r_L, x0_v_L, 0, altimeter_mount_B_m=knowledge.r_alt_B_m,
+    nav_filter = make_estimator(scenario.estimator, x0_r_L, x0_v_L, int(t0_ns), q0_LB,
+                                altimeter_mount_B_m=knowledge.r_alt_B_m,
                                 gyro_delta_angle=scenario.realism == "realistic")
     tracker = Tracker(scenario.tracker) if scenario.tracks == "vision" and scenario.vision == "on" else None
     map_nav = None
@@ -107,4 +119,32 @@ def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.nda
             onboard_map = scenario_onboard_map(scenario)[0]
         map_nav = MapNavigator(onboard_map, scenario.map_nav, knowledge.K, knowledge.R_BC, knowledge.r_cam_B_m)
     return FlightSoftware(guidance, controller, nav_filter, tracker, scenario.vision_nav, scenario.vision == "on",
-                          knowledge, map_nav)
+                          knowledge, map_nav, HealthMonitor(scenario.fdir, sensor_spec(scenario)))
+
+
+def restart_flight_software(scenario: Scenario, old: FlightSoftware, t_ns: int) -> FlightSoftware:
+    """The flight software after a computer reset at ``t_ns``: everything volatile is lost.
+
+    It restarts from its own non-volatile checkpoint (the last control tick's
+    filter state, covariance, mass and attitude, carried ballistically over the
+    outage: the engine was off; :func:`gnc.fdir.restart_estimate`), never from the truth;
+    the detections of its earlier life are kept, and the restart is one more.
+    """
+    if old.checkpoint is None:  # never flew a tick: restart from the hand-over's own data
+        raise RuntimeError("flight computer reset before its first control tick")
+    t0, x0, P0, mass, q0 = old.checkpoint
+    x, P = restart_estimate(x0, P0, (t_ns - t0) / 1e9, scenario.estimator.gravity_mps2)
+    onboard_map = old.map_nav.matcher.map if old.map_nav is not None else None  # the map survives in storage
+    new = build_flight_software(scenario, x[:3], x[3:6], t0_ns=t_ns, q0_LB=q0, onboard_map=onboard_map)
+    # Warm restart: the checkpointed kinematic, accelerometer-bias and terrain states with their covariance;
+    # the vision states (clone, image offsets, flow bias, viewed ground) start afresh, as the tracker does.
+    keep = slice(0, IDX_H + 1)
+    new.filter.ekf.x[keep] = x[keep]
+    new.filter.ekf.P[keep, :] = 0.0
+    new.filter.ekf.P[:, keep] = 0.0
+    new.filter.ekf.P[keep, keep] = P[keep, keep]
+    new.mass_kg = mass
+    new.fdir.carry_events([*old.fdir.events, FdirEvent(
+        t_ns, COMPUTER, f"computer restarted after {(t_ns - t0) / 1e9:.2f} s down",
+        "state restored from the non-volatile checkpoint, carried ballistically")])
+    return new

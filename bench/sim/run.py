@@ -29,7 +29,20 @@ limits), ``tipped_over`` (after settling the lander has fallen over: its
 centre of mass is outside the footpads' support polygon, or its tilt is
 beyond the static tip-over angle of its leg geometry,
 :func:`models.lander.static_tipover_deg`), ``slope_exceeded`` (it stands, but
-tilted beyond ``landing.tilt_max_deg``), ``landed``.
+tilted beyond ``landing.tilt_max_deg``), ``landed``. ``safe_abort``: the flight
+software declared an abort (:mod:`gnc.fdir`) and, ``ABORT_OBSERVE_S`` later,
+the lander is still flying and not descending faster than
+``landing.v_vertical_max_mps``; an aborted lander that does not meet this
+flies on to its touchdown and is classified as any other.
+
+Faults (``scenario.faults``, :mod:`models.faults`) are applied between the
+truth sensor models and the flight software's messages, in the camera's
+frame delivery and in the actuator path; a ``computer_reset`` withholds
+every message and commands nothing (engine and RCS off) while the computer is
+down, then the flight software restarts from its own checkpoint
+(:func:`bench.sim.flight_build.restart_flight_software`). The flight software's
+detections (:mod:`gnc.fdir`) are in the summary, ``fdir``, and each fault's
+detection and latency in ``faults``.
 
 Flight-computer latency (``realism = "realistic"``): the command computed at
 control tick k acts from tick k + ``sim.compute_latency_ticks``; before the
@@ -54,9 +67,10 @@ from scipy.spatial.transform import Rotation
 from bench.evaluation.consistency import NEES_BLOCKS, block_nees_many, run_consistency
 from bench.scenario import NS_PER_S, Scenario
 from bench.scenario.seeding import component_rng
-from bench.sim.flight_build import build_flight_software, handover_estimate, onboard_knowledge
+from bench.sim.flight_build import build_flight_software, handover_estimate, onboard_knowledge, restart_flight_software
 from bench.sim.truth_tracker import TruthTracker
 from bench.sim.world_builder import SensorSuite, build_sensors, build_terrain, build_world
+from gnc.control import ActuatorCommand
 from gnc.estimator import IDX_BA, IDX_R, IDX_V
 from gnc.flight import FlightSoftware
 from gnc.guidance import PHASE_TERMINAL
@@ -68,8 +82,10 @@ from models.lander import LanderConfig, com_position_B, footpad_positions_B, sta
 from models.terrain import Terrain
 from models.world import PhysicsDivergedError, TruthState, World
 
-OUTCOMES = ("landed", "hard_landing", "tipped_over", "slope_exceeded", "fuel_exhausted", "timeout", "diverged")
+OUTCOMES = ("landed", "hard_landing", "tipped_over", "slope_exceeded", "fuel_exhausted", "safe_abort", "timeout",
+            "diverged")
 PHASE_TOUCHDOWN = "touchdown"
+ABORT_OBSERVE_S = 10.0  # after a declared abort, the run goes on this long to see the lander safe
 
 FrameSink = Callable[[int, np.ndarray, TruthState, "Tracks | None"], None]
 """Called with (t_ns, frame (H, W) uint8, truth, tracks or None) for every camera frame."""
@@ -235,6 +251,9 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
     # With map fixes the flight software navigates in the map's frame: its errors are taken against the truth
     # there (truth + the map's shift). Without them, against the truth in L.
     nav_offset_L = np.array([*maps[1].shift_xy_m, 0.0]) if maps is not None else None
+    faults = sensors.faults
+    down = False  # the flight computer is down (a computer_reset fault)
+    abort_ns: int | None = None
     tracker_truth = (TruthTracker(terrain, world.K, (cam.width_px, cam.height_px), TRUTH_TRACK_POINTS,
                                   component_rng(scenario.seed, "vision")) if truth_tracks else None)
     thrust_max = scenario.lander.engine.thrust_max_N
@@ -267,6 +286,14 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
             if touchdown is None and legs.any():
                 touchdown_ns = t_ns
                 touchdown = _touchdown_metrics(prev_truth, t_ns)
+            if faults is not None:
+                faults.update(t_ns, _truth_height(terrain, truth) if faults.needs_altitude() else None,
+                              fsw.last_guidance.phase if fsw.last_guidance is not None else None)
+                was_down, down = down, faults.computer_down(t_ns)
+                if was_down and not down:
+                    fsw = restart_flight_software(scenario, fsw, t_ns)
+                world.set_engine_fault(faults.thrust_gain(t_ns), faults.fault_torque_B_Nm(t_ns),
+                                       faults.thrust_direction_B(t_ns))
             # Sensors due now (zero-order hold between samples); the filter consumes them.
             t0 = time.perf_counter()
             if t_ns % periods["imu"] == 0:
@@ -274,36 +301,52 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                 # ideal: point samples.
                 means = world.imu_mean_B() if scenario.realism == "realistic" else None
                 f_B, omega_B = means if means is not None else (world.specific_force_B(), world.angular_rate_B())
-                imu_msg = sensors.imu.sample(t_ns, f_B, omega_B)
-                if recorder is not None:
-                    recorder.message("imu", imu_msg)
-                fsw.on_imu(imu_msg)
+                msg = sensors.imu.sample(t_ns, f_B, omega_B)
+                if faults is not None:
+                    msg = _delivered(faults.imu(msg), down)
+                if msg is not None:
+                    imu_msg = msg
+                    if recorder is not None:
+                        recorder.message("imu", imu_msg)
+                    fsw.on_imu(imu_msg)
             if t_ns % periods["star_tracker"] == 0:
-                st_msg = sensors.star_tracker.sample(t_ns, truth.q_LB)
-                if recorder is not None:
-                    recorder.message("attitude", st_msg)
-                fsw.on_attitude(st_msg)
+                msg = sensors.star_tracker.sample(t_ns, truth.q_LB)
+                if faults is not None:
+                    msg = _delivered(faults.star_tracker(msg), down)
+                if msg is not None:
+                    st_msg = msg
+                    if recorder is not None:
+                        recorder.message("attitude", st_msg)
+                    fsw.on_attitude(st_msg)
             if t_ns % periods["altimeter"] == 0:
-                alt_msg = sensors.altimeter.sample(t_ns, world.altimeter_range_truth())
-                if recorder is not None:
-                    recorder.message("altimeter", alt_msg)
-                fsw.on_altimeter(alt_msg)
+                msg = sensors.altimeter.sample(t_ns, world.altimeter_range_truth())
+                if faults is not None:
+                    msg = _delivered(faults.altimeter(msg), down)
+                if msg is not None:
+                    alt_msg = msg
+                    if recorder is not None:
+                        recorder.message("altimeter", alt_msg)
+                    fsw.on_altimeter(alt_msg)
             timing["filter_s"] += time.perf_counter() - t0
             if "camera" in periods and t_ns % periods["camera"] == 0:
                 tracks = None
                 frame = None
+                delivered = faults is None or (faults.frame_delivered(t_ns) and not down)
                 # Render only a frame that someone consumes: the video, a recording, or the tracker
                 # (above the cut-off). Each frame's noise is its own stream, so skipping changes nothing.
                 if cam.enabled and (frame_sink is not None or recorder is not None
-                                    or (tracker_truth is None and fsw.wants_image())
-                                    or fsw.wants_map_frame(t_ns)):
+                                    or (tracker_truth is None and delivered and fsw.wants_image())
+                                    or (delivered and fsw.wants_map_frame(t_ns))):
                     t0 = time.perf_counter()
-                    frame = sensors.camera_frame_at(world, t_ns // cam.period_ns)
+                    frame = sensors.camera_frame_at(world, t_ns // cam.period_ns,
+                                                    *(() if faults is None else (faults.exposure_gain(t_ns),)))
                     timing["render_s"] += time.perf_counter() - t0
                     frames_rendered += 1
                 t0 = time.perf_counter()
                 n_map = len(fsw.map_nav.stats.log) if fsw.map_nav is not None else 0
-                if tracker_truth is not None:
+                if not delivered:
+                    pass  # the frame never reaches the flight software (blackout, drop, computer down)
+                elif tracker_truth is not None:
                     if frame is not None and fsw.map_nav is not None:
                         fsw.map_nav.on_frame(t_ns, frame, fsw.filter)
                     tracks = tracker_truth.step(*world.camera_pose())
@@ -315,7 +358,7 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                         t0 += _record_camera_truth(recorder, t_ns, world)  # not vision time
                     tracks = fsw.on_image(image_msg)
                 elif cam.enabled:
-                    fsw.skip_image()  # what on_image does with a frame it does not use
+                    fsw.skip_image(t_ns)  # what on_image does with a frame it does not use
                 timing["vision_s"] += time.perf_counter() - t0
                 if fsw.map_nav is not None and len(fsw.map_nav.stats.log) > n_map:
                     map_truth_log.append((t_ns, world.camera_pose()[1]))
@@ -329,7 +372,14 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                 contact = ContactMessage(t_ns, legs)
                 if recorder is not None:
                     recorder.control_tick(t_ns, contact, truth, sensors.imu.accel_bias)
-                act = fsw.control(t_ns, contact, truth_nav)
+                if down:  # the computer commands nothing: engine and RCS off
+                    act = ActuatorCommand(0.0, np.zeros(3), False, t_ns)
+                else:
+                    act = fsw.control(t_ns, contact, truth_nav)
+                    if faults is not None:
+                        act = _engine_command(faults, t_ns, act)
+                if abort_ns is None and fsw.fdir is not None and fsw.fdir.abort is not None:
+                    abort_ns = t_ns
                 if not pipeline:
                     pipeline.extend([act] * latency_ticks)  # at hand-over the computer was already flying it
                 pipeline.append(act)
@@ -340,6 +390,10 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                                      fsw, sensors.imu.accel_bias, applied, tel, nav_offset_L))
             # End conditions.
             if touchdown_ns is not None and t_ns - touchdown_ns >= settle_ns:
+                break
+            if (abort_ns is not None and touchdown_ns is None and t_ns - abort_ns >= ABORT_OBSERVE_S * NS_PER_S
+                    and truth.v_BL_L[2] >= -crit.v_vertical_max_mps):
+                outcome = "safe_abort"  # declared, and seen safe: flying, not descending fast
                 break
             if t_ns >= sim.t_max_ns:
                 break
@@ -362,6 +416,7 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
     stability = _stability(truth, world.lander_cfg)
     if outcome is None:
         outcome = _classify(touchdown, exhausted_ns, touchdown_ns, final_tilt, scenario, stability)
+    fdir_events = [e.to_dict() for e in fsw.fdir.events] if fsw.fdir is not None else []
     sim_time_s = world.t_ns / NS_PER_S
     telemetry = tel.columns(terrain, scenario.lander) if tel.rows else {}
     summary: dict[str, Any] = {
@@ -389,6 +444,9 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                      **({"law_stats": fsw.guidance.stats()} if hasattr(fsw.guidance, "stats") else {})},
         "vision": _vision_summary(fsw),
         "consistency": run_consistency(telemetry, touchdown, fsw.filter.log),
+        "fdir": _fdir_summary(fsw, fdir_events),
+        "fdir_events": fdir_events,
+        "faults": _fault_summary(scenario, faults, fdir_events, telemetry),
         "time_split_s": {**timing, "frames_rendered": frames_rendered},  # what was rendered depends on the outputs
         "platform": _platform(world),
         "error": error,
@@ -445,6 +503,76 @@ def _map_nav_summary(fsw: FlightSoftware, map_truth: Any, truth_log: list[tuple[
         # The telemetry's navigation errors are already against the truth in the map frame.
         out["nav_err_map_frame_touchdown_m"] = float(np.hypot(tel["nav_err_r_x_m"][k], tel["nav_err_r_y_m"][k]))
     return out
+
+
+def _delivered(msg: Any, down: bool) -> Any:
+    """A message after the fault injector, or None while the flight computer is down."""
+    return None if down else msg
+
+
+def _engine_command(faults: Any, t_ns: int, act: ActuatorCommand) -> ActuatorCommand:
+    """The command the engine acts on under a stuck throttle (the flight software's own is unchanged)."""
+    thrust = faults.thrust_command(t_ns, act.thrust_N)
+    if thrust == act.thrust_N:
+        return act
+    return ActuatorCommand(thrust, act.torque_B_Nm, act.engine_on, act.t_ns, act.q_LB_cmd)
+
+
+def _truth_height(terrain: Terrain, truth: TruthState) -> float:
+    """Truth height of the body origin above the terrain under it [m] (altitude triggers)."""
+    x, y, z = truth.r_BL_L
+    return float(z - terrain.surface_height(x, y))
+
+
+# Which detections count for a fault on each target (gnc.fdir subsystems).
+DETECTS = {"imu": ("imu", "accel_thrust"), "altimeter": ("altimeter",), "star_tracker": ("star_tracker",),
+           "camera": ("camera",), "engine": ("engine", "accel_thrust"), "computer": ("computer",),
+           "terrain": ("altimeter",)}
+
+
+def _over_disc_ns(tel: dict[str, np.ndarray], step: Any) -> int | None:
+    """The first control tick with the body over a terrain step's disc [ns]; None: never."""
+    if not tel:
+        return None
+    inside = np.hypot(tel["r_x_m"] - step.center_xy_m[0], tel["r_y_m"] - step.center_xy_m[1]) <= step.radius_m
+    return int(round(float(tel["t_s"][np.argmax(inside)]) * NS_PER_S)) if inside.any() else None
+
+
+def _fault_summary(scenario: Scenario, faults: Any, events: list[dict],
+                   tel: dict[str, np.ndarray]) -> list[dict[str, Any]]:
+    """Per fault: its window and whether (and how late) the flight software detected it.
+
+    Detected: a detection of a subsystem the fault's target maps to (``DETECTS``)
+    at or after the fault's start and before its end plus 5 s. A terrain step
+    starts when the body first flies over it (never: not triggered).
+    """
+    if faults is None:
+        return []
+    out = []
+    for f, (start, end) in zip(scenario.faults, faults.windows()):
+        if f.kind == "terrain_step":  # it acts from when the lander first flies over it
+            start, end = _over_disc_ns(tel, f), None
+        subs = DETECTS[f.subsystem]
+        hit = None
+        if start is not None:
+            limit = math.inf if end is None else end / NS_PER_S + 5.0
+            hit = next((e for e in events if e["subsystem"] in subs and start / NS_PER_S <= e["t_s"] <= limit), None)
+        out.append({"kind": f.kind, "target": f.subsystem if f.kind != "terrain_step" else "terrain",
+                    "start_t_s": None if start is None else start / NS_PER_S,
+                    "end_t_s": None if end is None else end / NS_PER_S,
+                    "triggered": start is not None, "detected": hit is not None,
+                    "detection_t_s": None if hit is None else hit["t_s"],
+                    "latency_s": None if hit is None else hit["t_s"] - start / NS_PER_S,
+                    "detection": None if hit is None else hit["reason"]})
+    return out
+
+
+def _fdir_summary(fsw: FlightSoftware, events: list[dict]) -> dict[str, Any]:
+    abort = fsw.fdir.abort if fsw.fdir is not None else None
+    return {"n_events": len(events), "first_event_t_s": events[0]["t_s"] if events else None,
+            "subsystems": ",".join(sorted({e["subsystem"] for e in events})),
+            "abort_declared": abort is not None, "abort_t_s": None if abort is None else abort.t_ns / NS_PER_S,
+            "abort_reason": None if abort is None else abort.reason}
 
 
 def _record_camera_truth(recorder: Recorder, t_ns: int, world: World) -> float:

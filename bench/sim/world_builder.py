@@ -6,6 +6,8 @@ are built where they are used and never pickled.
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -16,6 +18,7 @@ from bench.scenario import Scenario, ScenarioError
 from bench.scenario.seeding import component_rng, component_seed
 from bench.sim.terrain_cache import cached_terrain
 from models.camera import apply_detector_noise
+from models.faults import FaultInjector, terrain_step_heights
 from models.sensors import AltimeterModel, ImuModel, StarTrackerModel
 from models.terrain import Terrain, generate_terrain
 from models.world import World
@@ -67,6 +70,18 @@ def build_terrain(scenario: Scenario) -> Terrain:
     cached in this process and on disk (:mod:`bench.sim.terrain_cache`), keyed on
     everything that generates them.
     """
+    return with_terrain_steps(_build_terrain(scenario), scenario)
+
+
+def with_terrain_steps(terrain: Terrain, scenario: Scenario) -> Terrain:
+    """The terrain with the scenario's ``terrain_step`` faults added (the same object when there are none)."""
+    steps = [f for f in scenario.faults if f.kind == "terrain_step"]
+    if not steps:
+        return terrain
+    return dataclasses.replace(terrain, height_m=terrain_step_heights(terrain.height_m, terrain.size_m, steps))
+
+
+def _build_terrain(scenario: Scenario) -> Terrain:
     key = _terrain_key(scenario)
     if key is None:
         return generate_scenario_terrain(scenario)
@@ -132,6 +147,7 @@ class SensorSuite:
     star_tracker: StarTrackerModel
     camera_rng: np.random.Generator
     camera_seed: np.random.SeedSequence | None = None
+    faults: FaultInjector | None = None  # the scenario's faults (None: none)
 
     def camera_frame(self, world: World) -> np.ndarray:
         """Render and corrupt one camera frame, (H, W) uint8, with the next draws of the camera's stream."""
@@ -150,9 +166,15 @@ class SensorSuite:
         return np.random.Generator(np.random.PCG64(
             np.random.SeedSequence(base.entropy, spawn_key=(*base.spawn_key, int(frame_index)))))
 
-    def camera_frame_at(self, world: World, frame_index: int) -> np.ndarray:
-        """Render and corrupt camera frame ``frame_index`` of the run, (H, W) uint8 (see :meth:`frame_rng`)."""
-        return apply_detector_noise(world.render_signal(), world.camera_cfg, self.frame_rng(frame_index))
+    def camera_frame_at(self, world: World, frame_index: int, exposure_gain: float = 1.0) -> np.ndarray:
+        """Render and corrupt camera frame ``frame_index`` of the run, (H, W) uint8 (see :meth:`frame_rng`).
+
+        ``exposure_gain`` multiplies the scene's signal before the detector noise (an ``exposure`` fault).
+        """
+        signal = world.render_signal()
+        if exposure_gain != 1.0:
+            signal = np.clip(signal.astype(np.float32) * np.float32(exposure_gain), 0.0, 255.0)
+        return apply_detector_noise(signal, world.camera_cfg, self.frame_rng(frame_index))
 
 
 def build_sensors(scenario: Scenario) -> SensorSuite:
@@ -164,7 +186,25 @@ def build_sensors(scenario: Scenario) -> SensorSuite:
                                       anisotropic=scenario.realism == "realistic"),
         camera_rng=component_rng(scenario.seed, "camera"),
         camera_seed=component_seed(scenario.seed, "camera"),
+        faults=build_fault_injector(scenario),
     )
+
+
+def build_fault_injector(scenario: Scenario) -> FaultInjector | None:
+    """The run's fault injector, on the "faults" stream (None when the scenario has no faults)."""
+    if not scenario.faults:
+        return None
+    s = scenario.sensors
+    imu_dt = s.imu.period_ns / 1e9
+    st = s.star_tracker
+    st_sigma = st.noise_sigma_arcsec if scenario.realism == "ideal" else math.sqrt(
+        (2 * st.cross_boresight_sigma_arcsec**2 + st.about_boresight_sigma_arcsec**2) / 3)
+    alt = s.altimeter
+    sigmas = {"imu.accel": s.imu.accel_noise_density / math.sqrt(imu_dt),
+              "imu.gyro": s.imu.gyro_noise_density / math.sqrt(imu_dt),
+              "star_tracker": st_sigma,
+              "altimeter": lambda r, a=alt: math.hypot(a.noise_sigma_m, a.noise_frac * r)}
+    return FaultInjector(list(scenario.faults), sigmas, component_seed(scenario.seed, "faults"))
 
 
 def place_above_target(world: World, altitude_m: float) -> None:

@@ -1,0 +1,381 @@
+"""Faults (issue 13): the scenario's [[faults]], the truth-side injector against the unfaulted signals,
+the presets, and short closed-loop runs that check what reaches the flight software."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from bench.scenario import ScenarioError, apply_dispersions, load_scenario, scenario_to_toml
+from bench.scenario.presets import PRESETS, REFERENCE, apply_preset, get_preset
+from bench.scenario.schema import scenario_from_dict
+from bench.sim.world_builder import build_fault_injector, with_terrain_steps
+from models.faults import terrain_step_heights
+from models.sensors import AltimeterConfig, AltimeterModel, ImuConfig, ImuModel, StarTrackerConfig, StarTrackerModel
+from tests.conftest import SMALL_SET, make_terrain
+
+NS = 1_000_000_000
+
+
+def _scenario(*faults: str, extra: tuple[str, ...] = ()):
+    return load_scenario(None, [f"faults=[{', '.join(faults)}]", *extra])
+
+
+def _injector(*faults: str):
+    return build_fault_injector(_scenario(*faults))
+
+
+# --------------------------------------------------------------------------- the scenario
+def test_faults_parse_round_trip_and_disperse():
+    sc = _scenario('{kind="bias_step", target="altimeter", value=5.0, t_s=10.0, duration_s=3.0}',
+                   '{kind="frame_drop", probability=0.5}',
+                   extra=('dispersions."faults.0.value"={dist="uniform", low=1.0, high=9.0, own_stream=true}',))
+    assert [f.kind for f in sc.faults] == ["bias_step", "frame_drop"]
+    import tomllib
+
+    assert scenario_from_dict(tomllib.loads(scenario_to_toml(sc))) == sc
+    case, drawn = apply_dispersions(sc)
+    assert 1.0 <= drawn["faults.0.value"] <= 9.0 and case.faults[0].value == drawn["faults.0.value"]
+    # own_stream: the other paths draw exactly as without the fault dispersion.
+    _, plain = apply_dispersions(sc.model_copy(update={"dispersions": {
+        k: v for k, v in sc.dispersions.items() if k != "faults.0.value"}}))
+    assert {k: v for k, v in drawn.items() if k != "faults.0.value"} == plain
+
+
+@pytest.mark.parametrize("fault, words", [
+    ('{kind="bias_step", target="altimeter", value=1.0, t_s=1.0, altitude_m=50.0}', "at most one of"),
+    ('{kind="scale", target="star_tracker", factor=2.0}', "star_tracker"),
+    ('{kind="noise", target="altimeter", factor=0.5}', "factor"),
+    ('{kind="bias_step", target="altimeter", value=nan}', "value"),
+    ('{kind="terrain_step", height_m=10.0, center_xy_m=[30.0, 0.0], radius_m=20.0}', "target"),
+    ('{kind="terrain_step", height_m=10.0, center_xy_m=[-300.0, 0.0], radius_m=20.0, t_s=3.0}', "no trigger"),
+    ('{kind="nope"}', "kind"),
+    ('{kind="dropout", target="altimeter", axes=[0, 0]}', "axes"),
+])
+def test_bad_faults_get_one_line(fault, words):
+    with pytest.raises(ScenarioError) as err:
+        _scenario(fault)
+    msg = str(err.value)
+    assert "\n" not in msg and "faults" in msg and words in msg
+
+
+# --------------------------------------------------------------------------- sensors against truth
+def _alt_stream(inj, ranges, dt_ns=50_000_000, seed=3):
+    """Raw altimeter messages and what the injector delivers, one per sample time."""
+    model = AltimeterModel(AltimeterConfig(dropout_prob=0.0), np.random.default_rng(seed))
+    raw, out = [], []
+    for k, r in enumerate(ranges):
+        t = k * dt_ns
+        inj.update(t)
+        m = model.sample(t, r)
+        raw.append(m)
+        out.append(inj.altimeter(m))
+    return raw, out
+
+
+def test_altimeter_bias_step_is_the_bias_after_the_trigger_and_not_before():
+    inj = _injector('{kind="bias_step", target="altimeter", value=7.5, t_s=1.0, duration_s=2.0}')
+    raw, out = _alt_stream(inj, np.linspace(400.0, 300.0, 80))
+    t = np.array([m.t_ns for m in raw]) / NS
+    d = np.array([o.range_m - m.range_m for m, o in zip(raw, out)])
+    inside = (t >= 1.0) & (t < 3.0)
+    assert np.all(d[inside] == pytest.approx(7.5, abs=1e-9)) and np.all(d[~inside] == 0.0)
+
+
+def test_altimeter_ramp_scale_saturation_and_flag():
+    ranges = np.full(60, 200.0)
+    for fault, expect in [
+        ('{kind="bias_ramp", target="altimeter", rate_per_s=2.0, t_s=0.5}', lambda r, t: r + 2.0 * max(t - 0.5, 0.0)),
+        ('{kind="scale", target="altimeter", factor=1.1, t_s=0.5}', lambda r, t: r * 1.1 if t >= 0.5 else r),
+        ('{kind="saturation", target="altimeter", limit=150.0, t_s=0.5}', lambda r, t: min(r, 150.0) if t >= 0.5 else r),
+    ]:
+        raw, out = _alt_stream(_injector(fault), ranges)
+        for m, o in zip(raw, out):
+            assert o.range_m == pytest.approx(expect(m.range_m, m.t_ns / NS), abs=1e-9), fault
+    raw, out = _alt_stream(_injector('{kind="flagged_invalid", target="altimeter", t_s=1.0}'), ranges)
+    for m, o in zip(raw, out):
+        assert o.range_m == m.range_m and o.valid == (m.t_ns < NS)
+
+
+def test_altimeter_dropout_and_stuck_windows():
+    raw, out = _alt_stream(_injector('{kind="dropout", target="altimeter", t_s=1.0, duration_s=1.0}'),
+                           np.linspace(300, 250, 60))
+    t = np.array([m.t_ns for m in raw]) / NS
+    gone = np.array([o is None for o in out])
+    assert np.array_equal(gone, (t >= 1.0) & (t < 2.0))
+    raw, out = _alt_stream(_injector('{kind="stuck", target="altimeter", t_s=1.0, duration_s=1.0}'),
+                           np.linspace(300, 250, 60))
+    k1 = int(np.argmax(t >= 1.0))
+    held = raw[k1 - 1].range_m  # the last message before the trigger
+    for k, (m, o) in enumerate(zip(raw, out)):
+        assert o.range_m == (held if 1.0 <= t[k] < 2.0 else m.range_m)
+
+
+def test_noise_factor_scales_the_white_noise():
+    k, n = 5.0, 4000
+    sc = _scenario(f'{{kind="noise", target="altimeter", factor={k}}}')
+    raw, out = _alt_stream(build_fault_injector(sc), np.full(n, 100.0))
+    extra = np.array([o.range_m - m.range_m for m, o in zip(raw, out)])
+    alt = sc.sensors.altimeter
+    sigma = math.hypot(alt.noise_sigma_m, alt.noise_frac * 100.0)
+    assert np.std(extra) == pytest.approx(math.sqrt(k * k - 1.0) * sigma, rel=0.05)
+    assert abs(np.mean(extra)) < 4.0 * sigma * k / math.sqrt(n)
+
+
+def _imu_stream(inj, n=100, seed=4):
+    model = ImuModel(ImuConfig(), np.random.default_rng(seed))
+    raw, out = [], []
+    for k in range(n):
+        t = k * 10_000_000
+        inj.update(t)
+        m = model.sample(t, np.array([0.1, -0.2, 3.5]), np.array([0.01, 0.0, -0.02]))
+        raw.append(m)
+        out.append(inj.imu(m))
+    return raw, out
+
+
+def test_imu_faults_act_on_their_channel_and_axes_only():
+    raw, out = _imu_stream(_injector('{kind="bias_step", target="imu.gyro", axes=[0, 2], value=0.01, t_s=0.5}'))
+    for m, o in zip(raw, out):
+        on = m.t_ns >= NS // 2
+        assert np.array_equal(o.f_B, m.f_B)
+        assert np.allclose(o.omega_B - m.omega_B, [0.01 * on, 0.0, 0.01 * on], atol=1e-15)
+    raw, out = _imu_stream(_injector('{kind="stuck", target="imu.accel", axes=[1], t_s=0.5}'))
+    k1 = 50
+    for k, (m, o) in enumerate(zip(raw, out)):
+        assert o.f_B[1] == (raw[k1 - 1].f_B[1] if k >= k1 else m.f_B[1])
+        assert o.f_B[0] == m.f_B[0] and np.array_equal(o.omega_B, m.omega_B)
+    raw, out = _imu_stream(_injector('{kind="saturation", target="imu.accel", axes=[2], limit=2.0, t_s=0.5}'))
+    assert all(o.f_B[2] == (2.0 if m.t_ns >= NS // 2 else m.f_B[2]) for m, o in zip(raw, out))
+    raw, out = _imu_stream(_injector('{kind="dropout", target="imu.gyro", t_s=0.2, duration_s=0.3}'))
+    assert [o is None for o in out] == [0.2 <= m.t_ns / NS < 0.5 for m in raw]
+    raw, out = _imu_stream(_injector('{kind="flagged_invalid", target="imu.accel", t_s=0.2}'))
+    assert all(o.valid == (m.t_ns / NS < 0.2) and np.array_equal(o.f_B, m.f_B) for m, o in zip(raw, out))
+
+
+def test_star_tracker_bias_step_rotates_by_the_bias():
+    inj = _injector('{kind="bias_step", target="star_tracker", axes=[1], value=120.0, t_s=0.5}')
+    model = StarTrackerModel(StarTrackerConfig(), np.random.default_rng(5))
+    q_true = Rotation.from_euler("xyz", [3.0, -2.0, 40.0], degrees=True).as_quat(scalar_first=True)
+    for k in range(10):
+        t = k * 100_000_000
+        inj.update(t)
+        m = model.sample(t, q_true)
+        o = inj.star_tracker(m)
+        err = (Rotation.from_quat(m.q_LB, scalar_first=True).inv()
+               * Rotation.from_quat(o.q_LB, scalar_first=True)).as_rotvec()
+        want = np.array([0.0, 120.0, 0.0]) * math.pi / (180 * 3600) if t >= NS // 2 else np.zeros(3)
+        assert np.allclose(err, want, atol=1e-12)
+
+
+# --------------------------------------------------------------------------- camera, engine, computer, triggers
+def test_camera_blackout_window_and_frame_drop_rate():
+    inj = _injector('{kind="camera_blackout", t_s=2.0, duration_s=5.0}')
+    times = np.arange(0, 100) * 100_000_000
+    got = []
+    for t in times:
+        inj.update(int(t))
+        got.append(inj.frame_delivered(int(t)))
+    assert np.array_equal(np.array(got), ~((times >= 2 * NS) & (times < 7 * NS)))
+    drops = []
+    for seed in (1, 1, 2):
+        inj = build_fault_injector(_scenario('{kind="frame_drop", probability=0.3}', extra=(f"seed={seed}",)))
+        inj.update(0)
+        drops.append(np.array([not inj.frame_delivered(int(t)) for t in np.arange(2000) * 100_000_000]))
+    assert np.array_equal(drops[0], drops[1]) and not np.array_equal(drops[0], drops[2])
+    assert drops[0].mean() == pytest.approx(0.3, abs=0.04)
+
+
+def test_engine_and_computer_faults():
+    inj = _injector('{kind="thrust_loss", fraction=0.25, torque_B_Nm=[0.0, 60.0, 0.0], t_s=1.0}',
+                    '{kind="misalignment", angle_deg=2.0, azimuth_deg=90.0, t_s=2.0}',
+                    '{kind="stuck_throttle", t_s=3.0, duration_s=1.0}',
+                    '{kind="computer_reset", t_s=5.0, down_s=2.0}')
+    seen = {}
+    for t_s in (0.5, 1.5, 2.5, 3.0, 3.5, 4.5, 5.5, 7.5):
+        t = int(t_s * NS)
+        inj.update(t)
+        seen[t_s] = (inj.thrust_gain(t), inj.fault_torque_B_Nm(t), inj.thrust_direction_B(t),
+                     inj.thrust_command(t, 1000.0 * t_s), inj.computer_down(t))
+    assert seen[0.5] == (1.0, None, None, 500.0, False)
+    assert seen[1.5][0] == 0.75 and np.array_equal(seen[1.5][1], [0.0, 60.0, 0.0]) and seen[1.5][2] is None
+    assert seen[2.5][2] == (2.0, 90.0)
+    assert seen[3.0][3] == 3000.0 and seen[3.5][3] == 3000.0 and seen[4.5][3] == 4500.0  # held, then released
+    assert [seen[s][4] for s in (4.5, 5.5, 7.5)] == [False, True, False]
+
+
+def test_altitude_and_phase_triggers_latch_once():
+    inj = _injector('{kind="dropout", target="altimeter", altitude_m=100.0, duration_s=1.0}',
+                    '{kind="camera_blackout", phase="terminal"}')
+    assert inj.needs_altitude()
+    assert inj.update(0, 150.0, "approach") == []
+    assert inj.update(NS, 99.0, "approach") == [0]
+    assert not inj.needs_altitude()
+    assert inj.update(2 * NS, 150.0, "terminal") == [1]  # climbing back does not re-trigger the first
+    assert inj.windows() == [(NS, 2 * NS), (2 * NS, None)]
+
+
+def test_terrain_step_raises_the_disc_only():
+    h = np.zeros((65, 65), np.float32)
+    sc = _scenario('{kind="terrain_step", height_m=40.0, center_xy_m=[-150.0, 100.0], radius_m=50.0}')
+    stepped = terrain_step_heights(h, 512.0, list(sc.faults))
+    c = (np.arange(65) - 32) * 8.0
+    X, Y = np.meshgrid(c, c)
+    want = np.where(np.hypot(X + 150.0, Y - 100.0) <= 50.0, 40.0, 0.0)
+    assert np.array_equal(stepped, want.astype(np.float32))
+    terrain = with_terrain_steps(make_terrain(h, 512.0), sc)
+    assert terrain.height_at(-150.0, 100.0) == pytest.approx(40.0) and terrain.height_at(0.0, 0.0) == 0.0
+
+
+# --------------------------------------------------------------------------- presets
+def test_every_preset_validates_and_names_its_faults():
+    base = load_scenario(None)
+    for name in [*PRESETS, REFERENCE.name]:
+        sc = load_scenario(None, [], name)
+        assert get_preset(name).provenance
+        assert len(sc.faults) == len(get_preset(name).layer.get("faults", []))
+        assert sc.dispersions.keys() == base.dispersions.keys()
+    # A preset is a layer under --set, and its faults are appended to the file's.
+    data = {"faults": [{"kind": "dropout", "target": "star_tracker"}]}
+    assert [f["kind"] for f in apply_preset(data, "im1")["faults"]] == ["dropout", "flagged_invalid"]
+    sc = load_scenario(None, ["sun.elevation_deg=7.0"], "sun_5deg")
+    assert sc.sun.elevation_deg == 7.0
+    with pytest.raises(ValueError, match="no such preset"):
+        get_preset("nope")
+
+
+# --------------------------------------------------------------------------- closed loop (short runs)
+SHORT = [*SMALL_SET, "sim.t_max_ns=6_000_000_000"]
+
+
+class _Collect:
+    want_depth = False
+
+    def __init__(self):
+        self.kinds: dict[str, list[int]] = {}
+
+    def message(self, kind, msg):
+        self.kinds.setdefault(kind, []).append(msg.t_ns)
+
+    def camera_truth(self, *a):
+        pass
+
+    def control_tick(self, *a):
+        pass
+
+
+def test_camera_blackout_in_the_loop_no_frame_in_the_window_and_frames_resume():
+    from bench.sim.run import run
+
+    rec = _Collect()
+    sc = load_scenario(None, [*SHORT, 'faults=[{kind="camera_blackout", t_s=2.0, duration_s=2.5}]'])
+    res = run(sc, recorder=rec)
+    t = np.array(rec.kinds["image"]) / NS
+    assert not np.any((t >= 2.0) & (t < 4.5))
+    assert np.any(t < 2.0) and np.any(t >= 4.5)
+    assert np.all(np.diff(t[t >= 4.5]) == pytest.approx(0.1))  # every frame after the window
+    f = res.summary["faults"][0]
+    assert f["detected"] and 0.0 <= f["latency_s"] <= 0.5 and f["start_t_s"] == 2.0 and f["end_t_s"] == 4.5
+
+
+def test_reset_and_thrust_loss_in_the_loop():
+    from bench.sim.run import run
+
+    rec = _Collect()
+    # The idealised engine delivers its command at once, so the delivered / commanded ratio is exactly the loss
+    # (the realistic engine's lag would blur it).
+    sc = load_scenario(None, [*SHORT, 'realism="ideal"', 'faults=[{kind="computer_reset", t_s=1.0, down_s=1.5}, '
+                                                         '{kind="thrust_loss", fraction=0.2, t_s=3.0}]'])
+    res = run(sc, recorder=rec)
+    tel = res.telemetry
+    for kind in ("imu", "attitude", "altimeter"):
+        t = np.array(rec.kinds[kind]) / NS
+        assert not np.any((t >= 1.0) & (t < 2.5)) and np.any(t >= 2.5), kind
+    down = (tel["t_s"] >= 1.0) & (tel["t_s"] < 2.5)
+    assert np.all(tel["thrust_cmd_N"][down] == 0.0) and not np.any(tel["engine_on"][down])
+    on = tel["engine_on"] & (tel["thrust_cmd_N"] > 0)
+    ratio = tel["thrust_N"][on] / np.clip(tel["thrust_cmd_N"][on], 1500.0, 7500.0)
+    late = tel["t_s"][on] >= 3.0
+    assert np.allclose(ratio[late], 0.8) and np.allclose(ratio[~late], 1.0)
+    events = [e["subsystem"] for e in res.summary["fdir_events"]]
+    assert "computer" in events and res.summary["faults"][0]["detected"]
+
+
+def test_a_fault_that_never_triggers_changes_nothing():
+    from bench.sim.run import run
+
+    a = run(load_scenario(None, SHORT)).telemetry
+    b = run(load_scenario(None, [*SHORT, 'faults=[{kind="frame_drop", probability=0.5, t_s=100.0}, '
+                                         '{kind="noise", target="altimeter", factor=3.0, t_s=100.0}]'])).telemetry
+    for k in a:
+        assert np.array_equal(a[k], b[k]) or np.array_equal(a[k], b[k], equal_nan=True), k
+
+
+def test_dead_altimeter_without_altitude_declares_a_safe_abort():
+    from bench.sim.run import run
+
+    sc = load_scenario(None, [*SMALL_SET, "initial.v_BL_L_mps=[0.0, 0.0, -2.0]", "sim.t_max_ns=30_000_000_000",
+                              'faults=[{kind="dropout", target="altimeter"}]', "fdir.abort_sigma_z_min_m=1.0",
+                              "fdir.abort_sigma_z_frac=0.001"])
+    s = run(sc).summary
+    assert s["outcome"] == "safe_abort" and s["fdir"]["abort_declared"]
+    assert s["faults"][0]["detected"] and s["touchdown"]["t_s"] is None
+
+
+# --------------------------------------------------------------------------- command line and the matrix
+def test_faults_list_and_bad_names_get_one_line(capsys, tmp_path):
+    from bench.cli import main
+
+    assert main(["faults", "list"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in out] == [*PRESETS, REFERENCE.name] and all(len(line.split()) > 3 for line in out)
+    for argv in (["faults", "--presets", "im1,nope", "--runs", "1", "--out", str(tmp_path / "m")],
+                 ["run", "--preset", "nope", "--out", str(tmp_path / "r")],
+                 ["faults", "--presets", "im1", "--out", str(tmp_path / "m")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("landbench: error:") and "\n" not in err
+    assert not any(tmp_path.iterdir())
+
+
+def test_fault_matrix_of_two_presets(tmp_path, capsys):
+    import json
+
+    import pyarrow.parquet as pq
+
+    from bench.campaign.faults import MATRIX_PARQUET, format_matrix, preset_stats
+    from bench.cli import main
+
+    out = tmp_path / "m"
+    argv = ["faults", "--presets", "camera_blackout_5s,nominal", "--runs", "1", "--workers", "2", "--out", str(out),
+            *sum((["--set", s] for s in [*SMALL_SET, "sim.t_max_ns=12_000_000_000"]), [])]
+    assert main(argv) == 0
+    doc = json.loads((out / "faults.json").read_text())
+    rows = {m["preset"]: m for m in doc["matrix"]}
+    assert rows["camera_blackout_5s"]["faults_injected"] == 1 and rows["camera_blackout_5s"]["faults_detected"] == 1
+    assert rows["nominal"]["faults_injected"] == 0 and rows["nominal"]["n_cases"] == 1
+    assert pq.read_table(out / MATRIX_PARQUET).num_rows == 2
+    assert (out / "report.png").stat().st_size > 0 and (out / "presets" / "nominal" / "report.png").exists()
+    assert format_matrix(doc) in capsys.readouterr().out
+    # The statistics from rows built here: one detected, one missed, a false alarm in a faultless case.
+    rows = [
+        {"outcome": "landed", "faults_0_kind": "dropout", "faults_0_triggered": True, "faults_0_detected": True,
+         "faults_0_latency_s": 0.4, "fdir_n_events": 1},
+        {"outcome": "hard_landing", "faults_0_kind": "dropout", "faults_0_triggered": True,
+         "faults_0_detected": False, "fdir_n_events": 1, "fdir_abort_declared": False},
+        {"outcome": "hard_landing", "faults_0_kind": "dropout", "faults_0_triggered": False,
+         "fdir_n_events": 1, "fdir_abort_declared": True},
+        {"outcome": "safe_abort", "fdir_n_events": 2, "fdir_abort_declared": True},
+    ]
+    stats = preset_stats(rows)
+    assert (stats["faults_injected"], stats["faults_detected"], stats["failed"], stats["unseen"],
+            stats["false_alarm"]) == (2, 1, 2, 1, None)
+    assert preset_stats([{"outcome": "landed", "fdir_n_events": 0}, {"outcome": "landed", "fdir_n_events": 3}],
+                        reference=True)["false_alarm"] == 1
+    assert stats["land_or_abort_rate"] == pytest.approx(2 / 4) and stats["latency_median_s"] == 0.4
+    # Resuming a finished matrix reruns nothing and gives the same matrix.
+    assert main(["faults", "--resume", str(out)]) == 0
+    assert json.loads((out / "faults.json").read_text())["matrix"][0]["outcomes"] == doc["matrix"][0]["outcomes"]

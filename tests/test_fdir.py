@@ -1,0 +1,173 @@
+"""Flight-software fault detection (gnc/fdir.py): each check on message sequences built here."""
+
+from __future__ import annotations
+
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from gnc.fdir import FdirConfig, HealthMonitor, SensorSpec, body_rate_between, restart_estimate
+from gnc.messages import AltimeterMessage, AttitudeMessage, ImuMessage
+
+NS = 1_000_000_000
+SPEC = SensorSpec(imu_period_ns=10_000_000, altimeter_period_ns=50_000_000, star_tracker_period_ns=100_000_000,
+                  camera_period_ns=100_000_000, altimeter_max_range_m=3000.0)
+DOWN = np.array([0.0, 0.0, -1.0])
+
+
+def _monitor(**cfg) -> HealthMonitor:
+    return HealthMonitor(FdirConfig(**cfg), SPEC)
+
+
+def test_body_rate_between_two_attitudes():
+    w = np.array([0.02, -0.01, 0.05])
+    q0 = Rotation.from_euler("xyz", [5, -3, 30], degrees=True)
+    q1 = q0 * Rotation.from_rotvec(w * 0.1)
+    got = body_rate_between(q0.as_quat(scalar_first=True), q1.as_quat(scalar_first=True), 0.1)
+    assert np.allclose(got, w, atol=1e-12)
+
+
+def test_restart_estimate_is_free_fall_integrated_step_by_step():
+    x = np.arange(24, dtype=float)
+    x[:6] = [10.0, -5.0, 120.0, 2.0, -1.0, -8.0]
+    P = np.eye(24) * 0.01
+    xr, Pr = restart_estimate(x, P, 3.0, 1.62)
+    r, v = x[:3].copy(), x[3:6].copy()
+    for _ in range(30000):  # explicit Euler-Cromer loop, dt = 0.1 ms
+        v_new = v + np.array([0.0, 0.0, -1.62]) * 1e-4
+        r += 0.5 * (v + v_new) * 1e-4
+        v = v_new
+    assert np.allclose(xr[:3], r, atol=1e-6) and np.allclose(xr[3:6], v, atol=1e-9)
+    assert np.array_equal(xr[6:], x[6:])
+    assert Pr[0, 0] > 0.01 + 9 * 0.01 - 1e-12 and Pr[3, 3] > 0.01  # position grows by the velocity's over 3 s
+    assert np.allclose(Pr, Pr.T)
+
+
+def test_stuck_accelerometer_is_detected_and_replaced_by_the_thrust_model():
+    m = _monitor()
+    m.start(0)
+    m.control_tick(0, 6000.0, 1.0, 2000.0, False)
+    rng = np.random.default_rng(0)
+    stuck = np.array([0.01, 0.02, 2.9])
+    ins, outs = [], []
+    for k in range(1, 12):
+        f = stuck if k >= 4 else stuck + rng.normal(0, 1e-3, 3)
+        ins.append(f)
+        outs.append(m.imu(ImuMessage(k * 10_000_000, f, rng.normal(0, 1e-4, 3))))
+    assert "imu.accel" in m.failed
+    ev = [e for e in m.events if e.subsystem == "imu"]
+    assert len(ev) == 1 and "frozen" in ev[0].reason and ev[0].t_ns == 8 * 10_000_000  # the 5th identical sample
+    assert np.allclose(outs[-1].f_B, [0.0, 0.0, 6000.0 / 2000.0])
+    assert all(np.array_equal(o.f_B, f) for o, f in zip(outs[:7], ins[:7]))  # before detection: as measured
+
+
+def test_detection_only_mode_reports_without_acting():
+    m = _monitor(recovery=False)
+    m.start(0)
+    for k in range(1, 10):
+        out = m.imu(ImuMessage(k * 10_000_000, np.array([0.0, 0.0, 3.0]), np.array([1e-4, 0, 0]) * k))
+        assert out is not None and np.array_equal(out.f_B, [0.0, 0.0, 3.0])
+    assert m.events and not m.failed and m.events[0].action == ""
+
+
+def test_loss_of_data_for_a_sensor_that_never_speaks():
+    m = _monitor()
+    m.start(0)
+    assert not m.imu_missing(20_000_000)
+    assert m.imu_missing(40_000_000)  # more than 3 periods of 10 ms
+    assert m.altitude_lost(160_000_000, 200.0)  # more than 3 periods of 50 ms
+    m.control_tick(400_000_000, 5000.0, 1.0, 2000.0, False)  # star tracker: 3 periods of 100 ms
+    subs = [e.subsystem for e in m.events]
+    assert subs == ["imu", "altimeter", "star_tracker"]
+
+
+def test_flagged_invalid_but_consistent_ranges_are_used():
+    m = _monitor()
+    used = []
+    for k in range(30):
+        t = k * 50_000_000
+        r = 300.0 - 10.0 * t / NS  # descending at 10 m/s
+        used.append(m.altimeter(AltimeterMessage(t, r, False, DOWN), 300.0, -10.0, 0.3))
+    n = m.cfg.invalid_streak
+    assert all(u is None for u in used[:n]) and all(u is not None and u.valid for u in used[n + 1:])
+    assert any("flag overridden" in e.action for e in m.events)
+    # Ranges that jump about are not used.
+    m = _monitor()
+    rng = np.random.default_rng(1)
+    out = [m.altimeter(AltimeterMessage(k * 50_000_000, 300.0 + rng.normal(0, 20.0), False, DOWN), 300.0, 0.0, 0.3)
+           for k in range(40)]
+    assert all(o is None for o in out)
+
+
+def _st_and_gyro(m: HealthMonitor, gyro_bias: float, jump_at: int | None = None, n_fix: int = 12):
+    w = np.array([0.0, 0.01, 0.0])
+    q = Rotation.identity()
+    rng = np.random.default_rng(3)  # a live sensor's noise (bit-identical samples would be 'stuck')
+    for j in range(n_fix):
+        for i in range(10):
+            t = j * 100_000_000 + i * 10_000_000
+            m.imu(ImuMessage(t + 10_000_000, np.array([0.0, 0.0, 3.0]) + rng.normal(0, 1e-3, 3),
+                             w + np.array([gyro_bias, 0.0, 0.0]) + rng.normal(0, 1e-4, 3)))
+        q = q * Rotation.from_rotvec(w * 0.1)
+        qm = q * Rotation.from_rotvec([0.0, 0.0, 600e-6]) if jump_at is not None and j >= jump_at else q
+        m.attitude(AttitudeMessage((j + 1) * 100_000_000, qm.as_quat(scalar_first=True)))
+
+
+def test_gyro_against_star_tracker_persistence_and_isolated_jumps():
+    m = _monitor()
+    _st_and_gyro(m, 0.0)
+    assert not m.events
+    m = _monitor()
+    _st_and_gyro(m, 0.02)
+    assert "imu.gyro" in m.failed and [e.subsystem for e in m.events] == ["imu"]
+    m = _monitor()
+    _st_and_gyro(m, 0.0, jump_at=5)  # a 124 arcsec step of the tracker: one interval disagrees
+    assert not m.failed and [e.subsystem for e in m.events] == ["star_tracker"]
+
+
+def test_hakuto_guard_reinitialises_on_a_consistent_rejected_altimeter():
+    m = _monitor()
+    for k in range(60):
+        t = k * 50_000_000
+        r = 450.0 - 15.0 * t / NS
+        m.altimeter(AltimeterMessage(t, r, True, DOWN), r - 150.0, -15.0, 0.5)
+        m.altimeter_record(t, False, 90000.0, r, r - 150.0, 0.25)
+        if m.terrain_reinit is not None:
+            break
+    assert m.terrain_reinit is not None and k * 0.05 == pytest.approx(m.cfg.guard_s, abs=0.051)
+    assert any("Hakuto-R" in e.reason for e in m.events) and "altimeter" not in m.failed
+
+
+def test_noisy_altimeter_is_averaged_not_dropped():
+    m = _monitor()
+    rng = np.random.default_rng(2)
+    sigma, k_noise = 0.3, 6.0
+    for k in range(60):
+        t = k * 50_000_000
+        r = 200.0 + rng.normal(0, k_noise * sigma)
+        m.altimeter(AltimeterMessage(t, r, True, DOWN), 200.0, 0.0, sigma)
+        m.altimeter_record(t, False, (r - 200.0) ** 2 / sigma**2, r, 200.0, sigma**2)
+    assert m.alt_average_n is not None and 50 <= m.alt_average_n <= 100  # about 2 k^2 = 72 (a line's endpoint)
+    assert m.alt_noise_factor == pytest.approx(k_noise, rel=0.25)
+    assert "altimeter" not in m.failed
+
+
+def test_abort_criterion():
+    m = _monitor()
+    assert m.abort_reason(0, 200.0, 10.0, True, False) is None  # altitude observed
+    assert m.abort_reason(0, 200.0, 30.0, False, False) is None  # 15 % of the height
+    assert "altitude not observed" in m.abort_reason(NS, 100.0, 30.0, False, False)
+    assert m.abort is not None and m.abort.t_ns == NS
+    m = _monitor()
+    assert m.abort_reason(0, 20.0, 1.0, True, False, sigma_vh_mps=0.5).startswith("horizontal velocity")
+    m = _monitor()
+    assert m.abort_reason(0, 8.0, 1.0, True, False, v_z_mps=-0.8, v_h_mps=0.3) is None
+    assert m.abort_reason(0, 8.0, 1.0, True, False, v_z_mps=-0.8, v_h_mps=0.6).startswith("descending at 8.0 m")
+    m = _monitor()
+    assert m.abort_reason(0, 60.0, 1.0, True, False, v_z_mps=-15.0, decel_max_mps2=2.0) is None  # stops in 56 m
+    assert "cannot stop" in m.abort_reason(0, 50.0, 1.0, True, False, v_z_mps=-15.0, decel_max_mps2=2.0)
+    m = _monitor()
+    assert m.abort_reason(0, -8.0, 1.0, True, False) == "implausible negative altitude estimate"
+    m = _monitor()
+    assert m.abort_reason(0, -8.0, 1.0, True, True) is None  # on the ground

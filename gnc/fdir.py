@@ -77,7 +77,8 @@ velocity and climbs at ``abort_climb_mps`` instead of descending blind.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -212,19 +213,19 @@ def body_rate_between(q0: np.ndarray, q1: np.ndarray, dt_s: float) -> np.ndarray
 
 @dataclass
 class _Stuck:
-    """Per-axis counter of bit-identical values in a row."""
+    """Per-axis counter of bit-identical values in a row (plain floats: it runs on every IMU sample)."""
 
-    last: np.ndarray | None = None
-    count: np.ndarray = field(default_factory=lambda: np.zeros(3, int))
+    last: list[float] | None = None
+    count: list[int] | None = None
 
-    def step(self, v: np.ndarray) -> np.ndarray:
-        v = np.atleast_1d(np.asarray(v, float))
-        if self.last is not None and self.last.shape == v.shape:
-            same = v == self.last
-            self.count = np.where(same, self.count[: v.size] + 1, 0)
+    def step(self, vals: list[float]) -> list[int]:
+        """Take one sample's values (a fresh list); returns the per-axis counts."""
+        last = self.last
+        if last is not None and len(last) == len(vals):
+            self.count = [c + 1 if a == b else 0 for a, b, c in zip(vals, last, self.count)]
         else:
-            self.count = np.zeros(v.size, int)
-        self.last = v.copy()
+            self.count = [0] * len(vals)
+        self.last = vals
         return self.count
 
 
@@ -252,7 +253,8 @@ class HealthMonitor:
         self._acc_stuck, self._gyro_stuck = _Stuck(), _Stuck()
         self._gyro_sum = np.zeros(3)
         self._gyro_n = 0
-        self._acc_win: list[tuple[int, np.ndarray, float]] = []  # (t, f_B, expected f_z) while thrusting
+        self._acc_win: deque[tuple[int, float, float, float, float]] = deque()  # (t, f_B, expected f_z), thrusting
+        self._acc_sum = [0.0, 0.0, 0.0, 0.0]  # running sums over the window: f_B (3), expected f_z
         self._thrust_expect_mps2 = 0.0  # commanded thrust / mass, along +z
         self._thrusting = False
         self._lateral_run = 0
@@ -331,19 +333,20 @@ class HealthMonitor:
         self._imu_invalid = 0
         self.last_imu_synthetic = False
         f_B, w_B = np.asarray(msg.f_B, float), np.asarray(msg.omega_B, float)
-        if np.any(self._acc_stuck.step(f_B) >= c.stuck_samples - 1):
+        if max(self._acc_stuck.step(f_B.tolist())) >= c.stuck_samples - 1:
             self._fail(t, "imu.accel", "accelerometer output frozen (bit-identical samples)",
                        "accelerometer replaced by the thrust command over the mass")
-        if np.any(self._gyro_stuck.step(w_B) >= c.stuck_samples - 1):
+        if max(self._gyro_stuck.step(w_B.tolist())) >= c.stuck_samples - 1:
             self._fail(t, "imu.gyro", "gyro output frozen (bit-identical samples)", "gyro replaced by the star tracker's rate")
         self._gyro_sum += w_B
         self._gyro_n += 1
         self.last_gyro_B = w_B
         if self._thrusting:
-            self._acc_win.append((t, f_B, self._thrust_expect_mps2))
+            fx, fy, fz = f_B.tolist()
+            self._acc_push(t, fx, fy, fz, self._thrust_expect_mps2)
             self._check_accel(t)
         else:
-            self._acc_win.clear()
+            self._acc_clear()
         if not self.cfg.recovery or not ({"imu.accel", "imu.gyro"} & self.failed):
             return msg
         if "imu.accel" in self.failed:
@@ -369,16 +372,33 @@ class HealthMonitor:
                         once_key="gap")
         return gone
 
+    def _acc_push(self, t: int, fx: float, fy: float, fz: float, expect: float) -> None:
+        self._acc_win.append((t, fx, fy, fz, expect))
+        acc = self._acc_sum
+        acc[0] += fx
+        acc[1] += fy
+        acc[2] += fz
+        acc[3] += expect
+
+    def _acc_clear(self) -> None:
+        self._acc_win.clear()
+        self._acc_sum = [0.0, 0.0, 0.0, 0.0]
+
     def _check_accel(self, t: int) -> None:
         c = self.cfg
         win_ns = c.accel_window_s * NS_PER_S
-        while self._acc_win and t - self._acc_win[0][0] > win_ns:
-            self._acc_win.pop(0)
-        if not self._acc_win or t - self._acc_win[0][0] < 0.9 * win_ns or "imu.accel" in self.failed:
+        win, acc = self._acc_win, self._acc_sum
+        while win and t - win[0][0] > win_ns:
+            _, fx, fy, fz, e = win.popleft()
+            acc[0] -= fx
+            acc[1] -= fy
+            acc[2] -= fz
+            acc[3] -= e
+        if not win or t - win[0][0] < 0.9 * win_ns or "imu.accel" in self.failed:
             return
-        f = np.array([w[1] for w in self._acc_win])
-        expect = float(np.mean([w[2] for w in self._acc_win]))
-        mean = f.mean(axis=0)
+        n = len(win)
+        expect = acc[3] / n
+        mean = (acc[0] / n, acc[1] / n, acc[2] / n)
         # A violation must hold for half a window of samples in a row (an impact's spike does not).
         persist = 0.5 * win_ns / self.spec.imu_period_ns
         lateral = math.hypot(mean[0], mean[1]) > c.accel_lateral_max_mps2
@@ -399,7 +419,7 @@ class HealthMonitor:
                                 once_key="out")
                 elif c.recovery and eff < c.thrust_efficiency_min and self.thrust_efficiency is None:
                     self.thrust_efficiency = float(eff)  # relative to the calibration in force
-                    self._acc_win.clear()  # the next estimate starts afresh, under the new calibration
+                    self._acc_clear()  # the next estimate starts afresh, under the new calibration
                     self._axial_run = 0
 
     # ------------------------------------------------------------------ star tracker
@@ -416,7 +436,7 @@ class HealthMonitor:
             return None
         self._st_invalid = 0
         q = np.asarray(msg.q_LB, float)
-        if np.all(self._st_stuck.step(q) >= c.stuck_samples - 3):  # fixes come 10x slower than IMU samples
+        if min(self._st_stuck.step(q.tolist())) >= c.stuck_samples - 3:  # fixes come 10x slower than IMU samples
             self._fail(t, STAR_TRACKER, "star-tracker attitude frozen (bit-identical fixes)", "attitude from the gyro alone")
         prev = self._st_last
         self._st_last = msg
@@ -496,7 +516,7 @@ class HealthMonitor:
         rho = float(msg.range_m)
         if not math.isfinite(rho) or rho < 0.0 or rho > self.spec.altimeter_max_range_m:
             self._fail(t, ALTIMETER, f"implausible range {rho:.1f} m", "altimeter excluded")
-        if self._alt_stuck.step(np.array([rho]))[0] >= c.stuck_samples - 3:
+        if self._alt_stuck.step([float(rho)])[0] >= c.stuck_samples - 3:
             self._fail(t, ALTIMETER, "altimeter range frozen (bit-identical samples)", "altimeter excluded")
         prev = self._alt_prev
         self._alt_prev = (t, rho)
@@ -537,13 +557,19 @@ class HealthMonitor:
         if math.isfinite(nis):
             self._alt_nis.append(nis)
             del self._alt_nis[:-c.nis_window]
-            hist = self._alt_consist_hist
-            ch = np.array(self._alt_changes)
-            # White range noise makes successive changes alternate (lag-1 correlation -1/2); a slope or a step does not.
-            alternating = ch.size >= 10 and float(np.mean(ch[1:] * ch[:-1])) < -0.25 * float(np.mean(ch * ch))
-            noisy = len(hist) >= c.nis_window // 2 and hist.count(False) / len(hist) > c.noisy_fraction and alternating
-            if len(self._alt_nis) == c.nis_window and float(np.mean(self._alt_nis)) > c.nis_mean_max \
-                    and noisy and self.alt_average_n is None:  # a consistent sensor the gate refuses: the guard's case
+            # The cheap conditions first: this runs on every altimeter update.
+            if len(self._alt_nis) == c.nis_window and self.alt_average_n is None \
+                    and sum(self._alt_nis) / c.nis_window > c.nis_mean_max:
+                hist = self._alt_consist_hist
+                ch = np.array(self._alt_changes)
+                # White range noise makes successive changes alternate (lag-1 correlation -1/2); a slope or a
+                # step does not.
+                alternating = ch.size >= 10 and float(np.mean(ch[1:] * ch[:-1])) < -0.25 * float(np.mean(ch * ch))
+                noisy = (len(hist) >= c.nis_window // 2 and hist.count(False) / len(hist) > c.noisy_fraction
+                         and alternating)
+            else:
+                noisy = False
+            if noisy:  # a consistent sensor the gate refuses: the guard's case
                 # The noise's factor over the specification, from the spread of the changes between samples.
                 k2 = float(np.mean(ch * ch)) / (2.0 * var_m2) if var_m2 > 0.0 else math.inf
                 # A line's endpoint over n samples has about 4/n of one sample's variance: n = 2 k^2 brings it

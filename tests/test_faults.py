@@ -341,6 +341,7 @@ def test_faults_list_and_bad_names_get_one_line(capsys, tmp_path):
     assert not any(tmp_path.iterdir())
 
 
+@pytest.mark.slow  # a real two-preset campaign (16 s); the fast suite keeps the matrix's bad-input checks
 def test_fault_matrix_of_two_presets(tmp_path, capsys):
     import json
 

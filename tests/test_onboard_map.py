@@ -103,8 +103,8 @@ def test_orthoimage_is_shaded_under_the_orbital_sun_and_shifted(surface):
 
 
 def test_map_stream_is_its_own():
-    # Appended last, so every existing stream keeps its index (its identity).
-    assert COMPONENTS[-1] == "map" and COMPONENTS.index("vision") == 7
+    # Appended after the streams before it (the faults' came next), so every existing stream keeps its index.
+    assert COMPONENTS.index("map") == 8 and COMPONENTS.index("vision") == 7 and COMPONENTS.index("faults") == 9
     cfg = OrbitalMapConfig(georef_sigma_m=3.0)
     shift, _ = draw_map_shift(cfg, 5)
     expect = np.random.default_rng(np.random.SeedSequence(5, spawn_key=(8,))).spawn(2)[0].normal(0.0, 1.0, 2) * 3.0

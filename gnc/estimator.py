@@ -734,7 +734,10 @@ class NavFilter:
 
     def _checked_noise_and_lag(self, t_ns: int, kind: str, z: np.ndarray,
                                R: np.ndarray) -> UpdateRecord | tuple[np.ndarray, int]:
-        """The symmetrised ``R`` and the lag to the filter time, or the record of why the update is not made."""
+        """The symmetrised ``R`` and the lag to the filter time, or the record of why the update is not made
+        (a non-finite ``z`` or ``R``, an ``R`` not positive definite, or a time too far from the filter's)."""
+        if not all_finite(z, R):
+            return self._not_applied(t_ns, kind, z, REASON_NONFINITE, "invalid")
         R = 0.5 * (R + R.T)
         try:
             np.linalg.cholesky(R)
@@ -856,8 +859,6 @@ class NavFilter:
             raise ValueError(f"update_velocity: z_v_L has shape {z.shape}; expected ({n},) [m/s]")
         if R.shape != (n, n):
             raise ValueError(f"update_velocity: R has shape {R.shape}; expected ({n}, {n}) [(m/s)^2]")
-        if not (np.all(np.isfinite(z)) and np.all(np.isfinite(R))):
-            return self._not_applied(t_ns, KIND_VELOCITY, z, REASON_NONFINITE, "invalid")
         checked = self._checked_noise_and_lag(t_ns, KIND_VELOCITY, z, R)
         if isinstance(checked, UpdateRecord):
             return checked
@@ -884,8 +885,6 @@ class NavFilter:
         R = np.asarray(R, dtype=float)
         if z.shape != (2,) or R.shape != (2, 2):
             raise ValueError(f"update_map_position: z {z.shape}, R {R.shape}; expected (2,) and (2, 2)")
-        if not (np.all(np.isfinite(z)) and np.all(np.isfinite(R))):
-            return self._not_applied(t_ns, KIND_MAP, z, REASON_NONFINITE, "invalid")
         checked = self._checked_noise_and_lag(t_ns, KIND_MAP, z, R)
         if isinstance(checked, UpdateRecord):
             return checked

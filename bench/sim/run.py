@@ -301,32 +301,19 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                 # ideal: point samples.
                 means = world.imu_mean_B() if scenario.realism == "realistic" else None
                 f_B, omega_B = means if means is not None else (world.specific_force_B(), world.angular_rate_B())
-                msg = sensors.imu.sample(t_ns, f_B, omega_B)
-                if faults is not None:
-                    msg = _delivered(faults.imu(msg), down)
-                if msg is not None:
-                    imu_msg = msg
-                    if recorder is not None:
-                        recorder.message("imu", imu_msg)
-                    fsw.on_imu(imu_msg)
+                msg = _to_flight_software(sensors.imu.sample(t_ns, f_B, omega_B),
+                                          None if faults is None else faults.imu, down, recorder, "imu", fsw.on_imu)
+                imu_msg = msg if msg is not None else imu_msg
             if t_ns % periods["star_tracker"] == 0:
-                msg = sensors.star_tracker.sample(t_ns, truth.q_LB)
-                if faults is not None:
-                    msg = _delivered(faults.star_tracker(msg), down)
-                if msg is not None:
-                    st_msg = msg
-                    if recorder is not None:
-                        recorder.message("attitude", st_msg)
-                    fsw.on_attitude(st_msg)
+                msg = _to_flight_software(sensors.star_tracker.sample(t_ns, truth.q_LB),
+                                          None if faults is None else faults.star_tracker, down, recorder, "attitude",
+                                          fsw.on_attitude)
+                st_msg = msg if msg is not None else st_msg
             if t_ns % periods["altimeter"] == 0:
-                msg = sensors.altimeter.sample(t_ns, world.altimeter_range_truth())
-                if faults is not None:
-                    msg = _delivered(faults.altimeter(msg), down)
-                if msg is not None:
-                    alt_msg = msg
-                    if recorder is not None:
-                        recorder.message("altimeter", alt_msg)
-                    fsw.on_altimeter(alt_msg)
+                msg = _to_flight_software(sensors.altimeter.sample(t_ns, world.altimeter_range_truth()),
+                                          None if faults is None else faults.altimeter, down, recorder, "altimeter",
+                                          fsw.on_altimeter)
+                alt_msg = msg if msg is not None else alt_msg
             timing["filter_s"] += time.perf_counter() - t0
             if "camera" in periods and t_ns % periods["camera"] == 0:
                 tracks = None
@@ -508,6 +495,20 @@ def _map_nav_summary(fsw: FlightSoftware, map_truth: Any, truth_log: list[tuple[
 def _delivered(msg: Any, down: bool) -> Any:
     """A message after the fault injector, or None while the flight computer is down."""
     return None if down else msg
+
+
+def _to_flight_software(msg: Any, inject: Any, down: bool, recorder: Any, kind: str, handler: Any) -> Any:
+    """One sensor message through the fault injector (``inject``; None: no faults) to the flight software.
+
+    Returns the message delivered (recorded, then handed to ``handler``), or None when none was.
+    """
+    if inject is not None:
+        msg = _delivered(inject(msg), down)
+    if msg is not None:
+        if recorder is not None:
+            recorder.message(kind, msg)
+        handler(msg)
+    return msg
 
 
 def _engine_command(faults: Any, t_ns: int, act: ActuatorCommand) -> ActuatorCommand:

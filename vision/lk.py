@@ -300,6 +300,37 @@ def forward_backward_opencv_fast(
     return fwd.reshape(-1, 2).astype(np.float64), err
 
 
+def forward_opencv_fast(
+    prev_image: np.ndarray,
+    image: np.ndarray,
+    xy: np.ndarray,
+    init_xy: np.ndarray,
+    window: int,
+    max_iter: int,
+    eps: float,
+    min_eig: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One lean OpenCV LK pass, frame k to k+1 (the tracker's hot path
+    without the forward-backward check; arguments as in
+    :func:`forward_backward_opencv_fast`).
+
+    Returns:
+        (xy_k1 (P, 2) float64 [px], ok (P,) bool: the solve converged with a
+        well-conditioned G, residual (P,) float64 [DN]: OpenCV's mean absolute
+        difference of the aligned windows).
+    """
+    kw = dict(
+        winSize=(window, window),
+        maxLevel=0,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, int(max_iter), float(eps)),
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        minEigThreshold=float(min_eig) * OPENCV_MIN_EIG_SCALE,
+    )
+    p0 = xy.astype(np.float32).reshape(-1, 1, 2)
+    fwd, st, err = cv2.calcOpticalFlowPyrLK(prev_image, image, p0, init_xy.astype(np.float32).reshape(-1, 1, 2), **kw)
+    return fwd.reshape(-1, 2).astype(np.float64), st.ravel() != 0, err.ravel().astype(np.float64)
+
+
 @dataclass(frozen=True, slots=True)
 class FBResult:
     """Outcome of :func:`forward_backward`.

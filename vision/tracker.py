@@ -567,7 +567,7 @@ class Tracker:
         )
         xy, tpl = feats.xy, which[feats.region]
         if xy.shape[0] and self._xy.shape[0] and cfg.min_track_separation_px > 0:
-            d2 = ((xy[:, None, :] - self._xy[None, :, :]) ** 2).sum(axis=2)
+            d2 = (xy[:, 0, None] - self._xy[:, 0]) ** 2 + (xy[:, 1, None] - self._xy[:, 1]) ** 2
             far = d2.min(axis=1) >= cfg.min_track_separation_px**2
             xy, tpl = xy[far], tpl[far]
         # Respect the per-template cap: features arrive strongest first per template.

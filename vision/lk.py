@@ -268,6 +268,7 @@ def forward_backward_opencv_fast(
     max_iter: int,
     eps: float,
     min_eig: float,
+    back_window: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Lean forward-backward OpenCV LK for callers that validated everything
     already (the tracker's hot path; :func:`forward_backward` is the checked
@@ -279,6 +280,7 @@ def forward_backward_opencv_fast(
         init_xy: Forward initial guesses in frame k+1, (P, 2) [px].
         back_offset: The backward solve starts at forward result + this, (P, 2) [px].
         window, max_iter, eps, min_eig: As in :func:`lucas_kanade`.
+        back_window: LK window of the backward solve [px] (None: ``window``).
 
     Returns:
         (xy_k1 (P, 2) float64 [px], fb_error (P,) float64 [px], inf where a
@@ -294,6 +296,8 @@ def forward_backward_opencv_fast(
     p0 = xy.astype(np.float32).reshape(-1, 1, 2)
     fwd, st1, _ = cv2.calcOpticalFlowPyrLK(prev_image, image, p0, init_xy.astype(np.float32).reshape(-1, 1, 2), **kw)
     bwd_init = fwd + back_offset.astype(np.float32).reshape(-1, 1, 2)
+    if back_window is not None and back_window != window:
+        kw["winSize"] = (back_window, back_window)
     bwd, st2, _ = cv2.calcOpticalFlowPyrLK(image, prev_image, fwd, bwd_init, **kw)
     err = np.sqrt(((bwd - p0) ** 2).sum(axis=2, dtype=np.float64)).ravel()
     err[(st1.ravel() == 0) | (st2.ravel() == 0)] = np.inf

@@ -189,9 +189,13 @@ class TrackerConfig(BaseModel):
     )
     fb_max_px: float = Field(0.5, gt=0.0, description="largest forward-backward round-trip error kept [px]")
     fb_check: bool = Field(
-        False, description="validate each LK result by tracking it back (forward-backward check, fb_max_px); "
+        True, description="validate each LK result by tracking it back (forward-backward check, fb_max_px); "
         "False: one LK pass, validated against its seed (max_seed_deviation_px) and its residual "
         "(max_residual_dn) [-]"
+    )
+    fb_window: int | None = Field(
+        9, ge=3, le=31,
+        description="LK window of the backward solve of the forward-backward check [px]; odd; None: lk_window",
     )
     max_seed_deviation_px: float = Field(
         0.6, gt=0.0, description="without fb_check: largest distance of an LK result from its seed [px]"
@@ -220,6 +224,8 @@ class TrackerConfig(BaseModel):
             raise ValueError(f"fp_window (W1) must be odd, got {self.fp_window}")
         if self.lk_window % 2 == 0:
             raise ValueError(f"lk_window must be odd, got {self.lk_window}")
+        if self.fb_window is not None and (self.fb_window % 2 == 0 or self.fb_window > self.lk_window):
+            raise ValueError(f"fb_window must be odd and <= lk_window ({self.lk_window}), got {self.fb_window}")
         need = max(detection_margin(self.fp_window), self.lk_window // 2 + 2)
         if self.edge_margin_px < need:
             raise ValueError(
@@ -472,7 +478,7 @@ class Tracker:
             if cfg.lk_backend == "opencv":
                 q_mos, fb_err = forward_backward_opencv_fast(
                     mos_prev, mos_cur, p_mos, guess, back, cfg.lk_window, cfg.lk_max_iter, cfg.lk_eps_px,
-                    cfg.lk_min_eig,
+                    cfg.lk_min_eig, cfg.fb_window,
                 )
             else:
                 fb = forward_backward(mos_prev, mos_cur, p_mos, guess, None, cfg.fb_max_px, backend="numpy",

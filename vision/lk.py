@@ -363,6 +363,7 @@ def forward_backward(
     max_iter: int = DEFAULT_MAX_ITER,
     eps: float = DEFAULT_EPS,
     min_eig: float = DEFAULT_MIN_EIG,
+    back_window: int | None = None,
 ) -> FBResult:
     """Forward-backward consistency check (Kalal et al.) around LK.
 
@@ -381,6 +382,7 @@ def forward_backward(
         backend: ``"numpy"`` (:func:`lucas_kanade`) or ``"opencv"``
             (:func:`lucas_kanade_opencv`).
         window, max_iter, eps, min_eig: As in :func:`lucas_kanade`.
+        back_window: LK window of the backward solve [px] (None: ``window``).
 
     Returns:
         :class:`FBResult`.
@@ -392,6 +394,8 @@ def forward_backward(
     fwd = solve(prev_image, image, xy, init_xy, **kw)
     if back_init_xy is None:
         back_init_xy = fwd.xy - (np.asarray(init_xy) - xy)
+    if back_window is not None:
+        kw["window"] = back_window
     bwd = solve(image, prev_image, fwd.xy, back_init_xy, **kw)
     err = np.linalg.norm(bwd.xy - xy, axis=1) if xy.shape[0] else np.zeros(0)
     valid = fwd.status & bwd.status

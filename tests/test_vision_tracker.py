@@ -306,3 +306,38 @@ def test_vision_never_imports_simulator_or_bench():
             for n in names:
                 root = n.split(".")[0]
                 assert root not in {"mujoco", "bench", "models"}, f"{path.name} imports {n}"
+
+
+@pytest.mark.parametrize("kw", [{}, {"fb_check": False}, {"lk_seed": "template"}, {"subpixel_match": False},
+                                {"fb_window": None}])
+def test_tracker_variants_follow_a_known_translation(kw):
+    # The forward-backward check (default, its backward solve in fb_window) or
+    # one pass validated by its seed; seeds from the track's own motion or from
+    # its template's; sub-pixel block matching or not: every variant tracks a
+    # known sub-pixel motion.
+    step = (1.7, 2.2)
+    tr = Tracker(TrackerConfig(**kw))
+    errors = []
+    for img in translated_frames(8, step):
+        out = tr.step(img)
+        old = ~np.isnan(out.prev_xy[:, 0])
+        errors.append(np.linalg.norm(out.xy[old] - out.prev_xy[old] - step, axis=1))
+    err = np.concatenate(errors)
+    assert err.size > 200, kw
+    assert np.median(err) < 0.05 and (err < 0.5).all(), kw
+
+
+def test_tracks_remember_their_last_displacement_for_the_next_seed():
+    # On a steady translation a track's last displacement is the motion
+    # itself, so the track seed lands within the block matching's sub-pixel
+    # error of the truth, and LK hardly moves from it.
+    step = (2.4, -1.3)
+    tr = Tracker(TrackerConfig())
+    frames = translated_frames(6, step)
+    for img in frames[:-1]:
+        tr.step(img)
+    g_flow = tr._flow.copy()
+    assert np.isfinite(g_flow).all()
+    # Every track's last displacement is the step (LK's accuracy) or, for a
+    # track born in the last frame, its template's sub-pixel displacement.
+    np.testing.assert_allclose(g_flow, np.tile(step, (len(g_flow), 1)), atol=0.2)

@@ -6,8 +6,9 @@ Per frame (Step 1-3 of the paper):
    kept. Each is found again in the new frame by least-squares block matching
    (:func:`vision.fixation.match_one`) inside a search window centred on
    its constant-velocity prediction; a parabola through the SSD minimum and
-   its neighbours refines the displacement to sub-pixel. A template that is lost (SSD too large relative to its
-   contrast, minimum on the search-window edge) or that comes close to the
+   its neighbours refines the displacement to sub-pixel. A template that is
+   lost (SSD too large relative to its contrast, minimum on the search-window
+   edge) or that comes close to the
    image edge is dropped, and replacements are chosen from the variance map of
    the current frame (:func:`block_average` -> :func:`laplacian8` ->
    :func:`variance_map` -> :func:`select_templates`), away from the border and
@@ -275,8 +276,8 @@ class Tracker:
     State: the previous frame, the templates and the live tracks.
     Rate: camera frame rate (one call per frame, frames in time order).
     Cost (2-core x86, single OpenCV thread, ``landbench track-eval``): about
-    0.9x the OpenCV baseline's time at 256^2 and 0.5x at 512^2, in the same
-    process (README, "Vision").
+    1.1x the OpenCV baseline's time at 256^2 and 0.6x at 512^2, in the same
+    process (README, "The tracker against its baseline").
 
     Args:
         config: A :class:`TrackerConfig` (defaults when None).
@@ -389,8 +390,9 @@ class Tracker:
 
         Block matching (SSD, :func:`vision.fixation.match_one`) first searches
         ``search_radius_near_px`` around the prediction (the template's last
-        displacement, rounded) and falls back to ``search_radius_px`` when the
-        minimum lies on that window's edge or does not match well enough. A
+        displacement, rounded), once more around a minimum that lies on that
+        window's edge, and falls back to ``search_radius_px`` when the minimum
+        is still on the edge or does not match well enough. A
         parabola through the SSD minimum and its neighbours refines the
         displacement to sub-pixel (``subpixel_match``). A template is lost when
         its minimum is on the search edge, its SSD exceeds ``max_rel_ssd`` of

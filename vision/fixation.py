@@ -425,7 +425,7 @@ def match_one(
     bx, by = x0 + mx, y0 + my
     at_edge = abs(bx - cx) == radius or abs(by - cy) == radius
     h, w = res.shape
-    mid = float(res[my, mx])
+    mid = min_val
     fx = parabola_vertex(float(res[my, mx - 1]), mid, float(res[my, mx + 1])) if 0 < mx < w - 1 else 0.0
     fy = parabola_vertex(float(res[my - 1, mx]), mid, float(res[my + 1, mx])) if 0 < my < h - 1 else 0.0
     return bx, by, max(min_val, 0.0), at_edge, fx, fy

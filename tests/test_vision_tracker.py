@@ -82,6 +82,51 @@ def test_tracks_follow_known_translation():
     assert len(prev) > 30
 
 
+def test_geometry_scales_with_frames_larger_than_the_reference():
+    cfg = TrackerConfig()
+    assert cfg.reference_side_px == 256
+    # At or below the reference: the configuration as given.
+    for side in (64, 200, 256):
+        assert cfg.for_side(side) is cfg
+    # 512: k = 2. Written out by hand from the rule in for_side's docstring.
+    big = cfg.for_side(512)
+    assert (big.template_size, big.border_px, big.fp_window) == (60, 42, 5)
+    assert big.lambda_t == pytest.approx(30.0 * 25.0 / 9.0)
+    assert big.reference_side_px is None and big.for_side(1024) is big
+    assert big.model_dump(exclude={"template_size", "border_px", "fp_window", "lambda_t", "reference_side_px"}) == \
+        cfg.model_dump(exclude={"template_size", "border_px", "fp_window", "lambda_t", "reference_side_px"})
+    # 384: k = 1.5 -> 45 px (a multiple of Sx = Sy = 5), border round(31.5) = 32, W1 = 2 round(1.5) + 1 = 5.
+    mid = cfg.for_side(384)
+    assert (mid.template_size, mid.border_px, mid.fp_window) == (45, 32, 5)
+    # Without a reference the geometry is used as given at every size.
+    fixed = TrackerConfig(reference_side_px=None)
+    assert fixed.for_side(512) is fixed
+
+
+def test_a_512_frame_is_tracked_with_the_scaled_geometry():
+    step = (2.4, -1.3)
+    frames = translated_frames(6, step, size=512, seed=3)
+    tr = Tracker()
+    tr.step(frames[0])
+    assert tr.config_for(frames[0].shape).template_size == 60
+    errors = []
+    for img in frames[1:]:
+        out = tr.step(img)
+        old = ~np.isnan(out.prev_xy[:, 0])
+        errors.append(np.linalg.norm(out.xy[old] - out.prev_xy[old] - step, axis=1))
+    # Every track lies in a 60 px template (within the drift slack).
+    tl = tr.templates
+    c = tr.track_templates
+    rel = out.xy - tl[c]
+    assert ((rel >= -15.0) & (rel <= 59.0 + 15.0)).all()
+    err = np.concatenate(errors)
+    assert err.size > 200 and np.median(err) < 0.05 and (err < 0.5).all()
+    # A new sequence of another size after reset() gets its own geometry.
+    tr.reset()
+    tr.step(translated_frames(1, step, size=256)[0])
+    assert tr.config_for((256, 256)).template_size == 30
+
+
 def test_large_motion_converges_through_block_matching():
     step = (9.6, 7.3)  # beyond a 9 px LK window: only the block-matching seed helps
     frames = translated_frames(5, step, size=200)

@@ -50,6 +50,7 @@ float32 frames are rounded to uint8 after scaling.
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import cv2
@@ -229,6 +230,12 @@ class TrackerConfig(BaseModel):
     float_full_scale: float = Field(
         255.0, gt=0.0, description="value of full white in float32 input frames (1.0 for [0, 1] images) [DN]"
     )
+    reference_side_px: int | None = Field(
+        256, ge=16,
+        description="the sub-image geometry (template_size, border_px, fp_window, lambda_t) is given for frames "
+        "of this shorter side; larger frames scale it up by side / reference_side_px (see TrackerConfig.for_side), "
+        "smaller ones use it as given; None: used as given at every size [px]",
+    )
 
     @model_validator(mode="after")
     def _check_consistency(self) -> TrackerConfig:
@@ -266,6 +273,32 @@ class TrackerConfig(BaseModel):
     def target_tracks(self) -> int:
         """Number of tracks the tracker aims for (N x points per template)."""
         return self.n_templates * self.max_features_per_template
+
+    def for_side(self, side_px: int) -> TrackerConfig:
+        """The configuration a frame of shorter side ``side_px`` is tracked with.
+
+        With ``reference_side_px`` set and a larger frame, the sub-images keep
+        their share of the frame and their points their share of a sub-image:
+        for k = side_px / reference_side_px > 1, ``template_size`` becomes k x template_size rounded
+        to a multiple of Sx and Sy, ``border_px`` round(k x border_px) (at
+        least the LK tile margin), ``fp_window`` (W1) the odd size nearest
+        k x W1, and ``lambda_t`` scales with W1's area (G sums over W1^2
+        pixels). For frames no larger than the reference, or with
+        ``reference_side_px`` None, it is this configuration (smaller
+        sub-images would not hold the detection and LK windows). The result has ``reference_side_px`` None and is
+        validated as any other.
+        """
+        if self.reference_side_px is None or side_px <= self.reference_side_px:
+            return self
+        k = side_px / self.reference_side_px
+        block = math.lcm(self.subsample_x, self.subsample_y)
+        size = max(block, block * round(k * self.template_size / block))
+        w1 = 2 * max(round(k * (self.fp_window - 1) / 2), 0) + 1
+        border = max(round(k * self.border_px), self.edge_margin_px, lk_tile_margin(size, self.lk_window))
+        return TrackerConfig.model_validate({
+            **self.model_dump(), "template_size": size, "border_px": border, "fp_window": w1,
+            "lambda_t": self.lambda_t * (w1 / self.fp_window) ** 2, "reference_side_px": None,
+        })
 
 
 class Tracker:
@@ -318,6 +351,15 @@ class Tracker:
         self._flow = np.zeros((0, 2), np.float64)  # last displacement of each track (new: its template's) [px]
         self._tpl_of = np.zeros(0, np.int64)  # index of each track's template
         self._next_id = 0
+        self._cfg: TrackerConfig | None = None  # the configuration for this sequence's frame size
+
+    def config_for(self, shape: tuple[int, ...]) -> TrackerConfig:
+        """The configuration frames of ``shape`` (H, W) are tracked with:
+        :meth:`TrackerConfig.for_side` of the shorter side (fixed by the first
+        frame until :meth:`reset`)."""
+        if self._cfg is None or self._prev is None:
+            self._cfg = self.config.for_side(int(min(shape[:2])))
+        return self._cfg
 
     @property
     def templates(self) -> np.ndarray:
@@ -359,7 +401,7 @@ class Tracker:
                 image, or a change of image shape without :meth:`reset`.
         """
         img = self._prepare(image)
-        cfg = self.config
+        cfg = self.config_for(img.shape)
         # OpenCV's float32 matchTemplate has a smaller fixed cost per call than its
         # 8-bit one on windows this small; convert each frame once and keep it.
         img_f32 = img.astype(np.float32)
@@ -413,7 +455,7 @@ class Tracker:
         Per-template work is one plain Python loop over the templates;
         per-point work a handful of vectorised NumPy operations (the hot path).
         """
-        cfg = self.config
+        cfg = self._cfg
         size = cfg.template_size
         height, width = img.shape
         e = cfg.edge_margin_px
@@ -530,7 +572,7 @@ class Tracker:
     def fixation_areas(self, img: np.ndarray, n: int) -> FixationAreas:
         """§2 on ``img`` with this tracker's parameters: ``n`` new templates
         away from the ones in use (also used for the paper's figures)."""
-        cfg = self.config
+        cfg = self.config_for(img.shape)
         return fixation_areas(
             img,
             n,
@@ -546,7 +588,7 @@ class Tracker:
     def _add_templates(self, img: np.ndarray) -> None:
         """Select replacement templates on the current frame (§2.3) and detect
         features in them."""
-        cfg = self.config
+        cfg = self._cfg
         size = cfg.template_size
         height, width = img.shape
         if height < size + 2 * cfg.border_px or width < size + 2 * cfg.border_px:
@@ -579,7 +621,7 @@ class Tracker:
 
     def _detect(self, img: np.ndarray, which: np.ndarray) -> None:
         """Top up the templates ``which`` with feature points (§3)."""
-        cfg = self.config
+        cfg = self._cfg
         counts = np.bincount(self._tpl_of, minlength=self._tpl_xy.shape[0])
         which = which[counts[which] < cfg.max_features_per_template]
         if which.size == 0:

@@ -399,7 +399,7 @@ def compare(
 ) -> dict[str, dict[str, float]]:
     """Run several trackers on the same frames in one process, interleaved.
 
-    Each tracker is warmed up once (two untimed frames on a throw-away
+    Each tracker is warmed up once (untimed, ``WARMUP_FRAMES`` frames on a throw-away
     instance). Then, ``repeats`` times, fresh instances process the sequence
     frame by frame, the trackers taking turns on each frame (order rotating),
     and only the ``step`` calls are timed with ``time.perf_counter``. Accuracy
@@ -447,13 +447,23 @@ def _compare(
     return {name: {**track_metrics(outputs[name], depths, K, poses), **timing[name]} for name in factories}
 
 
+WARMUP_FRAMES = 30
+"""Untimed frames each tracker runs before the timed repeats. Two were too few:
+in a fresh process the baseline's first pass over the sequence ran up to 20 %
+slower than its later ones (its pyramids' buffers are large enough for glibc to
+map and unmap them per call until its dynamic mmap threshold has risen; with the
+threshold fixed through ``MALLOC_MMAP_THRESHOLD_`` the first pass was as fast),
+while ``track-eval``, whose process had rendered the frames first, did not show
+it. Steady state is what a flight computer runs in."""
+
+
 def run_interleaved(
     factories: Mapping[str, Callable[[], Stepper]], frames: Sequence[np.ndarray], repeats: int
 ) -> tuple[dict[str, list[Tracks]], dict[str, dict[str, float]]]:
     """The timed part of :func:`compare`, shared with other truth sources.
 
-    Each tracker is warmed up once (two untimed frames on a throw-away
-    instance); then, ``repeats`` times, fresh instances process the sequence
+    Each tracker is warmed up once, untimed, on a throw-away instance over
+    the first ``WARMUP_FRAMES`` frames; then, ``repeats`` times, fresh instances process the sequence
     frame by frame, the trackers taking turns on each frame (order rotating),
     and only the ``step`` calls are timed. OpenCV's thread count is the
     caller's business (:func:`compare` sets it).
@@ -466,7 +476,7 @@ def run_interleaved(
     names = list(factories)
     for name in names:
         warm = factories[name]()
-        for img in frames[:2]:
+        for img in frames[:WARMUP_FRAMES]:
             warm.step(img)
     times: dict[str, list[float]] = {n: [] for n in names}
     outputs: dict[str, list[Tracks]] = {n: [] for n in names}

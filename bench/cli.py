@@ -94,14 +94,26 @@ def _int_list(text: str, flag: str) -> tuple[int, ...]:
 
 
 def cmd_track_eval(args: argparse.Namespace) -> int:
-    from bench.evaluation.track_eval import format_track_eval, run_track_eval
+    from bench.evaluation.track_eval import REPORT_KEYS, format_track_eval, run_track_eval
 
-    if args.frames < 3:
-        raise ValueError(f"--frames {args.frames}: need at least 3 frames")
+    frames = args.frames if args.frames is not None else (150 if args.imagery == "descent" else 48)
+    if frames < 3:
+        raise ValueError(f"--frames {frames}: need at least 3 frames")
     if args.repeats < 1:
         raise ValueError(f"--repeats {args.repeats}: must be >= 1")
     scenario = load_scenario(args.scenario, args.overrides)
-    report = run_track_eval(scenario, args.size or [256, 512], args.frames, args.repeats)
+    if args.imagery == "textures":
+        from bench.evaluation.textures_eval import format_textures_eval, load_texture, run_textures_eval
+
+        load_texture("gravel")  # a clear one-line error before any work when scikit-image is missing
+        reports = [run_textures_eval(size, frames, args.repeats, tracker_config=scenario.tracker)
+                   for size in (args.size or [256])]
+        if args.json:
+            print(json.dumps(reports[0] if len(reports) == 1 else reports, indent=2))
+        else:
+            print("\n\n".join(format_textures_eval(r, REPORT_KEYS) for r in reports))
+        return 0
+    report = run_track_eval(scenario, args.size or [256, 512], frames, args.repeats, tracker_config=scenario.tracker)
     print(json.dumps(report, indent=2) if args.json else format_track_eval(report))
     return 0
 
@@ -472,11 +484,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output PNG")
     p.set_defaults(func=cmd_world)
 
-    p = sub.add_parser("track-eval", help="score the vision tracker against truth and OpenCV on a rendered descent")
+    p = sub.add_parser("track-eval", help="score the vision tracker against truth and OpenCV on a rendered descent "
+                       "or on natural textures warped by a descent")
     _add_scenario_args(p)
+    p.add_argument("--imagery", choices=("descent", "textures"), default="descent",
+                   help="descent: frames rendered from the simulated world (default); textures: scikit-image's "
+                   "gravel, grass and brick photographs warped by known descent-like homographies (needs "
+                   "scikit-image: pip install 'landbench[textures]')")
     p.add_argument("--size", type=int, action="append", choices=(256, 512),
-                   help="image size [px] (repeatable; default both 256 and 512)")
-    p.add_argument("--frames", type=int, default=150, help="frames from the start altitude down to 30 m")
+                   help="image size [px] (repeatable; default both 256 and 512 for descent, 256 for textures)")
+    p.add_argument("--frames", type=int, default=None,
+                   help="frames: from the start altitude down to 30 m (descent, default 150), or per texture "
+                   "(textures, default 48: 2 %% zoom per frame)")
     p.add_argument("--repeats", type=int, default=3, help="timed passes over the frames")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_track_eval)

@@ -489,3 +489,63 @@ def test_lk_rejects_bad_arguments():
         lucas_kanade(a, a[:10], np.zeros((1, 2)))
     # A flat window is an aperture problem: status False, no crash.
     assert not lucas_kanade(a, a, np.array([[10.0, 10.0]])).status[0]
+
+
+@pytest.mark.parametrize("shift", [(2.3, -1.6), (-0.3, 0.35), (1.25, -0.2)])
+def test_match_one_refines_a_subpixel_shift(shift):
+    # An exact sub-pixel translation (Fourier shift of a periodic band-limited
+    # texture): the integer minimum is the rounded shift, and the parabola
+    # through the SSD minimum and its neighbours recovers the fraction.
+    from vision.fixation import match_one
+
+    a = smooth_periodic_texture(128, 2.5, seed=6).astype(np.float32)
+    b = fourier_shift(a, *shift).astype(np.float32)
+    errs, int_errs = [], []
+    for x, y in ((30, 40), (70, 60), (50, 80)):
+        bx, by, ssd, at_edge, fx, fy = match_one(b, a[y : y + 30, x : x + 30], x, y, 4, 128 - 30, 128 - 30)
+        assert (bx - x, by - y) == tuple(np.rint(shift).astype(int)) and not at_edge
+        # The same SSD minimum as an explicit loop over the placements.
+        tpl = a[y : y + 30, x : x + 30].astype(np.float64)
+        ssd_loop = min(((b[y + dy : y + dy + 30, x + dx : x + dx + 30] - tpl) ** 2).sum()
+                       for dy in range(-4, 5) for dx in range(-4, 5))
+        assert ssd == pytest.approx(ssd_loop, rel=1e-4)
+        errs.append(np.abs(np.array([bx - x + fx, by - y + fy]) - shift))
+        int_errs.append(np.abs(np.array([bx - x, by - y]) - shift))
+    assert np.max(errs) < 0.15, errs
+    assert np.mean(errs) < 0.5 * np.mean(int_errs)  # much better than the integer shift
+
+
+def test_parabola_vertex_is_the_vertex_of_the_fitted_parabola():
+    from vision.fixation import parabola_vertex
+
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        a, v, c = rng.uniform(0.1, 5.0), rng.uniform(-0.5, 0.5), rng.uniform(-3, 3)
+        lo, mid, hi = (a * (t - v) ** 2 + c for t in (-1.0, 0.0, 1.0))
+        coef = np.polyfit([-1.0, 0.0, 1.0], [lo, mid, hi], 2)  # independent: least-squares fit
+        assert parabola_vertex(lo, mid, hi) == pytest.approx(-coef[1] / (2 * coef[0]), abs=1e-9)
+    assert parabola_vertex(1.0, 1.0, 1.0) == 0.0  # flat: no vertex
+    assert parabola_vertex(0.0, 1.0, 0.0) == 0.0  # a maximum, not a minimum
+    assert parabola_vertex(10.0, 1.0, 0.0) == 0.5  # vertex at 0.56: clamped to half a pixel
+
+
+@pytest.mark.parametrize("backend", ["numpy", "opencv"])
+def test_forward_backward_back_window_is_a_second_solve_in_that_window(backend):
+    # The backward solve of the check runs in its own (smaller) window: the
+    # same as tracking forward in one window and back in the other by hand.
+    from vision import lucas_kanade, lucas_kanade_opencv
+
+    a = smooth_periodic_texture(96, 2.0, seed=9)
+    b = fourier_shift(a, 0.7, -0.4)
+    if backend == "opencv":
+        a, b = (np.clip(np.rint(x), 0, 255).astype(np.uint8) for x in (a, b))
+    solve = lucas_kanade if backend == "numpy" else lucas_kanade_opencv
+    xy = np.random.default_rng(4).uniform(25, 70, (30, 2))
+    init = xy + np.array([0.5, -0.5])
+    fb = forward_backward(a, b, xy, init, None, 0.5, backend=backend, window=13, back_window=9)
+    fwd = solve(a, b, xy, init, window=13)
+    bwd = solve(b, a, fwd.xy, fwd.xy - (init - xy), window=9)
+    np.testing.assert_allclose(fb.xy, fwd.xy)
+    np.testing.assert_allclose(fb.fb_error, np.linalg.norm(bwd.xy - xy, axis=1))
+    same = forward_backward(a, b, xy, init, None, 0.5, backend=backend, window=13)
+    assert not np.allclose(same.fb_error, fb.fb_error)  # the window did change the backward solve

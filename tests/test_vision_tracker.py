@@ -82,6 +82,51 @@ def test_tracks_follow_known_translation():
     assert len(prev) > 30
 
 
+def test_geometry_scales_with_frames_larger_than_the_reference():
+    cfg = TrackerConfig()
+    assert cfg.reference_side_px == 256
+    # At or below the reference: the configuration as given.
+    for side in (64, 200, 256):
+        assert cfg.for_side(side) is cfg
+    # 512: k = 2. Written out by hand from the rule in for_side's docstring.
+    big = cfg.for_side(512)
+    assert (big.template_size, big.border_px, big.fp_window) == (60, 42, 5)
+    assert big.lambda_t == pytest.approx(30.0 * 25.0 / 9.0)
+    assert big.reference_side_px is None and big.for_side(1024) is big
+    assert big.model_dump(exclude={"template_size", "border_px", "fp_window", "lambda_t", "reference_side_px"}) == \
+        cfg.model_dump(exclude={"template_size", "border_px", "fp_window", "lambda_t", "reference_side_px"})
+    # 384: k = 1.5 -> 45 px (a multiple of Sx = Sy = 5), border round(31.5) = 32, W1 = 2 round(1.5) + 1 = 5.
+    mid = cfg.for_side(384)
+    assert (mid.template_size, mid.border_px, mid.fp_window) == (45, 32, 5)
+    # Without a reference the geometry is used as given at every size.
+    fixed = TrackerConfig(reference_side_px=None)
+    assert fixed.for_side(512) is fixed
+
+
+def test_a_512_frame_is_tracked_with_the_scaled_geometry():
+    step = (2.4, -1.3)
+    frames = translated_frames(6, step, size=512, seed=3)
+    tr = Tracker()
+    tr.step(frames[0])
+    assert tr.config_for(frames[0].shape).template_size == 60
+    errors = []
+    for img in frames[1:]:
+        out = tr.step(img)
+        old = ~np.isnan(out.prev_xy[:, 0])
+        errors.append(np.linalg.norm(out.xy[old] - out.prev_xy[old] - step, axis=1))
+    # Every track lies in a 60 px template (within the drift slack).
+    tl = tr.templates
+    c = tr.track_templates
+    rel = out.xy - tl[c]
+    assert ((rel >= -15.0) & (rel <= 59.0 + 15.0)).all()
+    err = np.concatenate(errors)
+    assert err.size > 200 and np.median(err) < 0.05 and (err < 0.5).all()
+    # A new sequence of another size after reset() gets its own geometry.
+    tr.reset()
+    tr.step(translated_frames(1, step, size=256)[0])
+    assert tr.config_for((256, 256)).template_size == 30
+
+
 def test_large_motion_converges_through_block_matching():
     step = (9.6, 7.3)  # beyond a 9 px LK window: only the block-matching seed helps
     frames = translated_frames(5, step, size=200)
@@ -245,13 +290,18 @@ def test_config_validation():
         assert field.description and "[" in field.description, f"{name} lacks a description with units"
 
 
+# The former default geometry (20 px templates, 9 px LK window), which the
+# configuration-message tests below were written for.
+GEOMETRY_20 = {"template_size": 20, "lk_window": 9, "edge_margin_px": 6, "border_px": 16}
+
+
 def test_config_refuses_template_size_not_a_multiple_of_block_size():
     # The variance window of eq. (2.2) is template_size / S blocks: refused at
     # configuration time with a one-line message naming field, value and rule.
     for kw, size in (({"template_size": 22}, 22), ({"subsample_x": 3}, 20), ({"subsample_y": 8}, 20)):
         msg = rf"template_size \({size}\) must be a multiple of subsample_x"
         with pytest.raises(ValidationError, match=msg) as exc:
-            TrackerConfig(**kw)
+            TrackerConfig(**{**GEOMETRY_20, **kw})
         assert len(exc.value.errors()) == 1 and "\n" not in exc.value.errors()[0]["msg"]
     TrackerConfig(template_size=24, subsample_x=4, subsample_y=6)
 
@@ -263,19 +313,20 @@ def test_config_refuses_a_border_too_small_for_the_lk_tiles():
     # accepted and Tracker.step then failed an internal assert on 64 x 64
     # frames (a 40 px template 10 px from the edges, a 72 px tile).
     with pytest.raises(ValidationError, match=r"border_px \(6\) must be >= 16 .*template_size=40, lk_window=9") as exc:
-        TrackerConfig(template_size=40, border_px=6)
+        TrackerConfig(**{**GEOMETRY_20, "template_size": 40, "border_px": 6})
     assert len(exc.value.errors()) == 1 and "\n" not in exc.value.errors()[0]["msg"]
     with pytest.raises(ValidationError, match=r"border_px \(13\) must be >= 14 .*lk_window=15"):
-        TrackerConfig(lk_window=15, edge_margin_px=9, border_px=13)
+        TrackerConfig(**{**GEOMETRY_20, "lk_window": 15, "edge_margin_px": 9, "border_px": 13})
     # At the smallest allowed border, frames just large enough to hold a
     # template track without error.
     smallest_borders = (
         {"template_size": 40, "border_px": 16},
         {"border_px": 11},
         {"lk_window": 15, "edge_margin_px": 9, "border_px": 14},
+        {"template_size": 30, "lk_window": 13, "edge_margin_px": 8, "border_px": 16},  # the default geometry
     )
     for kw in smallest_borders:
-        cfg = TrackerConfig(**kw)
+        cfg = TrackerConfig(**{**GEOMETRY_20, **kw})
         smallest = cfg.template_size + 2 * cfg.border_px
         held = 0
         for size in range(smallest, smallest + 8):
@@ -300,3 +351,38 @@ def test_vision_never_imports_simulator_or_bench():
             for n in names:
                 root = n.split(".")[0]
                 assert root not in {"mujoco", "bench", "models"}, f"{path.name} imports {n}"
+
+
+@pytest.mark.parametrize("kw", [{}, {"fb_check": False}, {"lk_seed": "template"}, {"subpixel_match": False},
+                                {"fb_window": None}])
+def test_tracker_variants_follow_a_known_translation(kw):
+    # The forward-backward check (default, its backward solve in fb_window) or
+    # one pass validated by its seed; seeds from the track's own motion or from
+    # its template's; sub-pixel block matching or not: every variant tracks a
+    # known sub-pixel motion.
+    step = (1.7, 2.2)
+    tr = Tracker(TrackerConfig(**kw))
+    errors = []
+    for img in translated_frames(8, step):
+        out = tr.step(img)
+        old = ~np.isnan(out.prev_xy[:, 0])
+        errors.append(np.linalg.norm(out.xy[old] - out.prev_xy[old] - step, axis=1))
+    err = np.concatenate(errors)
+    assert err.size > 200, kw
+    assert np.median(err) < 0.05 and (err < 0.5).all(), kw
+
+
+def test_tracks_remember_their_last_displacement_for_the_next_seed():
+    # On a steady translation a track's last displacement is the motion
+    # itself, so the track seed lands within the block matching's sub-pixel
+    # error of the truth, and LK hardly moves from it.
+    step = (2.4, -1.3)
+    tr = Tracker(TrackerConfig())
+    frames = translated_frames(6, step)
+    for img in frames[:-1]:
+        tr.step(img)
+    g_flow = tr._flow.copy()
+    assert np.isfinite(g_flow).all()
+    # Every track's last displacement is the step (LK's accuracy) or, for a
+    # track born in the last frame, its template's sub-pixel displacement.
+    np.testing.assert_allclose(g_flow, np.tile(step, (len(g_flow), 1)), atol=0.2)

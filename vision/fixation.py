@@ -197,8 +197,10 @@ def select_templates(
         score[r0:r1, c0:c1][d2 < min_sep2] = -np.inf
 
     if occupied_xy is not None and len(occupied_xy):
-        for x, y in np.asarray(occupied_xy, dtype=np.float64).reshape(-1, 2).tolist():
-            rule_out_near(x, y)
+        # All occupied centres at once (|d| < separation implies the box of rule_out_near).
+        occ = np.asarray(occupied_xy, dtype=np.float64).reshape(-1, 2)
+        d2 = (cy[None, :, None] - occ[:, 1, None, None]) ** 2 + (cx[None, None, :] - occ[:, 0, None, None]) ** 2
+        score[d2.min(axis=0) < min_sep2] = -np.inf
     chosen: list[tuple[int, int]] = []
     # Greedy in decreasing variance (np.argmax: first in raster order on ties):
     # take the best free candidate, then rule out every candidate within the
@@ -392,3 +394,49 @@ def _match_core(
         rel_ssd=np.array(rel, dtype=np.float64),
         at_edge=np.array(edge, dtype=bool),
     )
+
+
+def match_one(
+    image: np.ndarray, tpl: np.ndarray, cx: int, cy: int, radius: int, xmax: int, ymax: int
+) -> tuple[int, int, float, bool, float, float]:
+    """SSD block matching of one template (§2.4), plain Python scalars in and out
+    (the tracker's hot path: no argument checks).
+
+    Args:
+        image: Frame k+1, (H, W), the dtype of ``tpl`` (uint8 or float32).
+        tpl: Template cut from frame k, (Wy, Wx).
+        cx, cy: Predicted top-left corner in frame k+1 [px].
+        radius: Search half-width [px].
+        xmax, ymax: Largest top-left corner inside the frame, W - Wx and H - Wy [px].
+
+    Returns:
+        (bx, by, ssd, at_edge, fx, fy): best top-left corner [px], its SSD
+        [DN^2], whether it lies on a search limit that the image did not
+        impose, and the sub-pixel offsets of the SSD minimum along x and y
+        [px]: the vertex of the parabola through the minimum and its two
+        neighbours on each axis (:func:`parabola_vertex`), 0 where the
+        minimum lies on the border of the SSD map.
+    """
+    wy, wx = tpl.shape
+    x0, x1 = min(max(cx - radius, 0), xmax), min(max(cx + radius, 0), xmax)
+    y0, y1 = min(max(cy - radius, 0), ymax), min(max(cy + radius, 0), ymax)
+    res = cv2.matchTemplate(image[y0 : y1 + wy, x0 : x1 + wx], tpl, cv2.TM_SQDIFF)
+    min_val, _, (mx, my), _ = cv2.minMaxLoc(res)
+    bx, by = x0 + mx, y0 + my
+    at_edge = abs(bx - cx) == radius or abs(by - cy) == radius
+    h, w = res.shape
+    mid = min_val
+    fx = parabola_vertex(float(res[my, mx - 1]), mid, float(res[my, mx + 1])) if 0 < mx < w - 1 else 0.0
+    fy = parabola_vertex(float(res[my - 1, mx]), mid, float(res[my + 1, mx])) if 0 < my < h - 1 else 0.0
+    return bx, by, max(min_val, 0.0), at_edge, fx, fy
+
+
+def parabola_vertex(lo: float, mid: float, hi: float) -> float:
+    """Offset [px] of the vertex of the parabola through (-1, lo), (0, mid),
+    (1, hi), clamped to +-0.5; 0 where the three values do not curve upwards.
+
+    Sub-pixel refinement of an SSD minimum (``mid`` the smallest of the three)."""
+    curv = lo - 2.0 * mid + hi
+    if curv <= 0.0:
+        return 0.0
+    return min(max(0.5 * (lo - hi) / curv, -0.5), 0.5)

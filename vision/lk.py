@@ -268,6 +268,7 @@ def forward_backward_opencv_fast(
     max_iter: int,
     eps: float,
     min_eig: float,
+    back_window: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Lean forward-backward OpenCV LK for callers that validated everything
     already (the tracker's hot path; :func:`forward_backward` is the checked
@@ -279,6 +280,7 @@ def forward_backward_opencv_fast(
         init_xy: Forward initial guesses in frame k+1, (P, 2) [px].
         back_offset: The backward solve starts at forward result + this, (P, 2) [px].
         window, max_iter, eps, min_eig: As in :func:`lucas_kanade`.
+        back_window: LK window of the backward solve [px] (None: ``window``).
 
     Returns:
         (xy_k1 (P, 2) float64 [px], fb_error (P,) float64 [px], inf where a
@@ -294,10 +296,43 @@ def forward_backward_opencv_fast(
     p0 = xy.astype(np.float32).reshape(-1, 1, 2)
     fwd, st1, _ = cv2.calcOpticalFlowPyrLK(prev_image, image, p0, init_xy.astype(np.float32).reshape(-1, 1, 2), **kw)
     bwd_init = fwd + back_offset.astype(np.float32).reshape(-1, 1, 2)
+    if back_window is not None and back_window != window:
+        kw["winSize"] = (back_window, back_window)
     bwd, st2, _ = cv2.calcOpticalFlowPyrLK(image, prev_image, fwd, bwd_init, **kw)
     err = np.sqrt(((bwd - p0) ** 2).sum(axis=2, dtype=np.float64)).ravel()
     err[(st1.ravel() == 0) | (st2.ravel() == 0)] = np.inf
     return fwd.reshape(-1, 2).astype(np.float64), err
+
+
+def forward_opencv_fast(
+    prev_image: np.ndarray,
+    image: np.ndarray,
+    xy: np.ndarray,
+    init_xy: np.ndarray,
+    window: int,
+    max_iter: int,
+    eps: float,
+    min_eig: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One lean OpenCV LK pass, frame k to k+1 (the tracker's hot path
+    without the forward-backward check; arguments as in
+    :func:`forward_backward_opencv_fast`).
+
+    Returns:
+        (xy_k1 (P, 2) float64 [px], ok (P,) bool: the solve converged with a
+        well-conditioned G, residual (P,) float64 [DN]: OpenCV's mean absolute
+        difference of the aligned windows).
+    """
+    kw = dict(
+        winSize=(window, window),
+        maxLevel=0,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, int(max_iter), float(eps)),
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        minEigThreshold=float(min_eig) * OPENCV_MIN_EIG_SCALE,
+    )
+    p0 = xy.astype(np.float32).reshape(-1, 1, 2)
+    fwd, st, err = cv2.calcOpticalFlowPyrLK(prev_image, image, p0, init_xy.astype(np.float32).reshape(-1, 1, 2), **kw)
+    return fwd.reshape(-1, 2).astype(np.float64), st.ravel() != 0, err.ravel().astype(np.float64)
 
 
 @dataclass(frozen=True, slots=True)
@@ -328,6 +363,7 @@ def forward_backward(
     max_iter: int = DEFAULT_MAX_ITER,
     eps: float = DEFAULT_EPS,
     min_eig: float = DEFAULT_MIN_EIG,
+    back_window: int | None = None,
 ) -> FBResult:
     """Forward-backward consistency check (Kalal et al.) around LK.
 
@@ -346,6 +382,7 @@ def forward_backward(
         backend: ``"numpy"`` (:func:`lucas_kanade`) or ``"opencv"``
             (:func:`lucas_kanade_opencv`).
         window, max_iter, eps, min_eig: As in :func:`lucas_kanade`.
+        back_window: LK window of the backward solve [px] (None: ``window``).
 
     Returns:
         :class:`FBResult`.
@@ -357,6 +394,8 @@ def forward_backward(
     fwd = solve(prev_image, image, xy, init_xy, **kw)
     if back_init_xy is None:
         back_init_xy = fwd.xy - (np.asarray(init_xy) - xy)
+    if back_window is not None:
+        kw["window"] = back_window
     bwd = solve(image, prev_image, fwd.xy, back_init_xy, **kw)
     err = np.linalg.norm(bwd.xy - xy, axis=1) if xy.shape[0] else np.zeros(0)
     valid = fwd.status & bwd.status

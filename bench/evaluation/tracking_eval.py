@@ -329,8 +329,26 @@ def track_metrics(
         ``within_1px_frac`` and ``mean_lifetime_frames`` (frames each track id
         was reported, tracks still alive at the end included).
     """
-    errs = [pair_endpoint_errors(tracks[k], tracks[k + 1], depths[k], depths[k + 1], K, poses[k], poses[k + 1])
-            for k in range(len(tracks) - 1)]
+    return sequence_metrics(
+        tracks,
+        lambda k, a, b: pair_endpoint_errors(a, b, depths[k], depths[k + 1], K, poses[k], poses[k + 1]),
+    )
+
+
+def sequence_metrics(
+    tracks: Sequence[Tracks], pair_errors: Callable[[int, Tracks, Tracks], np.ndarray]
+) -> dict[str, float]:
+    """:func:`track_metrics` for any source of truth.
+
+    Args:
+        tracks: One tracker's output per frame.
+        pair_errors: ``(k, tracks_k, tracks_k1) -> endpoint errors [px]`` of the
+            tracks present in frames k and k+1 that have valid truth.
+
+    Returns:
+        The keys of :func:`track_metrics`.
+    """
+    errs = [pair_errors(k, tracks[k], tracks[k + 1]) for k in range(len(tracks) - 1)]
     err = np.concatenate(errs) if errs else np.zeros(0)
     counts = np.array([len(t) for t in tracks])
     all_ids = np.concatenate([t.ids for t in tracks]) if tracks else np.zeros(0, np.int64)
@@ -381,7 +399,7 @@ def compare(
 ) -> dict[str, dict[str, float]]:
     """Run several trackers on the same frames in one process, interleaved.
 
-    Each tracker is warmed up once (two untimed frames on a throw-away
+    Each tracker is warmed up once (untimed, ``WARMUP_FRAMES`` frames on a throw-away
     instance). Then, ``repeats`` times, fresh instances process the sequence
     frame by frame, the trackers taking turns on each frame (order rotating),
     and only the ``step`` calls are timed with ``time.perf_counter``. Accuracy
@@ -425,10 +443,40 @@ def _compare(
     poses: Sequence[Pose],
     repeats: int,
 ) -> dict[str, dict[str, float]]:
+    outputs, timing = run_interleaved(factories, frames, repeats)
+    return {name: {**track_metrics(outputs[name], depths, K, poses), **timing[name]} for name in factories}
+
+
+WARMUP_FRAMES = 30
+"""Untimed frames each tracker runs before the timed repeats. Two were too few:
+in a fresh process the baseline's first pass over the sequence ran up to 20 %
+slower than its later ones (its pyramids' buffers are large enough for glibc to
+map and unmap them per call until its dynamic mmap threshold has risen; with the
+threshold fixed through ``MALLOC_MMAP_THRESHOLD_`` the first pass was as fast),
+while ``track-eval``, whose process had rendered the frames first, did not show
+it. Steady state is what a flight computer runs in."""
+
+
+def run_interleaved(
+    factories: Mapping[str, Callable[[], Stepper]], frames: Sequence[np.ndarray], repeats: int
+) -> tuple[dict[str, list[Tracks]], dict[str, dict[str, float]]]:
+    """The timed part of :func:`compare`, shared with other truth sources.
+
+    Each tracker is warmed up once, untimed, on a throw-away instance over
+    the first ``WARMUP_FRAMES`` frames; then, ``repeats`` times, fresh instances process the sequence
+    frame by frame, the trackers taking turns on each frame (order rotating),
+    and only the ``step`` calls are timed. OpenCV's thread count is the
+    caller's business (:func:`compare` sets it).
+
+    Returns:
+        (name -> the first repeat's Tracks per frame, name ->
+        ``ms_per_frame_mean``, ``ms_per_frame_median`` and
+        ``ms_per_frame_min_of_repeats_mean``).
+    """
     names = list(factories)
     for name in names:
         warm = factories[name]()
-        for img in frames[:2]:
+        for img in frames[:WARMUP_FRAMES]:
             warm.step(img)
     times: dict[str, list[float]] = {n: [] for n in names}
     outputs: dict[str, list[Tracks]] = {n: [] for n in names}
@@ -442,18 +490,18 @@ def _compare(
                 times[name].append(time.perf_counter() - t0)
                 if rep == 0:
                     outputs[name].append(out)
-    result = {}
+    timing = {}
     for name in names:
-        m = track_metrics(outputs[name], depths, K, poses)
         t_ms = 1e3 * np.asarray(times[name]).reshape(repeats, len(frames))
-        m["ms_per_frame_mean"] = float(t_ms.mean())
-        m["ms_per_frame_median"] = float(np.median(t_ms))
         # The trackers are deterministic: frame k costs the same work in every
         # repeat, so the minimum over repeats removes preemption spikes while
         # keeping the real per-frame costs (re-detections included).
-        m["ms_per_frame_min_of_repeats_mean"] = float(t_ms.min(axis=0).mean())
-        result[name] = m
-    return result
+        timing[name] = {
+            "ms_per_frame_mean": float(t_ms.mean()),
+            "ms_per_frame_median": float(np.median(t_ms)),
+            "ms_per_frame_min_of_repeats_mean": float(t_ms.min(axis=0).mean()),
+        }
+    return outputs, timing
 
 
 def evaluate(

@@ -22,8 +22,11 @@ flight software's hazard map (:mod:`gnc.hazard`):
   axis above that plane (``rock_dem_m``), and, from the boulder list, the
   highest boulder surface at the nearest point of the body's disk
   (``rock_list_m``: each boulder's own profile at that distance);
-* ``hazard_free``: tilt and slope at most ``slope_max_deg`` and both rock
-  figures at most ``rock_max_m``.
+* ``hazard_free``: tilt and slope at most ``slope_max_deg`` and ``rock_dem_m``
+  at most ``rock_max_m`` (the ground's shape: what the body would strike);
+  ``hazard_free_strict``: and ``rock_list_m`` too (a boulder's own protrusion
+  above its base, even where the ground around it sits below the
+  footprint's plane, so that the DEM shows less of it).
 """
 
 from __future__ import annotations
@@ -85,7 +88,7 @@ def score_footprint(dem: SiteDem, pads_xy_m: np.ndarray, axis_xy_m: np.ndarray, 
     x0, y0 = dem.origin_xy_m
     reach = max(float(np.max(np.hypot(*(pads_xy - axis).T))) + footpad_radius_m, crit.body_radius_m) + 2 * s
     if not (x0 + reach <= axis[0] <= x0 + (n_c - 1) * s - reach and y0 + reach <= axis[1] <= y0 + (n_r - 1) * s - reach):
-        return {"hazard_free": None, "tilt_deg": None, "slope_deg": None, "rock_dem_m": None, "rock_list_m": None,
+        return {"hazard_free": None, "hazard_free_strict": None, "tilt_deg": None, "slope_deg": None, "rock_dem_m": None, "rock_list_m": None,
                 "pad_heights_m": None, "hazards": ["outside_site_dem"]}
     j0 = int(math.floor((axis[0] - reach - x0) / s))
     i0 = int(math.floor((axis[1] - reach - y0) / s))
@@ -115,6 +118,7 @@ def score_footprint(dem: SiteDem, pads_xy_m: np.ndarray, axis_xy_m: np.ndarray, 
         rock_list = float(np.max(b[:, 2] * _boulder_rho2(rho2)))
 
     hazards = [name for name, bad in (("tilt", tilt > crit.slope_max_deg), ("slope", slope > crit.slope_max_deg),
-                                      ("rock", max(rock_dem, rock_list) > crit.rock_max_m)) if bad]
-    return {"hazard_free": not hazards, "tilt_deg": float(tilt), "slope_deg": float(slope), "rock_dem_m": rock_dem,
+                                      ("rock", rock_dem > crit.rock_max_m)) if bad]
+    return {"hazard_free": not hazards, "hazard_free_strict": not hazards and rock_list <= crit.rock_max_m,
+            "tilt_deg": float(tilt), "slope_deg": float(slope), "rock_dem_m": rock_dem,
             "rock_list_m": rock_list, "pad_heights_m": [float(v) for v in pad_h], "hazards": hazards}

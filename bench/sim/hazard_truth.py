@@ -103,6 +103,7 @@ class HazardTruth:
         free = out["footprint"].get("hazard_free")
         out["footprint"]["hazards"] = ",".join(out["footprint"].get("hazards", []))  # one column in a campaign
         out["hazard_free"] = free
+        out["hazard_free_strict"] = out["footprint"].get("hazard_free_strict")
         out["unsafe"] = None if free is None else float(not free)  # numeric, for landbench compare
         if self.cfg.avoidance == "on":
             out["scan"] = self._scan_summary(fsw)

@@ -224,3 +224,23 @@ def test_hazard_switches_default_off_and_a_bad_combination_is_one_line(tmp_path)
     assert "procedural" in str(err.value) and "\n" not in str(err.value)
     with pytest.raises(ScenarioError, match="nav = 'estimator'"):
         load_scenario(None, ["hazard.avoidance=on", "nav=truth"])
+
+
+# ----------------------------------------------------------------- closed loop
+@pytest.mark.slow
+def test_a_hazardous_landing_with_avoidance_retargets_and_lands_on_safe_ground():
+    """Seed 1 of the hazardous preset, vision on (about 40 s): one scan near 100 m, a divert, a hazard-free touchdown."""
+    from bench.sim.run import run
+
+    sc = load_scenario(None, ["hazard.avoidance=on"], "hazardous")
+    summary = run(sc).summary
+    hz = summary["hazard"]
+    assert summary["outcome"] == "landed"
+    assert hz["scan"]["scanned"] and 90.0 <= hz["scan"]["height_m"] <= 110.0 and not hz["scan"]["no_safe_site"]
+    assert hz["hazard_free"] is True and hz["scan"]["site_truth_hazard_free"] is True
+    # It landed where it meant to: the site's truth position, within the drift it allowed for.
+    fp = hz["footprint"]
+    miss = math.hypot(fp["x_m"] - hz["scan"]["site_truth_xy_m"][0], fp["y_m"] - hz["scan"]["site_truth_xy_m"][1])
+    assert miss <= 3 * hz["scan"]["nav_sigma_m"] + 0.5
+    det = hz["scan"]["detection"]
+    assert det["detection_rate"] > 0.8 and det["false_alarm_rate"] < 0.1

@@ -244,3 +244,15 @@ def test_a_hazardous_landing_with_avoidance_retargets_and_lands_on_safe_ground()
     assert miss <= 3 * hz["scan"]["nav_sigma_m"] + 0.5
     det = hz["scan"]["detection"]
     assert det["detection_rate"] > 0.8 and det["false_alarm_rate"] < 0.1
+
+
+def test_campaign_table_counts_hazard_free_touchdowns():
+    from bench.report.mc_report import campaign_table
+
+    rows = [{"case": i, "outcome": "landed", "landed": True, "hazard_hazard_free": i % 4 != 0,
+             "hazard_scan_scanned": True, "hazard_scan_no_safe_site": False} for i in range(8)]
+    rows.append({"case": 8, "outcome": "safe_abort", "landed": False, "hazard_hazard_free": None,
+                 "hazard_scan_scanned": True, "hazard_scan_no_safe_site": True})
+    text = campaign_table(rows)
+    assert "hazard-free touchdowns: 6/8 = 75.0%" in text and "no safe site: 1/9" in text
+    assert "hazard-free" not in campaign_table([{"case": 0, "outcome": "landed", "landed": True}])

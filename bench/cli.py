@@ -27,7 +27,8 @@ def _add_scenario_args(p: argparse.ArgumentParser) -> None:
 
 def _add_preset_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default=None, metavar="NAME",
-                   help="lay a named fault preset over the scenario, under --set (landbench faults list)")
+                   help="lay a named preset over the scenario, under --set: a fault preset (landbench faults list) "
+                        "or the hazardous terrain of issue 14 (hazardous)")
 
 
 def _check_out(path: str, suffixes: tuple[str, ...], flag: str) -> Path:

@@ -48,16 +48,18 @@ import numpy as np
 
 from gnc.control import ActuatorCommand, Controller, VehicleParams
 from gnc.estimator import IDX_C, IDX_G, IDX_H, IDX_R, IDX_SV, IDX_V, NavFilter, UpdateRecord, quat_to_matrix
-from gnc.fdir import HealthMonitor
+from gnc.fdir import FdirEvent, HealthMonitor
 from gnc.guidance import GuidanceCommand, GuidanceLaw, LandingTarget
+from gnc.hda import HazardAvoidance
 from gnc.map_nav import MapNavigator
-from gnc.messages import AltimeterMessage, AttitudeMessage, ContactMessage, ImageMessage, ImuMessage
+from gnc.messages import AltimeterMessage, AttitudeMessage, ContactMessage, ImageMessage, ImuMessage, LidarScanMessage
 from gnc.navstate import NavState
 from gnc.vision_nav import VisionMeasurement, VisionNavConfig, vision_measurement
 from vision.tracker import Tracker
 from vision.tracks import Tracks
 
 NS_PER_S = 1_000_000_000
+HAZARD = "hazard"  # the subsystem of a "no safe site" event
 G0_MPS2 = 9.80665  # defines Isp
 
 
@@ -150,12 +152,13 @@ class FlightSoftware:
         map_nav: Map-relative position fixes (``nav_map = "on"``), or None.
         fdir: Sensor health monitoring and recovery (:mod:`gnc.fdir`); None: none
             (every message goes to the filter as it comes).
+        hda: Hazard detection and avoidance (``hazard.avoidance = "on"``, :mod:`gnc.hda`), or None.
     """
 
     def __init__(self, guidance: GuidanceLaw, controller: Controller, nav_filter: NavFilter,
                  tracker: Tracker | None, vision_cfg: VisionNavConfig, vision_enabled: bool,
                  knowledge: OnboardKnowledge, map_nav: MapNavigator | None = None,
-                 fdir: HealthMonitor | None = None):
+                 fdir: HealthMonitor | None = None, hda: HazardAvoidance | None = None):
         self.guidance = guidance
         self.controller = controller
         self.filter = nav_filter
@@ -175,6 +178,7 @@ class FlightSoftware:
         self.last_guidance: GuidanceCommand | None = None
         self.map_nav = map_nav
         self.fdir = fdir
+        self.hda = hda
         self._on_ground = False  # footpad contact seen: health monitoring ends (the descent is over)
         self._alt_buffer: list[tuple[int, float]] = []
         self._discounted = False  # the vertical covariance was re-inflated on a noisy-altimeter detection
@@ -354,6 +358,31 @@ class FlightSoftware:
         if not self.vision_enabled or (self.fdir is not None and "vision" in self.fdir.failed):
             return False
         return float(self.filter.ekf.x[2]) > self.vision_cfg.cutoff_altitude_m
+
+    # ------------------------------------------------------------------ hazard avoidance
+    def wants_lidar_scan(self) -> bool:
+        """Hazard avoidance asks for a flash now (its estimated height above the target, on the approach)."""
+        if self.hda is None or self.last_guidance is None or self.filter.q_LB is None:
+            return False
+        if self.fdir is not None and self.fdir.abort is not None:
+            return False
+        height = float(self.filter.ekf.x[2]) - float(np.asarray(self.target.r_L, float)[2])
+        return self.hda.wants_scan(height, self.last_guidance.phase)
+
+    def on_lidar(self, msg: LidarScanMessage) -> None:
+        """A hazard scan: map the hazards through the estimate, retarget to a safe site, or declare none."""
+        x, P = self.filter.ekf.x, self.filter.ekf.P
+        sigma_vh = math.sqrt(max(float(P[3, 3] + P[4, 4]) / 2.0, 0.0))
+        sigma_z = math.sqrt(max(float(P[2, 2]), 0.0))
+        new = self.hda.on_scan(msg, x[:3].copy(), quat_to_matrix(self.filter.q_LB), sigma_vh, sigma_z,
+                               np.asarray(self.target.r_L, float))
+        if new is not None:
+            self.target = LandingTarget(r_L=new)
+            return
+        if self.hda.cfg.no_site_action == "abort" and self.fdir is not None and self.fdir.abort is None:
+            self.fdir.abort = FdirEvent(int(msg.t_ns), HAZARD, "no safe site within the divert limit",
+                                        "safe abort: hover")
+            self.fdir.events.append(self.fdir.abort)
 
     # ------------------------------------------------------------------ control
     def control(self, t_ns: int, contact: ContactMessage, nav: NavState | None = None) -> ActuatorCommand:

@@ -127,7 +127,7 @@ def _shift(a: np.ndarray, drow: int, dcol: int, fill: float) -> np.ndarray:
 
 
 def hazard_map(dem_m: np.ndarray, spacing_m: float, origin_xy_m: tuple[float, float] = (0.0, 0.0),
-               cfg: HazardConfig | None = None) -> HazardMap:
+               cfg: HazardConfig | None = None, known: np.ndarray | None = None) -> HazardMap:
     """The hazard map of a DEM (see the module's docstring).
 
     Args:
@@ -135,6 +135,8 @@ def hazard_map(dem_m: np.ndarray, spacing_m: float, origin_xy_m: tuple[float, fl
         spacing_m: Post spacing [m].
         origin_xy_m: L coordinates of post (0, 0) [m].
         cfg: Thresholds and geometry.
+        known: (rows, cols) bool, posts with data (None: all). A post whose footprint (pads and body)
+            touches an unknown post is unsafe: unknown ground counts as a hazard.
 
     Returns:
         The hazard map.
@@ -179,6 +181,11 @@ def hazard_map(dem_m: np.ndarray, spacing_m: float, origin_xy_m: tuple[float, fl
     rough[~valid] = nan
     tilt_deg[~valid] = nan
     unsafe = ~valid | (tilt_deg > cfg.slope_max_deg) | (rough > cfg.roughness_max_m)
+    if known is not None:
+        if known.shape != dem.shape:
+            raise ValueError(f"known has shape {known.shape}; expected the DEM's {dem.shape}")
+        unknown = (~np.asarray(known, bool)).astype(np.uint8)
+        unsafe |= cv2.dilate(unknown, _disk(reach), borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
     safe_u8 = (~unsafe).astype(np.uint8)
     dist = cv2.distanceTransform(safe_u8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * np.float32(spacing_m)
     return HazardMap(tilt_deg=tilt_deg, roughness_m=rough, unsafe=unsafe, hazard_distance_m=dist,

@@ -106,3 +106,34 @@ class ContactMessage:
         legs = np.asarray(self.legs)
         if legs.shape != (N_LEGS,):
             raise ValueError(f"ContactMessage.legs has shape {legs.shape}; allowed: ({N_LEGS},) booleans")
+
+
+@dataclass(frozen=True, slots=True)
+class LidarScanMessage:
+    """One flash of the hazard lidar: a range image and the sensor's nominal geometry.
+
+    Attributes:
+        t_ns: Time of the flash [ns].
+        ranges_m: (N, N) slant ranges along each pixel's ray [m]; NaN: no return.
+            Pixel (i, j) looks along :func:`lidar_ray_dirs_S` ``(N, fov_deg)[i, j]`` in the sensor frame S.
+        fov_deg: Full field of view, edge to edge [deg].
+        R_BS: Sensor-to-body rotation (mounting calibration), (3, 3); S is x right, y down, z boresight.
+        r_SB_m: Sensor position in B, (3,) [m].
+    """
+
+    t_ns: int
+    ranges_m: np.ndarray
+    fov_deg: float
+    R_BS: np.ndarray
+    r_SB_m: np.ndarray
+
+
+def lidar_ray_dirs_S(pixels: int, fov_deg: float) -> np.ndarray:
+    """Unit ray directions of an N x N flash lidar in its frame S, (N, N, 3).
+
+    Pixel (row i, column j) looks along ``normalize([t_j, t_i, 1])``, ``t_k = tan(fov/2) (2 (k + 0.5) / N - 1)``.
+    """
+    t = np.tan(np.radians(fov_deg) / 2) * (2 * (np.arange(pixels) + 0.5) / pixels - 1)
+    tx, ty = np.meshgrid(t, t)
+    d = np.stack([tx, ty, np.ones_like(tx)], axis=-1)
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)

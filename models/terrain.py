@@ -936,6 +936,27 @@ def load_geotiff(path: str | pathlib.Path, target_xy: tuple[float, float] | None
 
 
 # ---------------------------------------------------------------- generation
+def _catalogs(cfg: TerrainConfig, rng_craters: np.random.Generator, rng_boulders: np.random.Generator,
+              size_m: float, crater_d_max: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The crater catalog, its freshness and the boulder catalog (each from its own stream), target cleared.
+
+    Returns:
+        (craters (k, 3) [x_m, y_m, diameter_m], freshness (k,), boulders (j, 3) [x_m, y_m, diameter_m]).
+    """
+    if crater_d_max > cfg.crater_min_diameter_m:
+        craters = _power_law_catalog(rng_craters, cfg.crater_density_per_km2, size_m, cfg.crater_min_diameter_m,
+                                     crater_d_max, cfg.crater_sfd_exponent)
+        freshness = rng_craters.uniform(cfg.crater_freshness_min, 1.0, size=len(craters))
+        keep = _clear_target(craters, cfg.target_clear_radius_m)
+        craters, freshness = craters[keep], freshness[keep]
+    else:
+        craters, freshness = np.zeros((0, 3)), np.zeros(0)
+    boulders = _power_law_catalog(rng_boulders, cfg.boulder_density_per_km2, size_m, cfg.boulder_min_diameter_m,
+                                  cfg.boulder_max_diameter_m, cfg.boulder_sfd_exponent)
+    boulders = boulders[_clear_target(boulders, cfg.target_clear_radius_m)]
+    return craters, freshness, boulders
+
+
 def _fine_dem(cfg: TerrainConfig, rng_craters: np.random.Generator, rng_rough: np.random.Generator,
               rng_boulders: np.random.Generator) -> tuple[np.ndarray, float, float, np.ndarray, np.ndarray, np.ndarray]:
     """The fine DEM at texture resolution (before the datum shift) and the catalogs stamped into it.
@@ -972,23 +993,12 @@ def _fine_dem(cfg: TerrainConfig, rng_craters: np.random.Generator, rng_rough: n
                             max_wavelength_m=DEM_DETAIL_MAX_WAVELENGTH_PX * cfg.dem_spacing_m)
         crater_d_max = min(cfg.crater_max_diameter_m, DEM_UNRESOLVED_CRATER_PX * cfg.dem_spacing_m)
 
-    # Craters.
-    if crater_d_max > cfg.crater_min_diameter_m:
-        craters = _power_law_catalog(rng_craters, cfg.crater_density_per_km2, size_m, cfg.crater_min_diameter_m,
-                                     crater_d_max, cfg.crater_sfd_exponent)
-        freshness = rng_craters.uniform(cfg.crater_freshness_min, 1.0, size=len(craters))
-        keep = _clear_target(craters, cfg.target_clear_radius_m)
-        craters, freshness = craters[keep], freshness[keep]
-    else:
-        craters, freshness = np.zeros((0, 3)), np.zeros(0)
+    craters, freshness, boulders = _catalogs(cfg, rng_craters, rng_boulders, size_m, crater_d_max)
     d, hr = cfg.crater_depth_ratio, cfg.crater_rim_height_ratio
     _stamp_radial(fine, size_m, craters[:, 0], craters[:, 1], craters[:, 2] / 2, craters[:, 2] * freshness,
                   lambda rho2: _crater_profile_rho2(rho2, d, hr), CRATER_SUPPORT_R)
 
     # Boulders.
-    boulders = _power_law_catalog(rng_boulders, cfg.boulder_density_per_km2, size_m, cfg.boulder_min_diameter_m,
-                                  cfg.boulder_max_diameter_m, cfg.boulder_sfd_exponent)
-    boulders = boulders[_clear_target(boulders, cfg.target_clear_radius_m)]
     _stamp_radial(fine, size_m, boulders[:, 0], boulders[:, 1], boulders[:, 2] / 2, boulders[:, 2],
                   _boulder_rho2, BOULDER_SUPPORT_R)
 

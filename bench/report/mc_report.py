@@ -258,6 +258,17 @@ def campaign_table(rows: Sequence[Mapping[str, Any]], criteria: Mapping[str, Any
     rate = f"{ok / n:.1%}" if n else MISSING
     lines.append(f"success rate: {ok}/{n} = {rate}  (Wilson {CONFIDENCE:.0%} interval {low:.1%} – {high:.1%})")
 
+    scored = [r for r in rows if isinstance(r.get("hazard_hazard_free"), bool)]
+    if scored:  # touchdown footprints judged against the fine truth DEM (hazard scoring)
+        free = sum(bool(r["hazard_hazard_free"]) for r in scored)
+        h_lo, h_hi = wilson_interval(free, len(scored))
+        line = (f"hazard-free touchdowns: {free}/{len(scored)} = {free / len(scored):.1%}  "
+                f"(Wilson {CONFIDENCE:.0%} interval {h_lo:.1%} – {h_hi:.1%})")
+        no_site = sum(bool(r.get("hazard_scan_no_safe_site")) for r in rows)
+        if any("hazard_scan_scanned" in r for r in rows):
+            line += f"; no safe site: {no_site}/{n}"
+        lines.append(line)
+
     td = _touched_down(rows)
     n_td = int(td.sum())
     lines.append(f"touchdown statistics over {n_td} case{'s' if n_td != 1 else ''} that landed or touched down:")

@@ -1,4 +1,4 @@
-"""Named fault presets: real incidents and stress cases, each a scenario layer (``--preset NAME``).
+"""Named presets (faults, stress cases, hazardous terrain): real incidents and stress cases, each a scenario layer (``--preset NAME``).
 
 A preset is a partial scenario table laid over the scenario file and under
 ``--set`` overrides: its tables merge into the file's, and its ``faults`` are
@@ -67,6 +67,16 @@ PRESETS: dict[str, Preset] = {p.name: p for p in (
            {"terrain": {"crater_density_per_km2": 200.0, "boulder_density_per_km2": 0.0,
                         "albedo_contrast": 0.02, "roughness_rms_m": 0.5}}),
 )}
+# Scenario presets that are not part of the fault matrix (``landbench faults --presets all``).
+TERRAIN_PRESETS: dict[str, Preset] = {p.name: p for p in (
+    Preset("hazardous", "Issue 14: hazardous terrain at the target: no cleared landing ellipse, a smooth site "
+                        "chosen from orbit (craters at 10 % of the equilibrium density) strewn with boulders "
+                        "(25 000 per km^2 of D >= 0.5 m, 50 x the default), so that a blind landing is unsafe "
+                        "about 30 % of the time; touchdown footprints scored against the fine truth DEM",
+           {"terrain": {"target_clear_radius_m": 0.0, "crater_density_per_km2": 2000.0,
+                        "boulder_density_per_km2": 25000.0},
+            "hazard": {"scoring": "on"}}),
+)}
 REFERENCE = Preset("nominal", "Reference: no fault (the false-alarm rate of the flight software's monitoring)", {})
 
 
@@ -83,11 +93,13 @@ def get_preset(name: str) -> Preset:
     """
     if name == REFERENCE.name:
         return REFERENCE
+    if name in TERRAIN_PRESETS:
+        return TERRAIN_PRESETS[name]
     try:
         return PRESETS[name]
     except KeyError:
-        raise ValueError(f"--preset {name!r}: no such preset; allowed: {', '.join([*PRESETS, REFERENCE.name])} "
-                         "(landbench faults list)") from None
+        raise ValueError(f"--preset {name!r}: no such preset; allowed: "
+                         f"{', '.join([*PRESETS, REFERENCE.name, *TERRAIN_PRESETS])} (landbench faults list)") from None
 
 
 def apply_preset(data: dict[str, Any], name: str) -> dict[str, Any]:

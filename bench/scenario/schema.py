@@ -27,6 +27,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from bench.scenario.dispersions import Dispersion, check_dispersion_paths, draw_dispersions
+from bench.scenario.hazard import HazardSettings
 from gnc.config import format_validation_error
 from gnc.control import ControlConfig
 from gnc.estimator import EstimatorConfig
@@ -207,6 +208,10 @@ class Scenario(BaseModel):
     map_nav: MapNavConfig = Field(
         MapNavConfig(), description="when the flight software takes map fixes and how it matches (nav_map = 'on')"
     )
+    hazard: HazardSettings = Field(
+        HazardSettings(), description="hazard detection and avoidance (flash lidar, hazard map, retarget) and "
+                                      "touchdown footprint scoring against the fine truth DEM",
+    )
     faults: list[FaultConfig] = Field(
         default_factory=list,
         description="truth-side faults ([[faults]] tables; models.faults): sensors, camera, engine, flight computer, "
@@ -304,6 +309,17 @@ class Scenario(BaseModel):
             if self.map_nav.period_ns % self.camera.period_ns:
                 raise ValueError(f"map_nav.period_ns = {self.map_nav.period_ns} is not a whole multiple of "
                                  f"camera.period_ns = {self.camera.period_ns}; allowed: multiples of it")
+        return self
+
+    @model_validator(mode="after")
+    def _hazard_needs_procedural_terrain(self) -> "Scenario":
+        if self.hazard.scored and self.terrain.kind != "procedural":
+            raise ValueError(f"hazard.avoidance = '{self.hazard.avoidance}', hazard.scoring = "
+                             f"'{self.hazard.scoring}' with terrain.kind = '{self.terrain.kind}': the fine truth DEM "
+                             "needs a procedural terrain; allowed: terrain.kind = 'procedural', or both 'off'")
+        if self.hazard.avoidance == "on" and self.nav != "estimator":
+            raise ValueError(f"hazard.avoidance = 'on' with nav = '{self.nav}': the flight software maps hazards "
+                             "through its own estimate; allowed: nav = 'estimator', or hazard.avoidance = 'off'")
         return self
 
     def periods_ns(self) -> dict[str, int]:

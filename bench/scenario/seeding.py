@@ -23,6 +23,7 @@ COMPONENTS: tuple[str, ...] = (
     "vision",
     "map",
     "faults",
+    "lidar",
 )
 
 

@@ -25,6 +25,7 @@ from gnc.estimator import IDX_H, make_estimator
 from gnc.fdir import COMPUTER, FdirEvent, HealthMonitor, SensorSpec, restart_estimate
 from gnc.flight import FlightSoftware, OnboardKnowledge
 from gnc.guidance import make_guidance
+from gnc.hda import HazardAvoidance
 from gnc.map_nav import MapNavigator, OnboardMap
 from models.camera import R_BC, intrinsics
 from models.lander import altimeter_position_B, camera_position_B
@@ -118,8 +119,9 @@ def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.nda
 
             onboard_map = scenario_onboard_map(scenario)[0]
         map_nav = MapNavigator(onboard_map, scenario.map_nav, knowledge.K, knowledge.R_BC, knowledge.r_cam_B_m)
+    hda = HazardAvoidance(scenario.hazard.hda) if scenario.hazard.avoidance == "on" else None
     return FlightSoftware(guidance, controller, nav_filter, tracker, scenario.vision_nav, scenario.vision == "on",
-                          knowledge, map_nav, HealthMonitor(scenario.fdir, sensor_spec(scenario)))
+                          knowledge, map_nav, HealthMonitor(scenario.fdir, sensor_spec(scenario)), hda)
 
 
 def restart_flight_software(scenario: Scenario, old: FlightSoftware, t_ns: int) -> FlightSoftware:
@@ -144,6 +146,9 @@ def restart_flight_software(scenario: Scenario, old: FlightSoftware, t_ns: int) 
     new.filter.ekf.P[:, keep] = 0.0
     new.filter.ekf.P[keep, keep] = P[keep, keep]
     new.mass_kg = mass
+    if old.hda is not None:  # the scan's result (the retargeted site) is kept in non-volatile memory
+        new.hda = old.hda
+        new.target = old.target
     new.fdir.carry_events([*old.fdir.events, FdirEvent(
         t_ns, COMPUTER, f"computer restarted after {(t_ns - t0) / 1e9:.2f} s down",
         "state restored from the non-volatile checkpoint, carried ballistically")])

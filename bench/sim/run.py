@@ -220,16 +220,21 @@ def run(scenario: Scenario, frame_sink: FrameSink | None = None, progress: bool 
         from bench.maps import scenario_onboard_map
 
         maps = scenario_onboard_map(scenario)
+    hazard = None
+    if scenario.hazard.scored:  # the fine truth ground (and the lidar that sees it)
+        from bench.sim.hazard_truth import HazardTruth
+
+        hazard = HazardTruth(scenario)
     setup_s = time.perf_counter() - t_setup
     try:
-        return _fly(scenario, terrain, world, sensors, frame_sink, progress, setup_s, recorder, maps)
+        return _fly(scenario, terrain, world, sensors, frame_sink, progress, setup_s, recorder, maps, hazard)
     finally:
         world.close()
 
 
 def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuite,
          frame_sink: FrameSink | None, progress: bool, setup_s: float,
-         recorder: Recorder | None = None, maps: tuple | None = None) -> RunResult:
+         recorder: Recorder | None = None, maps: tuple | None = None, hazard: Any = None) -> RunResult:
     sim, cam, crit = scenario.sim, scenario.camera, scenario.landing
     dt_ns = sim.physics_dt_ns
     truth_tracks = scenario.vision == "on" and scenario.tracks == "truth"
@@ -270,6 +275,7 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
     exhausted_ns: int | None = None
     touchdown: dict[str, Any] | None = None
     touchdown_ns: int | None = None
+    touchdown_pose: tuple[np.ndarray, np.ndarray] | None = None  # truth (r_BL_L, q_LB) at touchdown
     outcome: str | None = None
     error: str | None = None
     settle_ns = int(round(crit.settle_s * NS_PER_S))
@@ -286,6 +292,7 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
             if touchdown is None and legs.any():
                 touchdown_ns = t_ns
                 touchdown = _touchdown_metrics(prev_truth, t_ns)
+                touchdown_pose = (np.array(prev_truth.r_BL_L, float), np.array(prev_truth.q_LB, float))
             if faults is not None:
                 faults.update(t_ns, _truth_height(terrain, truth) if faults.needs_altitude() else None,
                               fsw.last_guidance.phase if fsw.last_guidance is not None else None)
@@ -359,6 +366,8 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                 contact = ContactMessage(t_ns, legs)
                 if recorder is not None:
                     recorder.control_tick(t_ns, contact, truth, sensors.imu.accel_bias)
+                if hazard is not None and not down and fsw.wants_lidar_scan():  # a flash for hazard avoidance
+                    fsw.on_lidar(hazard.flash(t_ns, truth.r_BL_L, truth.q_LB, fsw.filter.ekf.x[:3]))
                 if down:  # the computer commands nothing: engine and RCS off
                     act = ActuatorCommand(0.0, np.zeros(3), False, t_ns)
                 else:
@@ -440,6 +449,8 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
     }
     if maps is not None:
         summary["map_nav"] = _map_nav_summary(fsw, maps[1], map_truth_log, telemetry, touchdown)
+    if hazard is not None:
+        summary["hazard"] = hazard.summary(fsw, touchdown_pose)
     return RunResult(summary=summary, telemetry=telemetry, terrain=terrain)
 
 

@@ -1,0 +1,211 @@
+"""Hazard detection and avoidance in flight (flight software, NumPy + OpenCV).
+
+Ports:
+    Inputs: the filter's estimate (position, velocity and their covariance,
+        the star tracker's attitude), the current target, and one
+        :class:`gnc.messages.LidarScanMessage` (ranges + the sensor's nominal
+        geometry), asked for by :meth:`HazardAvoidance.wants_scan`.
+    Output: a new :class:`gnc.guidance.LandingTarget` (the safe site), or a
+        declared "no safe site" event; :class:`HdaStats` for the summary.
+    Rate: one scan, when the estimated height above the target first falls to
+        ``scan_altitude_m`` during the approach (Chang'e-3/4: a hover near
+        100 m; here a pass: a flash lidar takes its whole image in one pulse).
+
+Steps of :meth:`HazardAvoidance.on_scan`:
+
+1. **DEM in the estimated frame**: each ray's return point is placed through
+   the filter's pose (estimated position, star-tracker attitude, the nominal
+   mounting), never the truth: the navigation error enters as it would in
+   flight. The points are binned on a grid of ``dem_spacing_m`` posts (mean
+   per post); empty posts are filled from their neighbours (a normalized
+   3 x 3 box, a few passes); posts still empty are unknown.
+2. **Hazard map** (:func:`gnc.hazard.hazard_map`): tilt of the pads' plane at
+   the worst yaw, roughness under the body; unknown ground is unsafe.
+3. **Safe site** (:func:`gnc.hazard.choose_site`): at least ``nav_sigmas``
+   sigmas of the navigation error from any hazard, within ``max_divert_m`` of
+   the current target. The map is made and flown in the same estimated frame,
+   so the error that matters is what the estimate drifts between the scan and
+   touchdown, not its absolute error: sigma^2 = (sigma_vh T)^2 + (rho
+   sigma_att)^2 + (sigma_z tan(fov/2))^2 + floor^2, with sigma_vh the filter's
+   horizontal-velocity 1-sigma, T the time left (``t_go_s`` guess: the height
+   over ``mean_descent_mps``), rho the slant range, sigma_att the star
+   tracker's 1-sigma, sigma_z the filter's height 1-sigma (a height error
+   scales the map about nadir).
+4. The target moves to the site (its height: the DEM's mean under the body
+   there); guidance re-plans on a moved target. No safe site: a declared event
+   (``no_safe_site``); the flight software then aborts (``no_site_action =
+   "abort"``, the safe-abort hover of :mod:`gnc.fdir`) or lands at the target
+   it had (``"land"``).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import cv2
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from gnc.hazard import HazardConfig, HazardMap, SafeSite, choose_site, hazard_map
+from gnc.messages import LidarScanMessage, lidar_ray_dirs_S
+
+FILL_PASSES = 3  # passes of the 3 x 3 normalized box that fill empty posts
+
+
+class HdaConfig(BaseModel):
+    """When the flight software scans, how it builds its DEM, and the hazard map's settings."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    scan_altitude_m: float = Field(100.0, gt=0.0, description="estimated height above the target of the one scan [m]")
+    dem_spacing_m: float = Field(0.1, gt=0.0, le=2.0, description="post spacing of the DEM built from the scan [m]")
+    mean_descent_mps: float = Field(
+        2.0, gt=0.0, description="height over this is the time left to touchdown, for the drift margin [m/s]")
+    attitude_sigma_rad: float = Field(1e-4, ge=0.0, description="star tracker's attitude 1-sigma (specification) [rad]")
+    nav_sigma_floor_m: float = Field(0.1, ge=0.0, description="floor of the navigation sigma of the margin [m]")
+    no_site_action: Literal["abort", "land"] = Field(
+        "abort", description="no safe site: the safe-abort hover, or land at the current target")
+    map: HazardConfig = Field(HazardConfig(), description="hazard thresholds, legs and site-choice weights")
+
+
+@dataclass
+class HdaStats:
+    """What hazard detection did (summary)."""
+
+    scan_t_ns: int | None = None
+    points: int = 0  # returns placed
+    posts_known_frac: float | None = None
+    nav_sigma_m: float | None = None
+    unsafe_frac: float | None = None
+    site: SafeSite | None = None
+    target_before_L: np.ndarray | None = None
+    no_safe_site: bool = False
+    compute_s: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, eq=False)
+class ScanDem:
+    """The DEM built from one scan, in the estimated L frame.
+
+    Attributes:
+        height_m: (n, n) float32 [m], south-up (row with +y, column with +x); filled where unknown.
+        known: (n, n) bool, posts with data (a return or filled from neighbours).
+        spacing_m: Post spacing [m]; origin_xy_m: L position of post (0, 0) [m].
+    """
+
+    height_m: np.ndarray
+    known: np.ndarray
+    spacing_m: float
+    origin_xy_m: tuple[float, float]
+
+
+def scan_points_L(msg: LidarScanMessage, r_BL_L: np.ndarray, R_LB: np.ndarray) -> np.ndarray:
+    """Return points of a scan in L through a pose (the flight software's estimate), (k, 3) [m] (returns only)."""
+    dirs_S = lidar_ray_dirs_S(msg.ranges_m.shape[0], msg.fov_deg).reshape(-1, 3)
+    rng = msg.ranges_m.reshape(-1)
+    ok = np.isfinite(rng)
+    p_S = dirs_S[ok] * rng[ok, None]
+    p_B = p_S @ np.asarray(msg.R_BS, float).T + np.asarray(msg.r_SB_m, float)
+    return np.asarray(r_BL_L, float) + p_B @ np.asarray(R_LB, float).T
+
+
+def grid_dem(points_L: np.ndarray, spacing_m: float) -> ScanDem:
+    """Bin points on a square grid (mean per post), fill small gaps from neighbours (see the module docstring)."""
+    x, y, z = points_L[:, 0], points_L[:, 1], points_L[:, 2]
+    x0 = math.floor(float(x.min()) / spacing_m) * spacing_m
+    y0 = math.floor(float(y.min()) / spacing_m) * spacing_m
+    n_c = int(math.floor((float(x.max()) - x0) / spacing_m + 0.5)) + 1
+    n_r = int(math.floor((float(y.max()) - y0) / spacing_m + 0.5)) + 1
+    j = np.clip(np.rint((x - x0) / spacing_m).astype(np.intp), 0, n_c - 1)
+    i = np.clip(np.rint((y - y0) / spacing_m).astype(np.intp), 0, n_r - 1)
+    lin = i * n_c + j
+    total = np.bincount(lin, weights=z, minlength=n_r * n_c).reshape(n_r, n_c).astype(np.float32)
+    count = np.bincount(lin, minlength=n_r * n_c).reshape(n_r, n_c).astype(np.float32)
+    for _ in range(FILL_PASSES):
+        empty = count == 0
+        if not empty.any():
+            break
+        s = cv2.boxFilter(total, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        c = cv2.boxFilter(count, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        fill = empty & (c > 0)
+        # A filled post counts as one sample of its neighbours' mean.
+        total[fill] = s[fill] / c[fill]
+        count[fill] = 1.0
+    known = count > 0
+    height = np.where(known, total / np.maximum(count, 1.0), np.float32(np.median(z))).astype(np.float32)
+    return ScanDem(height_m=height, known=known, spacing_m=float(spacing_m), origin_xy_m=(x0, y0))
+
+
+def drift_sigma_m(cfg: HdaConfig, sigma_vh_mps: float, sigma_z_m: float, height_m: float, range_m: float,
+                  fov_deg: float) -> float:
+    """1-sigma of the estimate's horizontal drift from the scan to touchdown (module docstring, step 3) [m]."""
+    t_go = max(height_m, 0.0) / cfg.mean_descent_mps
+    return math.sqrt((sigma_vh_mps * t_go) ** 2 + (range_m * cfg.attitude_sigma_rad) ** 2
+                     + (sigma_z_m * math.tan(math.radians(fov_deg) / 2)) ** 2 + cfg.nav_sigma_floor_m ** 2)
+
+
+class HazardAvoidance:
+    """One hazard scan and the retarget it leads to (module docstring)."""
+
+    def __init__(self, cfg: HdaConfig):
+        self.cfg = cfg
+        self.stats = HdaStats()
+        self.scanned = False
+        self.last_dem: ScanDem | None = None
+        self.last_map: HazardMap | None = None
+
+    def wants_scan(self, height_above_target_m: float, phase: str | None) -> bool:
+        """A flash now: not scanned yet, on the approach, at or below the scan height."""
+        return (not self.scanned and phase == "approach" and math.isfinite(height_above_target_m)
+                and height_above_target_m <= self.cfg.scan_altitude_m)
+
+    def on_scan(self, msg: LidarScanMessage, r_BL_L: np.ndarray, R_LB: np.ndarray, sigma_vh_mps: float,
+                sigma_z_m: float, target_L: np.ndarray) -> np.ndarray | None:
+        """Process one scan through the estimated pose; the new target (3,) [m], or None (no safe site).
+
+        Args:
+            msg: The scan.
+            r_BL_L: Estimated body position in L (3,) [m].
+            R_LB: Estimated attitude (3, 3).
+            sigma_vh_mps: Filter's horizontal-velocity 1-sigma per axis [m/s].
+            sigma_z_m: Filter's height 1-sigma [m].
+            target_L: Current target (3,) [m].
+        """
+        cfg = self.cfg
+        self.scanned = True
+        st = self.stats
+        st.scan_t_ns = msg.t_ns
+        st.target_before_L = np.asarray(target_L, float).copy()
+        t0 = time.perf_counter()
+        pts = scan_points_L(msg, r_BL_L, R_LB)
+        st.points = int(pts.shape[0])
+        if pts.shape[0] < 16:
+            st.no_safe_site = True
+            return None
+        dem = grid_dem(pts, cfg.dem_spacing_m)
+        t1 = time.perf_counter()
+        hmap = hazard_map(dem.height_m, dem.spacing_m, dem.origin_xy_m, cfg.map, known=dem.known)
+        t2 = time.perf_counter()
+        height = float(r_BL_L[2] - target_L[2])
+        range_m = float(np.nanmedian(msg.ranges_m))
+        sigma = drift_sigma_m(cfg, sigma_vh_mps, sigma_z_m, height, range_m, msg.fov_deg)
+        site = choose_site(hmap, np.asarray(target_L, float)[:2], sigma, cfg.map)
+        t3 = time.perf_counter()
+        st.compute_s = {"dem_s": t1 - t0, "hazard_map_s": t2 - t1, "site_s": t3 - t2}
+        st.posts_known_frac = float(dem.known.mean())
+        st.nav_sigma_m = sigma
+        st.unsafe_frac = float(hmap.unsafe.mean())
+        self.last_dem, self.last_map = dem, hmap
+        if site is None:
+            st.no_safe_site = True
+            return None
+        st.site = site
+        # The site's height: the DEM's mean under the body there.
+        j = int(round((site.xy_m[0] - dem.origin_xy_m[0]) / dem.spacing_m))
+        i = int(round((site.xy_m[1] - dem.origin_xy_m[1]) / dem.spacing_m))
+        r = max(int(round(cfg.map.body_radius_m / dem.spacing_m)), 1)
+        z = float(np.mean(dem.height_m[max(i - r, 0):i + r + 1, max(j - r, 0):j + r + 1]))
+        return np.array([site.xy_m[0], site.xy_m[1], z])

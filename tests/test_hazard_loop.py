@@ -1,0 +1,258 @@
+"""Hazard detection and avoidance in the loop (issue 14): fine truth DEM, footprint scoring, flash lidar, retarget."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from bench.evaluation.footprint import FootprintCriteria, score_footprint
+from bench.scenario import ScenarioError, load_scenario
+from gnc.hda import HazardAvoidance, HdaConfig, grid_dem, scan_points_L
+from gnc.hazard import HazardConfig
+from models.flash_lidar import FlashLidar, FlashLidarConfig, ray_ranges
+from models.lander import LanderConfig, footpad_positions_B
+from models.site_dem import SiteDem, SiteGround
+from models.terrain import BOULDER_HEIGHT_RATIO, TerrainConfig, generate_surface
+
+SMALL = dict(size_m=256.0, texture_px=1024, geometry_px=33, patch_size_m=0.0, target_clear_radius_m=0.0,
+             boulder_density_per_km2=30000.0)
+
+
+def _dem(h: np.ndarray, spacing: float, origin: tuple[float, float], boulders=None) -> SiteDem:
+    return SiteDem(height_m=h.astype(np.float32), spacing_m=spacing, origin_xy_m=origin,
+                   boulders=np.zeros((0, 3)) if boulders is None else np.asarray(boulders, float),
+                   craters=np.zeros((0, 3)))
+
+
+def _grid(half: float, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    xs = -half + spacing * np.arange(int(round(2 * half / spacing)) + 1)
+    return np.meshgrid(xs, xs)
+
+
+def _gaussian_boulder(X, Y, x, y, d):
+    """The terrain's boulder shape, written out: a Gaussian of peak 0.5 D and sigma D / 4, cut at 3 sigma."""
+    sigma = d / 4
+    cut = math.exp(-4.5)
+    g = (np.exp(-((X - x) ** 2 + (Y - y) ** 2) / (2 * sigma**2)) - cut) * (BOULDER_HEIGHT_RATIO * d / (1 - cut))
+    return np.maximum(g, 0.0)
+
+
+# ----------------------------------------------------------------- the fine truth DEM
+def test_site_dem_is_the_terrains_own_surface_at_the_texels():
+    """At texel centres the locally stamped DEM equals generate_surface's globally stamped one."""
+    cfg = TerrainConfig(**SMALL)
+    surface = generate_surface(cfg, np.random.default_rng(5))
+    ground = SiteGround(cfg, np.random.default_rng(5))
+    tex = surface.texel_m
+    centre = (0.125 + 3.0, 0.125 - 2.0)  # posts on texel centres
+    dem = ground.dem(centre, 10.0, tex)
+    j0 = int(round((dem.origin_xy_m[0] + cfg.size_m / 2) / tex - 0.5))
+    i0 = int(round((dem.origin_xy_m[1] + cfg.size_m / 2) / tex - 0.5))
+    n = dem.height_m.shape[0]
+    ref = surface.height_m[i0:i0 + n, j0:j0 + n]
+    assert np.ptp(ref) > 0.5 and len(dem.boulders) > 0  # not a trivial patch
+    np.testing.assert_allclose(dem.height_m, ref, atol=1e-5)
+    # The catalogs are the terrain's.
+    assert {tuple(b) for b in dem.boulders} <= {tuple(b) for b in surface.boulders}
+
+
+def test_site_dem_resolves_a_boulder_the_texels_cannot():
+    """At 0.05 m a lone boulder's peak is its own 0.5 D above the ground around it, as the catalog says."""
+    cfg = TerrainConfig(**SMALL)
+    ground = SiteGround(cfg, np.random.default_rng(5))
+    bs = ground.boulders
+    near = np.hypot(bs[:, None, 0] - bs[None, :, 0], bs[:, None, 1] - bs[None, :, 1])
+    np.fill_diagonal(near, np.inf)
+    lone = [k for k in range(len(bs)) if 0.6 <= bs[k, 2] <= 1.0 and max(abs(bs[k, 0]), abs(bs[k, 1])) < 100
+            and near[k].min() > 3 * bs[k, 2] + 2]
+    assert lone
+    b = bs[lone[0]]
+    dem = ground.dem((float(b[0]), float(b[1])), 2.0 * b[2], 0.05)
+    peak = float(dem.height_at(b[0], b[1]))
+    ring = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    r = 0.8 * b[2]  # beyond the boulder's support (0.75 D)
+    base = float(np.mean(dem.height_at(b[0] + r * np.cos(ring), b[1] + r * np.sin(ring))))
+    assert peak - base == pytest.approx(0.5 * b[2], abs=0.03)
+
+
+def test_site_dem_refuses_a_user_dem_and_a_square_off_the_tile(tmp_path):
+    np.save(tmp_path / "d.npy", np.zeros((64, 64)))
+    with pytest.raises(ValueError, match="procedural"):
+        SiteGround(TerrainConfig(kind="dem", dem_path=tmp_path / "d.npy", dem_spacing_m=2.0,
+                                 target_clear_radius_m=0.0), np.random.default_rng(0))
+    ground = SiteGround(TerrainConfig(**SMALL), np.random.default_rng(0))
+    with pytest.raises(ValueError, match="leaves the terrain"):
+        ground.dem((120.0, 0.0), 20.0)
+
+
+# ----------------------------------------------------------------- footprint scoring
+LANDER = LanderConfig()
+PADS_B = footpad_positions_B(LANDER)[:, :2]
+
+
+def test_footprint_on_flat_ground_is_hazard_free_and_a_rock_under_the_body_is_not():
+    X, Y = _grid(6.0, 0.05)
+    flat = score_footprint(_dem(np.zeros_like(X), 0.05, (-6.0, -6.0)), PADS_B, np.zeros(2), LANDER.footpad_radius_m)
+    assert flat["hazard_free"] and flat["tilt_deg"] == pytest.approx(0.0, abs=1e-9)
+    for d, safe in ((0.8, False), (0.4, True)):  # 0.4 m and 0.2 m high
+        h = _gaussian_boulder(X, Y, 1.0, -0.5, d)
+        s = score_footprint(_dem(h, 0.05, (-6.0, -6.0), [[1.0, -0.5, d]]), PADS_B, np.zeros(2), LANDER.footpad_radius_m)
+        assert s["hazard_free"] is safe and s["hazard_free_strict"] is safe
+        assert s["rock_list_m"] == pytest.approx(0.5 * d, rel=1e-6)
+        # Above the least-squares plane of the footprint (which the rock lifts a little).
+        assert s["rock_dem_m"] == pytest.approx(0.5 * d, abs=0.01)
+        assert ("rock" in s["hazards"]) is not safe
+
+
+def test_footprint_tilt_of_a_raised_pad_and_of_a_slope_equal_the_closed_form():
+    X, Y = _grid(6.0, 0.05)
+    # One pad on a 0.3 m plateau (a flat-topped rock as wide as the footpad). The plane through it and its two
+    # neighbours has the opposite pad above it (the lander cannot rest on it); it rests on the raised pad, the
+    # opposite one and either neighbour: a rise of h over the side of the pads' square, tilt = atan(h / (sqrt2 R)).
+    h = np.where(np.hypot(X - PADS_B[0, 0], Y - PADS_B[0, 1]) <= 0.35, 0.3, 0.0)
+    s = score_footprint(_dem(h, 0.05, (-6.0, -6.0)), PADS_B, np.zeros(2), LANDER.footpad_radius_m)
+    side = math.sqrt(2.0) * LANDER.leg_radius_m
+    assert s["tilt_deg"] == pytest.approx(math.degrees(math.atan(0.3 / side)), abs=1e-6)
+    assert s["pad_heights_m"][0] == pytest.approx(0.3) and max(s["pad_heights_m"][1:]) == 0.0
+    for deg, safe in ((5.0, True), (12.0, False)):
+        g = math.tan(math.radians(deg))
+        plane = g * (X * math.cos(0.4) + Y * math.sin(0.4))
+        s = score_footprint(_dem(plane, 0.05, (-6.0, -6.0)), PADS_B, np.zeros(2), LANDER.footpad_radius_m)
+        assert s["slope_deg"] == pytest.approx(deg, abs=1e-6)
+        # Pad heights are the highest point under each footpad: on a plane, the plane r_pad uphill.
+        assert s["tilt_deg"] == pytest.approx(deg, abs=0.05)
+        assert s["hazard_free"] is safe
+
+
+def test_footprint_outside_the_dem_is_not_judged():
+    X, Y = _grid(2.0, 0.1)  # the footprint reaches 2.4 m
+    s = score_footprint(_dem(np.zeros_like(X), 0.1, (-2.0, -2.0)), PADS_B, np.zeros(2), LANDER.footpad_radius_m)
+    assert s["hazard_free"] is None and s["hazards"] == ["outside_site_dem"]
+
+
+# ----------------------------------------------------------------- flash lidar
+def test_lidar_ranges_on_a_tilted_plane_equal_the_closed_form_and_noise_has_its_sigma():
+    X, Y = _grid(40.0, 0.1)
+    a, b, c = 0.1, -0.05, 1.0
+    dem = _dem(c + a * X + b * Y, 0.1, (-40.0, -40.0))
+    R_LS = Rotation.from_euler("xyz", [183.0, 2.0, 30.0], degrees=True).as_matrix()
+    o = np.array([1.0, 2.0, 100.0])
+    cfg = FlashLidarConfig(pixels=64)
+    exact = FlashLidar(cfg.model_copy(update={"range_sigma_m": 0.0}), np.random.default_rng(0)).scan(0, o, R_LS,
+                                                                                                   np.eye(3), dem)
+    d = FlashLidar(cfg, np.random.default_rng(0)).dirs_S.reshape(-1, 3) @ R_LS.T
+    t = (c + a * o[0] + b * o[1] - o[2]) / (d[:, 2] - a * d[:, 0] - b * d[:, 1])  # ray-plane intersection
+    np.testing.assert_allclose(exact.ranges_m.ravel(), t, atol=1e-5)
+    noisy = FlashLidar(cfg, np.random.default_rng(1)).scan(0, o, R_LS, np.eye(3), dem)
+    resid = noisy.ranges_m.ravel() - t
+    assert np.std(resid) == pytest.approx(cfg.range_sigma_m, rel=0.05) and abs(np.mean(resid)) < 0.003
+
+
+def test_lidar_sees_a_boulder_where_it_is():
+    X, Y = _grid(20.0, 0.05)
+    dem = _dem(_gaussian_boulder(X, Y, 3.0, -4.0, 2.0), 0.05, (-20.0, -20.0))
+    dz = math.sqrt(1 - 0.2**2)
+    ranges = ray_ranges(np.array([3.0, -4.0, 50.0]), np.array([[0.0, 0.0, -1.0], [0.0, 0.2, -dz]]), dem)
+    assert ranges[0] == pytest.approx(50.0 - 1.0, abs=1e-3)  # the boulder's 1 m top
+    assert ranges[1] == pytest.approx(50.0 / dz, abs=1e-3)  # the flat ground 10 m beside it
+
+
+# ----------------------------------------------------------------- the flight software's DEM and retarget
+def _scan_over(h: np.ndarray, half: float, spacing: float, r_true: np.ndarray, pixels: int = 128):
+    dem = _dem(h, spacing, (-half, -half))
+    R_LB = np.eye(3)
+    R_BS = np.diag([1.0, -1.0, -1.0])  # nadir-looking, the camera's mounting
+    lidar = FlashLidar(FlashLidarConfig(pixels=pixels, mount_B_m=(0.0, 0.0, 0.0)), np.random.default_rng(3))
+    return lidar.scan(0, r_true, R_LB @ R_BS, R_BS, dem), R_LB
+
+
+def test_the_scan_dem_is_placed_through_the_estimated_pose():
+    """A navigation error e moves the flight software's DEM by e: the bump appears at truth + e."""
+    X, Y = _grid(25.0, 0.05)
+    h = _gaussian_boulder(X, Y, 2.0, 1.0, 2.0)
+    r_true = np.array([0.0, 0.0, 60.0])
+    msg, R_LB = _scan_over(h, 25.0, 0.05, r_true)
+    e = np.array([4.3, -2.1, 0.0])
+    dem = grid_dem(scan_points_L(msg, r_true + e, R_LB), 0.1)
+    i, j = np.unravel_index(np.argmax(np.where(dem.known, dem.height_m, -np.inf)), dem.height_m.shape)
+    peak_xy = np.array([dem.origin_xy_m[0] + j * 0.1, dem.origin_xy_m[1] + i * 0.1])
+    np.testing.assert_allclose(peak_xy, np.array([2.0, 1.0]) + e[:2], atol=0.15)
+    assert dem.height_m[i, j] == pytest.approx(1.0, abs=0.08)
+
+
+def test_retarget_picks_the_only_safe_site_and_declares_none_when_there_is_none():
+    half, s = 25.0, 0.1
+    X, Y = _grid(half, s)
+    # Rough everywhere (a 0.5 m egg-crate, period 3 m) but a flat disk of 7 m radius at (6, -5).
+    rough = 0.5 * np.sin(2 * np.pi * X / 3.0) * np.sin(2 * np.pi * Y / 3.0)
+    clear = np.hypot(X - 6.0, Y - 5.0 * -1) <= 7.0
+    h = np.where(clear, 0.0, rough)
+    r_true = np.array([0.0, 0.0, 70.0])
+    msg, R_LB = _scan_over(h, half, s, r_true, pixels=192)
+    e = np.array([-3.0, 2.0, 0.0])  # the navigation error: everything the flight software sees is moved by it
+    hda = HazardAvoidance(HdaConfig(map=HazardConfig(max_divert_m=30.0)))
+    assert hda.wants_scan(99.0, "approach") and not hda.wants_scan(101.0, "approach")
+    assert not hda.wants_scan(99.0, "terminal")
+    target = np.array([0.0, 0.0, 0.0]) + e
+    new = hda.on_scan(msg, r_true + e, R_LB, 0.01, 0.5, target)
+    assert new is not None and not hda.stats.no_safe_site
+    site_true = new[:2] - e[:2]
+    # Inside the clear disk, with the margin: 2.4 m of footprint plus 3 sigma of the drift.
+    sigma = hda.stats.nav_sigma_m
+    assert math.hypot(site_true[0] - 6.0, site_true[1] + 5.0) <= 7.0 - 2.2 - 3 * sigma + 0.2
+    assert hda.stats.site.margin_m >= 3 * sigma
+    assert not hda.wants_scan(50.0, "approach")  # one scan
+    # The same ground with no clear disk: no safe site, declared.
+    msg2, _ = _scan_over(rough, half, s, r_true, pixels=192)
+    hda2 = HazardAvoidance(HdaConfig(map=HazardConfig(max_divert_m=30.0)))
+    assert hda2.on_scan(msg2, r_true + e, R_LB, 0.01, 0.5, target) is None and hda2.stats.no_safe_site
+
+
+# ----------------------------------------------------------------- scenario
+def test_hazard_switches_default_off_and_a_bad_combination_is_one_line(tmp_path):
+    sc = load_scenario(None)
+    assert sc.hazard.avoidance == "off" and sc.hazard.scoring == "off" and not sc.hazard.scored
+    hz = load_scenario(None, preset="hazardous")
+    assert hz.terrain.target_clear_radius_m == 0.0 and hz.hazard.scored and hz.hazard.avoidance == "off"
+    np.save(tmp_path / "d.npy", np.zeros((64, 64)))
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(None, ["hazard.avoidance=on", "terrain.kind=dem", f"terrain.dem_path={tmp_path / 'd.npy'}",
+                             "terrain.dem_spacing_m=2.0", "terrain.target_clear_radius_m=0"])
+    assert "procedural" in str(err.value) and "\n" not in str(err.value)
+    with pytest.raises(ScenarioError, match="nav = 'estimator'"):
+        load_scenario(None, ["hazard.avoidance=on", "nav=truth"])
+
+
+# ----------------------------------------------------------------- closed loop
+@pytest.mark.slow
+def test_a_hazardous_landing_with_avoidance_retargets_and_lands_on_safe_ground():
+    """Seed 1 of the hazardous preset, vision on (about 40 s): one scan near 100 m, a divert, a hazard-free touchdown."""
+    from bench.sim.run import run
+
+    sc = load_scenario(None, ["hazard.avoidance=on"], "hazardous")
+    summary = run(sc).summary
+    hz = summary["hazard"]
+    assert summary["outcome"] == "landed"
+    assert hz["scan"]["scanned"] and 90.0 <= hz["scan"]["height_m"] <= 110.0 and not hz["scan"]["no_safe_site"]
+    assert hz["hazard_free"] is True and hz["scan"]["site_truth_hazard_free"] is True
+    # It landed where it meant to: the site's truth position, within the drift it allowed for.
+    fp = hz["footprint"]
+    miss = math.hypot(fp["x_m"] - hz["scan"]["site_truth_xy_m"][0], fp["y_m"] - hz["scan"]["site_truth_xy_m"][1])
+    assert miss <= 3 * hz["scan"]["nav_sigma_m"] + 0.5
+    det = hz["scan"]["detection"]
+    assert det["detection_rate"] > 0.8 and det["false_alarm_rate"] < 0.1
+
+
+def test_campaign_table_counts_hazard_free_touchdowns():
+    from bench.report.mc_report import campaign_table
+
+    rows = [{"case": i, "outcome": "landed", "landed": True, "hazard_hazard_free": i % 4 != 0,
+             "hazard_scan_scanned": True, "hazard_scan_no_safe_site": False} for i in range(8)]
+    rows.append({"case": 8, "outcome": "safe_abort", "landed": False, "hazard_hazard_free": None,
+                 "hazard_scan_scanned": True, "hazard_scan_no_safe_site": True})
+    text = campaign_table(rows)
+    assert "hazard-free touchdowns: 6/8 = 75.0%" in text and "no safe site: 1/9" in text
+    assert "hazard-free" not in campaign_table([{"case": 0, "outcome": "landed", "landed": True}])

@@ -129,6 +129,17 @@ class FdirConfig(BaseModel):
     accel_lateral_max_mps2: float = Field(0.25, gt=0.0, description="largest mean lateral specific force [m/s^2]")
     accel_axial_frac: float = Field(0.15, gt=0.0, lt=1.0, description="largest relative axial specific-force error [-]")
     thrust_efficiency_min: float = Field(0.85, gt=0.0, lt=1.0, description="re-plan below this delivered/commanded [-]")
+    bias_check_gate: float = Field(
+        13.8, gt=0.0, description="lateral bias check: largest normalised squared difference (2 dof; 13.8 is "
+                                  "chi-square's 99.9 %) between the mean lateral specific force and the filter's "
+                                  "accelerometer bias estimate [-]")
+    bias_check_model_mps2: float = Field(
+        3e-3, gt=0.0, description="... 1-sigma per axis of the lateral specific force that is not the bias with the "
+                                  "engine along +z (its misalignment within specification, RCS, rotation) [m/s^2]")
+    bias_plausible_mps2: float = Field(
+        0.03, gt=0.0, description="... judged only while the mean lateral specific force is within this (a "
+                                  "plausible accelerometer bias: about 4 sigma of its specification; beyond it the "
+                                  "force is real, e.g. a misaligned thrust) [m/s^2]")
     engine_out_frac: float = Field(0.2, ge=0.0, lt=1.0,
                                    description="at or below this delivered/commanded the engine is out: reported, "
                                                "no recalibration [-]")
@@ -259,6 +270,10 @@ class HealthMonitor:
         self._thrusting = False
         self._lateral_run = 0
         self._axial_run = 0
+        self.lateral_mean_B: tuple[int, float, float, int] | None = None  # (t, mean f_x, mean f_y, n) of a full window
+        self._bias_run = 0
+        self._last_tick_ns: int | None = None
+        self._tick_s = 0.02  # control period, measured from the ticks [s]
         self.last_gyro_B = np.zeros(3)
         self.last_imu_synthetic = False  # the message returned by imu() carries a synthetic specific force
         # star tracker
@@ -302,6 +317,10 @@ class HealthMonitor:
             return
         self._seen.add(key)
         self.events.append(FdirEvent(int(t_ns), subsystem, reason, action if self.cfg.recovery else ""))
+
+    def note(self, t_ns: int, subsystem: str, reason: str, action: str = "", once_key: str | None = None) -> None:
+        """An event the flight software detected itself (a recovery it made), recorded once per key."""
+        self._event(t_ns, subsystem, reason, action, once_key)
 
     def _fail(self, t_ns: int, channel: str, reason: str, action: str) -> None:
         """Declare a channel failed (recovery then acts on it) and record the event (once per channel and check)."""
@@ -383,6 +402,55 @@ class HealthMonitor:
     def _acc_clear(self) -> None:
         self._acc_win.clear()
         self._acc_sum = [0.0, 0.0, 0.0, 0.0]
+        self.lateral_mean_B = None
+        self._bias_run = 0
+
+    def bias_check(self, t_ns: int, b_xy: tuple[float, float], var_xy: tuple[float, float],
+                   noise_density: float) -> tuple[float, float, float] | None:
+        """The filter's lateral accelerometer bias against the mean lateral specific force (a control tick).
+
+        With the engine lit along +z, the accelerometer's mean lateral specific force over the window is its
+        own bias, up to ``bias_check_model_mps2`` (the engine's misalignment within specification, RCS,
+        rotation) and its white noise. The difference to the filter's estimate ``b_xy`` is an innovation of
+        covariance ``var_xy + model^2 + N^2 / T``: beyond ``bias_check_gate`` (2 dof) for half a window in a
+        row, the filter's bias is wrong (vision measurements that passed the gate but drove the bias, through
+        its correlation with the velocity, away from any plausible value: the filter confidently wrong about
+        its horizontal velocity). Judged only while the mean force is a plausible bias
+        (``bias_plausible_mps2``) and the accelerometer is not failed.
+
+        Args:
+            t_ns: The control tick [ns].
+            b_xy: The filter's bias estimate, body x and y [m/s^2].
+            var_xy: Its variances [(m/s^2)^2].
+            noise_density: The accelerometer's white-noise density (specification) [m/s^2/sqrt(Hz)].
+
+        Returns:
+            None, or on a detection with recovery on: (mean f_x, mean f_y [m/s^2], variance of each
+            [(m/s^2)^2]), the bias the filter should take with its variance.
+        """
+        c, lm = self.cfg, self.lateral_mean_B
+        if lm is None or not self._thrusting or "imu.accel" in self.failed or t_ns - lm[0] > 2 * self.spec.imu_period_ns:
+            self._bias_run = 0
+            return None
+        _, fx, fy, n = lm
+        if math.hypot(fx, fy) > c.bias_plausible_mps2:
+            self._bias_run = 0
+            return None
+        r = c.bias_check_model_mps2 ** 2 + noise_density ** 2 / (n * self.spec.imu_period_ns / NS_PER_S)
+        dx, dy = fx - b_xy[0], fy - b_xy[1]
+        nis = dx * dx / (var_xy[0] + r) + dy * dy / (var_xy[1] + r)
+        self._bias_run = self._bias_run + 1 if nis > c.bias_check_gate else 0
+        persist = 0.5 * c.accel_window_s  # [s] of control ticks in a row, counted by the caller's rate below
+        if self._bias_run * self._tick_s < persist:
+            return None
+        self._event(t_ns, NAVIGATION, f"accelerometer bias estimate ({b_xy[0]:+.3f}, {b_xy[1]:+.3f}) m/s^2 "
+                                      f"inconsistent with the mean lateral specific force ({fx:+.3f}, {fy:+.3f}) "
+                                      f"m/s^2 (NIS {nis:.0f}): the filter's horizontal channel is wrong",
+                    "bias re-initialised to the lateral specific force, horizontal velocity covariance inflated",
+                    once_key="bias")
+        self._bias_run = 0
+        self._acc_clear()  # the next judgement needs a fresh window
+        return (fx, fy, r) if c.recovery else None
 
     def _check_accel(self, t: int) -> None:
         c = self.cfg
@@ -401,6 +469,7 @@ class HealthMonitor:
         mean = (acc[0] / n, acc[1] / n, acc[2] / n)
         # A violation must hold for half a window of samples in a row (an impact's spike does not).
         persist = 0.5 * win_ns / self.spec.imu_period_ns
+        self.lateral_mean_B = (t, mean[0], mean[1], n)
         lateral = math.hypot(mean[0], mean[1]) > c.accel_lateral_max_mps2
         self._lateral_run = self._lateral_run + 1 if lateral else 0
         if self._lateral_run >= persist:
@@ -676,6 +745,9 @@ class HealthMonitor:
                      contact: bool) -> None:
         """Record the command in force (for the accelerometer check) and run the clocked checks."""
         self._thrusting = thrust_cmd_N > 0.0 and not contact and mass_kg > 0.0
+        if self._last_tick_ns is not None and t_ns > self._last_tick_ns:
+            self._tick_s = (t_ns - self._last_tick_ns) / NS_PER_S
+        self._last_tick_ns = t_ns
         if self._vision_excluded_ns is not None and t_ns - self._vision_excluded_ns >= self.cfg.vision_retry_s * NS_PER_S:
             self.failed.discard("vision")  # tried again; a new streak of rejections excludes it again
             self._vision_excluded_ns = None
@@ -708,6 +780,11 @@ class HealthMonitor:
         elif not altitude_observed and sigma_z_m > max(c.abort_sigma_z_min_m, c.abort_sigma_z_frac * max(height_m, 0.0)):
             reason = (f"altitude not observed and its 1-sigma {sigma_z_m:.1f} m is beyond "
                       f"{100 * c.abort_sigma_z_frac:.0f} % of the height {height_m:.1f} m")
+        elif not altitude_observed and height_m < c.abort_check_height_m and v_z_mps < 0.0:
+            # Its covariance may say it knows the height, but nothing has checked that for the final descent:
+            # a filter made confidently wrong before the altimeter was lost would land blind.
+            reason = (f"altitude not observed while descending at {height_m:.0f} m, below "
+                      f"{c.abort_check_height_m:g} m (no final descent without a height measurement)")
         elif v_z_mps < 0.0 and height_m > 0.0 and (decel_max_mps2 <= 0.0 or
                                                    v_z_mps**2 / (2.0 * decel_max_mps2) > c.stop_margin * height_m):
             reason = (f"cannot stop before the ground: {-v_z_mps:.1f} m/s down at {height_m:.0f} m with "

@@ -129,17 +129,19 @@ class FdirConfig(BaseModel):
     accel_lateral_max_mps2: float = Field(0.25, gt=0.0, description="largest mean lateral specific force [m/s^2]")
     accel_axial_frac: float = Field(0.15, gt=0.0, lt=1.0, description="largest relative axial specific-force error [-]")
     thrust_efficiency_min: float = Field(0.85, gt=0.0, lt=1.0, description="re-plan below this delivered/commanded [-]")
-    bias_check_gate: float = Field(
-        13.8, gt=0.0, description="lateral bias check: largest normalised squared difference (2 dof; 13.8 is "
-                                  "chi-square's 99.9 %) between the mean lateral specific force and the filter's "
-                                  "accelerometer bias estimate [-]")
+    bias_plausible_sigmas: float = Field(
+        3.0, gt=0.0, description="lateral bias check: the filter's accelerometer bias estimate beyond this many "
+                                 "sigma of the bias's specification on an axis ... [-]")
+    bias_check_sigmas: float = Field(
+        3.0, gt=0.0, description="... and that far from what the accelerometer reads (its mean lateral specific "
+                                 "force) by more than this many sigma of the difference [-]")
     bias_check_model_mps2: float = Field(
-        3e-3, gt=0.0, description="... 1-sigma per axis of the lateral specific force that is not the bias with the "
-                                  "engine along +z (its misalignment within specification, RCS, rotation) [m/s^2]")
-    bias_plausible_mps2: float = Field(
-        0.03, gt=0.0, description="... judged only while the mean lateral specific force is within this (a "
-                                  "plausible accelerometer bias: about 4 sigma of its specification; beyond it the "
-                                  "force is real, e.g. a misaligned thrust) [m/s^2]")
+        3e-3, gt=0.0, description="... 1-sigma per axis of the lateral specific force that is neither the bias "
+                                  "nor the thrust's misalignment (RCS, rotation about an IMU off the centre of "
+                                  "mass) [m/s^2]")
+    engine_alignment_deg: float = Field(
+        0.25, ge=0.0, description="... the engine's alignment tolerance (largest misalignment of the thrust line; "
+                                  "the lateral share of the axial specific force) [deg]")
     engine_out_frac: float = Field(0.2, ge=0.0, lt=1.0,
                                    description="at or below this delivered/commanded the engine is out: reported, "
                                                "no recalibration [-]")
@@ -222,6 +224,27 @@ def body_rate_between(q0: np.ndarray, q1: np.ndarray, dt_s: float) -> np.ndarray
     return axis * angle / dt_s
 
 
+def line_fit(t_s: np.ndarray, d: np.ndarray) -> tuple[float, float, float, float]:
+    """Least-squares straight line ``d = slope t + intercept`` with its statistics.
+
+    Args:
+        t_s: Sample times (n,) [s], at least 3 distinct.
+        d: Samples (n,).
+
+    Returns:
+        (slope, intercept (the line at t = 0), the slope's variance from the residuals,
+        the residuals' variance ``sum(res^2) / (n - 2)``).
+    """
+    t, d = np.asarray(t_s, float), np.asarray(d, float)
+    tc = t - t.mean()
+    stt = float(tc @ tc)
+    slope = float(tc @ (d - d.mean())) / stt
+    intercept = float(d.mean()) - slope * float(t.mean())
+    res = d - (slope * t + intercept)
+    s2 = float(res @ res) / max(t.size - 2, 1)
+    return slope, intercept, s2 / stt, s2
+
+
 @dataclass
 class _Stuck:
     """Per-axis counter of bit-identical values in a row (plain floats: it runs on every IMU sample)."""
@@ -270,7 +293,7 @@ class HealthMonitor:
         self._thrusting = False
         self._lateral_run = 0
         self._axial_run = 0
-        self.lateral_mean_B: tuple[int, float, float, int] | None = None  # (t, mean f_x, mean f_y, n) of a full window
+        self.lateral_mean_B: tuple[int, float, float, float, int] | None = None  # (t, mean f_B (3), n), a full window
         self._bias_run = 0
         self._last_tick_ns: int | None = None
         self._tick_s = 0.02  # control period, measured from the ticks [s]
@@ -406,46 +429,51 @@ class HealthMonitor:
         self._bias_run = 0
 
     def bias_check(self, t_ns: int, b_xy: tuple[float, float], var_xy: tuple[float, float],
-                   noise_density: float) -> tuple[float, float, float] | None:
-        """The filter's lateral accelerometer bias against the mean lateral specific force (a control tick).
+                   noise_density: float, bias_sigma: float) -> tuple[float, float, float] | None:
+        """The filter's lateral accelerometer bias: plausible, and read by the accelerometer (a control tick)?
 
-        With the engine lit along +z, the accelerometer's mean lateral specific force over the window is its
-        own bias, up to ``bias_check_model_mps2`` (the engine's misalignment within specification, RCS,
-        rotation) and its white noise. The difference to the filter's estimate ``b_xy`` is an innovation of
-        covariance ``var_xy + model^2 + N^2 / T``: beyond ``bias_check_gate`` (2 dof) for half a window in a
-        row, the filter's bias is wrong (vision measurements that passed the gate but drove the bias, through
-        its correlation with the velocity, away from any plausible value: the filter confidently wrong about
-        its horizontal velocity). Judged only while the mean force is a plausible bias
-        (``bias_plausible_mps2``) and the accelerometer is not failed.
+        Vision measurements that pass the gate but are wrong move the bias estimate through its correlation
+        with the velocity; a filter so misled is confidently wrong about its horizontal velocity, and below
+        the vision cut-off that error grows unseen. Two conditions, both held for half a window of ticks:
+
+        * the estimate is beyond ``bias_plausible_sigmas`` times the bias's specification ``bias_sigma`` on
+          an axis (an accelerometer within its datasheet rarely has such a bias);
+        * on that axis the accelerometer itself does not read it: with the engine lit along +z its mean
+          lateral specific force over the window is its bias plus the thrust's share through the engine's
+          misalignment (within ``engine_alignment_deg``, uniform in size and in any direction: 1-sigma per
+          axis the tolerance over sqrt(6), times the mean axial specific force), a constant
+          ``bias_check_model_mps2`` (RCS, rotation) and its white noise; the difference to the estimate is
+          beyond ``bias_check_sigmas`` of those and the estimate's own variance.
 
         Args:
             t_ns: The control tick [ns].
             b_xy: The filter's bias estimate, body x and y [m/s^2].
             var_xy: Its variances [(m/s^2)^2].
             noise_density: The accelerometer's white-noise density (specification) [m/s^2/sqrt(Hz)].
+            bias_sigma: The accelerometer bias's 1-sigma per axis (specification) [m/s^2].
 
         Returns:
-            None, or on a detection with recovery on: (mean f_x, mean f_y [m/s^2], variance of each
-            [(m/s^2)^2]), the bias the filter should take with its variance.
+            None, or on a detection with recovery on: (mean f_x, mean f_y [m/s^2], the variance of each
+            as a bias [(m/s^2)^2]), the bias the filter should take.
         """
         c, lm = self.cfg, self.lateral_mean_B
         if lm is None or not self._thrusting or "imu.accel" in self.failed or t_ns - lm[0] > 2 * self.spec.imu_period_ns:
             self._bias_run = 0
             return None
-        _, fx, fy, n = lm
-        if math.hypot(fx, fy) > c.bias_plausible_mps2:
-            self._bias_run = 0
+        _, fx, fy, fz, n = lm
+        # Misalignment uniform in size below the tolerance, in any direction: 1-sigma per axis tolerance / sqrt(6).
+        tilt = math.radians(c.engine_alignment_deg) / math.sqrt(6.0) * abs(fz)
+        r = c.bias_check_model_mps2 ** 2 + tilt**2 + noise_density ** 2 / (n * self.spec.imu_period_ns / NS_PER_S)
+        bad = [abs(b) > c.bias_plausible_sigmas * bias_sigma
+               and abs(f - b) > c.bias_check_sigmas * math.sqrt(v + r)
+               for f, b, v in ((fx, b_xy[0], var_xy[0]), (fy, b_xy[1], var_xy[1]))]
+        self._bias_run = self._bias_run + 1 if any(bad) else 0
+        if self._bias_run * self._tick_s < 0.5 * c.accel_window_s:
             return None
-        r = c.bias_check_model_mps2 ** 2 + noise_density ** 2 / (n * self.spec.imu_period_ns / NS_PER_S)
-        dx, dy = fx - b_xy[0], fy - b_xy[1]
-        nis = dx * dx / (var_xy[0] + r) + dy * dy / (var_xy[1] + r)
-        self._bias_run = self._bias_run + 1 if nis > c.bias_check_gate else 0
-        persist = 0.5 * c.accel_window_s  # [s] of control ticks in a row, counted by the caller's rate below
-        if self._bias_run * self._tick_s < persist:
-            return None
-        self._event(t_ns, NAVIGATION, f"accelerometer bias estimate ({b_xy[0]:+.3f}, {b_xy[1]:+.3f}) m/s^2 "
-                                      f"inconsistent with the mean lateral specific force ({fx:+.3f}, {fy:+.3f}) "
-                                      f"m/s^2 (NIS {nis:.0f}): the filter's horizontal channel is wrong",
+        self._event(t_ns, NAVIGATION, f"accelerometer bias estimate ({b_xy[0]:+.3f}, {b_xy[1]:+.3f}) m/s^2 beyond "
+                                      f"{c.bias_plausible_sigmas:g} sigma of its specification and not read by the "
+                                      f"accelerometer (mean lateral specific force ({fx:+.3f}, {fy:+.3f}) m/s^2): "
+                                      "the filter's horizontal channel is wrong",
                     "bias re-initialised to the lateral specific force, horizontal velocity covariance inflated",
                     once_key="bias")
         self._bias_run = 0
@@ -469,7 +497,7 @@ class HealthMonitor:
         mean = (acc[0] / n, acc[1] / n, acc[2] / n)
         # A violation must hold for half a window of samples in a row (an impact's spike does not).
         persist = 0.5 * win_ns / self.spec.imu_period_ns
-        self.lateral_mean_B = (t, mean[0], mean[1], n)
+        self.lateral_mean_B = (t, mean[0], mean[1], mean[2], n)
         lateral = math.hypot(mean[0], mean[1]) > c.accel_lateral_max_mps2
         self._lateral_run = self._lateral_run + 1 if lateral else 0
         if self._lateral_run >= persist:

@@ -48,7 +48,7 @@ import numpy as np
 
 from gnc.control import ActuatorCommand, Controller, VehicleParams
 from gnc.estimator import IDX_BA, IDX_C, IDX_G, IDX_H, IDX_R, IDX_SV, IDX_V, NavFilter, UpdateRecord, quat_to_matrix
-from gnc.fdir import HealthMonitor
+from gnc.fdir import HealthMonitor, line_fit
 from gnc.guidance import GuidanceCommand, GuidanceLaw, LandingTarget
 from gnc.map_nav import MapNavigator
 from gnc.messages import AltimeterMessage, AttitudeMessage, ContactMessage, ImageMessage, ImuMessage
@@ -269,11 +269,7 @@ class FlightSoftware:
         d = np.array([b[1] for b in buf])
         sig = max(b[2] for b in buf)
         buf.clear()
-        slope, intercept = np.polyfit(t, d, 1)
-        res = d - (slope * t + intercept)
-        s2 = float(res @ res) / max(len(t) - 2, 1)
-        tc = t - t.mean()
-        var_slope = s2 / float(tc @ tc) if float(tc @ tc) > 0.0 else math.inf
+        slope, intercept, var_slope, s2 = line_fit(t, d)
         # Self-consistent: the samples scatter about the line by no more than twice the noise measured at the
         # detection (a line, not a step or a frozen stretch, explains them).
         consistent = math.sqrt(s2) <= 2.0 * self.fdir.alt_noise_factor * sig
@@ -481,7 +477,7 @@ class FlightSoftware:
         x, P = self.filter.ekf.x, self.filter.ekf.P
         ib = IDX_BA.start
         reset = fd.bias_check(t_ns, (float(x[ib]), float(x[ib + 1])), (float(P[ib, ib]), float(P[ib + 1, ib + 1])),
-                              self.filter.cfg.accel_noise_density)
+                              self.filter.cfg.accel_noise_density, self.filter.cfg.init_accel_bias_sigma_mps2)
         if reset is not None:
             self._reset_lateral_bias(t_ns, reset)
         observed = not fd.altitude_lost(t_ns, float(x[2] - x[IDX_H]))

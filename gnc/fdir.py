@@ -40,6 +40,12 @@ Checks (thresholds in :class:`FdirConfig`):
   accelerometer against the thrust the flight software commands (a lateral
   specific force, or an axial one that is not the commanded thrust's: reported
   as ``accel_thrust``, the accelerometer or the engine);
+* the filter's own consistency: its lateral accelerometer bias estimate beyond
+  ``bias_plausible_sigmas`` of the specification and not read by the
+  accelerometer (:meth:`HealthMonitor.bias_check`: re-initialised to the mean
+  lateral specific force); a noisy altimeter's self-consistent line fit that the
+  gate refuses (the flight software re-initialises the vertical channel,
+  :meth:`gnc.flight.FlightSoftware._fitted_update`);
 * the camera: a frame's mean level out of ``[image_mean_min, image_mean_max]``
   (exposure);
 * the Hakuto-R guard: the altimeter rejected for ``guard_s`` while its ranges
@@ -67,7 +73,8 @@ filter's vertical 1-sigma is above ``abort_sigma_z_frac`` of the estimated
 height (and above ``abort_sigma_z_min_m``); below ``abort_check_height_m``
 (just above the vision cut-off) the horizontal velocity's 1-sigma is above
 ``abort_sigma_vh_mps``; the estimated descent cannot be stopped above the
-ground at full thrust (``v^2 / (2 a_max) > stop_margin h``); below
+ground at full thrust (``v^2 / (2 a_max) > stop_margin h``); the altitude is not
+observed while descending below ``abort_check_height_m``; below
 ``touchdown_check_height_m`` it descends with a horizontal speed above
 ``touchdown_vh_max_mps``; or the estimated
 height is implausibly negative. The flight software then nulls its horizontal

@@ -73,8 +73,7 @@ filter's vertical 1-sigma is above ``abort_sigma_z_frac`` of the estimated
 height (and above ``abort_sigma_z_min_m``); below ``abort_check_height_m``
 (just above the vision cut-off) the horizontal velocity's 1-sigma is above
 ``abort_sigma_vh_mps``; the estimated descent cannot be stopped above the
-ground at full thrust (``v^2 / (2 a_max) > stop_margin h``); the altitude is not
-observed while descending below ``abort_check_height_m``; below
+ground at full thrust (``v^2 / (2 a_max) > stop_margin h``); below
 ``touchdown_check_height_m`` it descends with a horizontal speed above
 ``touchdown_vh_max_mps``; or the estimated
 height is implausibly negative. The flight software then nulls its horizontal
@@ -815,11 +814,6 @@ class HealthMonitor:
         elif not altitude_observed and sigma_z_m > max(c.abort_sigma_z_min_m, c.abort_sigma_z_frac * max(height_m, 0.0)):
             reason = (f"altitude not observed and its 1-sigma {sigma_z_m:.1f} m is beyond "
                       f"{100 * c.abort_sigma_z_frac:.0f} % of the height {height_m:.1f} m")
-        elif not altitude_observed and height_m < c.abort_check_height_m and v_z_mps < 0.0:
-            # Its covariance may say it knows the height, but nothing has checked that for the final descent:
-            # a filter made confidently wrong before the altimeter was lost would land blind.
-            reason = (f"altitude not observed while descending at {height_m:.0f} m, below "
-                      f"{c.abort_check_height_m:g} m (no final descent without a height measurement)")
         elif v_z_mps < 0.0 and height_m > 0.0 and (decel_max_mps2 <= 0.0 or
                                                    v_z_mps**2 / (2.0 * decel_max_mps2) > c.stop_margin * height_m):
             reason = (f"cannot stop before the ground: {-v_z_mps:.1f} m/s down at {height_m:.0f} m with "

@@ -4,8 +4,7 @@
   force must be detected and re-initialised to it; a consistent one must not;
 * the noisy altimeter's line fit: slope, intercept and their statistics against the normal equations summed in
   a loop; a self-consistent fit that the gate refuses re-initialises the vertical channel (a filter made
-  confidently wrong about its vertical velocity is brought back to the truth), and a right filter is left alone;
-* no final descent below the check height without an altitude measurement.
+  confidently wrong about its vertical velocity is brought back to the truth), and a right filter is left alone.
 """
 
 from __future__ import annotations
@@ -159,12 +158,3 @@ def test_noisy_altimeter_fit_leaves_a_right_filter_alone():
     x = fsw.filter.ekf.x
     assert not any("self-consistent altimeter fit" in e.reason for e in fsw.fdir.events)
     assert abs(x[5] - v_true) < 0.05 and abs(x[2] - x[IDX_H] - z_true) < 0.3
-
-
-def test_no_final_descent_without_an_altitude_measurement():
-    m = HealthMonitor(FdirConfig(), SPEC)
-    # Confident (1-sigma 1 m) but unobserved: fine above the check height, an abort below it while descending.
-    assert m.abort_reason(0, 60.0, 1.0, False, False, v_z_mps=-1.0) is None
-    assert m.abort_reason(0, 30.0, 1.0, True, False, v_z_mps=-1.0) is None  # observed
-    assert m.abort_reason(0, 30.0, 1.0, False, False, v_z_mps=0.5) is None  # climbing
-    assert "altitude not observed while descending" in m.abort_reason(NS, 30.0, 1.0, False, False, v_z_mps=-1.0)

@@ -40,6 +40,12 @@ Checks (thresholds in :class:`FdirConfig`):
   accelerometer against the thrust the flight software commands (a lateral
   specific force, or an axial one that is not the commanded thrust's: reported
   as ``accel_thrust``, the accelerometer or the engine);
+* the filter's own consistency: its lateral accelerometer bias estimate beyond
+  ``bias_plausible_sigmas`` of the specification and not read by the
+  accelerometer (:meth:`HealthMonitor.bias_check`: re-initialised to the mean
+  lateral specific force); a noisy altimeter's self-consistent line fit that the
+  gate refuses (the flight software re-initialises the vertical channel,
+  :meth:`gnc.flight.FlightSoftware._fitted_update`);
 * the camera: a frame's mean level out of ``[image_mean_min, image_mean_max]``
   (exposure);
 * the Hakuto-R guard: the altimeter rejected for ``guard_s`` while its ranges
@@ -129,6 +135,19 @@ class FdirConfig(BaseModel):
     accel_lateral_max_mps2: float = Field(0.25, gt=0.0, description="largest mean lateral specific force [m/s^2]")
     accel_axial_frac: float = Field(0.15, gt=0.0, lt=1.0, description="largest relative axial specific-force error [-]")
     thrust_efficiency_min: float = Field(0.85, gt=0.0, lt=1.0, description="re-plan below this delivered/commanded [-]")
+    bias_plausible_sigmas: float = Field(
+        3.0, gt=0.0, description="lateral bias check: the filter's accelerometer bias estimate beyond this many "
+                                 "sigma of the bias's specification on an axis ... [-]")
+    bias_check_sigmas: float = Field(
+        3.0, gt=0.0, description="... and that far from what the accelerometer reads (its mean lateral specific "
+                                 "force) by more than this many sigma of the difference [-]")
+    bias_check_model_mps2: float = Field(
+        3e-3, gt=0.0, description="... 1-sigma per axis of the lateral specific force that is neither the bias "
+                                  "nor the thrust's misalignment (RCS, rotation about an IMU off the centre of "
+                                  "mass) [m/s^2]")
+    engine_alignment_deg: float = Field(
+        0.25, ge=0.0, description="... the engine's alignment tolerance (largest misalignment of the thrust line; "
+                                  "the lateral share of the axial specific force) [deg]")
     engine_out_frac: float = Field(0.2, ge=0.0, lt=1.0,
                                    description="at or below this delivered/commanded the engine is out: reported, "
                                                "no recalibration [-]")
@@ -211,6 +230,27 @@ def body_rate_between(q0: np.ndarray, q1: np.ndarray, dt_s: float) -> np.ndarray
     return axis * angle / dt_s
 
 
+def line_fit(t_s: np.ndarray, d: np.ndarray) -> tuple[float, float, float, float]:
+    """Least-squares straight line ``d = slope t + intercept`` with its statistics.
+
+    Args:
+        t_s: Sample times (n,) [s], at least 3 distinct.
+        d: Samples (n,).
+
+    Returns:
+        (slope, intercept (the line at t = 0), the slope's variance from the residuals,
+        the residuals' variance ``sum(res^2) / (n - 2)``).
+    """
+    t, d = np.asarray(t_s, float), np.asarray(d, float)
+    tc = t - t.mean()
+    stt = float(tc @ tc)
+    slope = float(tc @ (d - d.mean())) / stt
+    intercept = float(d.mean()) - slope * float(t.mean())
+    res = d - (slope * t + intercept)
+    s2 = float(res @ res) / max(t.size - 2, 1)
+    return slope, intercept, s2 / stt, s2
+
+
 @dataclass
 class _Stuck:
     """Per-axis counter of bit-identical values in a row (plain floats: it runs on every IMU sample)."""
@@ -259,6 +299,10 @@ class HealthMonitor:
         self._thrusting = False
         self._lateral_run = 0
         self._axial_run = 0
+        self.lateral_mean_B: tuple[int, float, float, float, int] | None = None  # (t, mean f_B (3), n), a full window
+        self._bias_run = 0
+        self._last_tick_ns: int | None = None
+        self._tick_s = 0.02  # control period, measured from the ticks [s]
         self.last_gyro_B = np.zeros(3)
         self.last_imu_synthetic = False  # the message returned by imu() carries a synthetic specific force
         # star tracker
@@ -302,6 +346,10 @@ class HealthMonitor:
             return
         self._seen.add(key)
         self.events.append(FdirEvent(int(t_ns), subsystem, reason, action if self.cfg.recovery else ""))
+
+    def note(self, t_ns: int, subsystem: str, reason: str, action: str = "", once_key: str | None = None) -> None:
+        """An event the flight software detected itself (a recovery it made), recorded once per key."""
+        self._event(t_ns, subsystem, reason, action, once_key)
 
     def _fail(self, t_ns: int, channel: str, reason: str, action: str) -> None:
         """Declare a channel failed (recovery then acts on it) and record the event (once per channel and check)."""
@@ -383,6 +431,60 @@ class HealthMonitor:
     def _acc_clear(self) -> None:
         self._acc_win.clear()
         self._acc_sum = [0.0, 0.0, 0.0, 0.0]
+        self.lateral_mean_B = None
+        self._bias_run = 0
+
+    def bias_check(self, t_ns: int, b_xy: tuple[float, float], var_xy: tuple[float, float],
+                   noise_density: float, bias_sigma: float) -> tuple[float, float, float] | None:
+        """The filter's lateral accelerometer bias: plausible, and read by the accelerometer (a control tick)?
+
+        Vision measurements that pass the gate but are wrong move the bias estimate through its correlation
+        with the velocity; a filter so misled is confidently wrong about its horizontal velocity, and below
+        the vision cut-off that error grows unseen. Two conditions, both held for half a window of ticks:
+
+        * the estimate is beyond ``bias_plausible_sigmas`` times the bias's specification ``bias_sigma`` on
+          an axis (an accelerometer within its datasheet rarely has such a bias);
+        * on that axis the accelerometer itself does not read it: with the engine lit along +z its mean
+          lateral specific force over the window is its bias plus the thrust's share through the engine's
+          misalignment (within ``engine_alignment_deg``, uniform in size and in any direction: 1-sigma per
+          axis the tolerance over sqrt(6), times the mean axial specific force), a constant
+          ``bias_check_model_mps2`` (RCS, rotation) and its white noise; the difference to the estimate is
+          beyond ``bias_check_sigmas`` of those and the estimate's own variance.
+
+        Args:
+            t_ns: The control tick [ns].
+            b_xy: The filter's bias estimate, body x and y [m/s^2].
+            var_xy: Its variances [(m/s^2)^2].
+            noise_density: The accelerometer's white-noise density (specification) [m/s^2/sqrt(Hz)].
+            bias_sigma: The accelerometer bias's 1-sigma per axis (specification) [m/s^2].
+
+        Returns:
+            None, or on a detection with recovery on: (mean f_x, mean f_y [m/s^2], the variance of each
+            as a bias [(m/s^2)^2]), the bias the filter should take.
+        """
+        c, lm = self.cfg, self.lateral_mean_B
+        if lm is None or not self._thrusting or "imu.accel" in self.failed or t_ns - lm[0] > 2 * self.spec.imu_period_ns:
+            self._bias_run = 0
+            return None
+        _, fx, fy, fz, n = lm
+        # Misalignment uniform in size below the tolerance, in any direction: 1-sigma per axis tolerance / sqrt(6).
+        tilt = math.radians(c.engine_alignment_deg) / math.sqrt(6.0) * abs(fz)
+        r = c.bias_check_model_mps2 ** 2 + tilt**2 + noise_density ** 2 / (n * self.spec.imu_period_ns / NS_PER_S)
+        bad = [abs(b) > c.bias_plausible_sigmas * bias_sigma
+               and abs(f - b) > c.bias_check_sigmas * math.sqrt(v + r)
+               for f, b, v in ((fx, b_xy[0], var_xy[0]), (fy, b_xy[1], var_xy[1]))]
+        self._bias_run = self._bias_run + 1 if any(bad) else 0
+        if self._bias_run * self._tick_s < 0.5 * c.accel_window_s:
+            return None
+        self._event(t_ns, NAVIGATION, f"accelerometer bias estimate ({b_xy[0]:+.3f}, {b_xy[1]:+.3f}) m/s^2 beyond "
+                                      f"{c.bias_plausible_sigmas:g} sigma of its specification and not read by the "
+                                      f"accelerometer (mean lateral specific force ({fx:+.3f}, {fy:+.3f}) m/s^2): "
+                                      "the filter's horizontal channel is wrong",
+                    "bias re-initialised to the lateral specific force, horizontal velocity covariance inflated",
+                    once_key="bias")
+        self._bias_run = 0
+        self._acc_clear()  # the next judgement needs a fresh window
+        return (fx, fy, r) if c.recovery else None
 
     def _check_accel(self, t: int) -> None:
         c = self.cfg
@@ -401,6 +503,7 @@ class HealthMonitor:
         mean = (acc[0] / n, acc[1] / n, acc[2] / n)
         # A violation must hold for half a window of samples in a row (an impact's spike does not).
         persist = 0.5 * win_ns / self.spec.imu_period_ns
+        self.lateral_mean_B = (t, mean[0], mean[1], mean[2], n)
         lateral = math.hypot(mean[0], mean[1]) > c.accel_lateral_max_mps2
         self._lateral_run = self._lateral_run + 1 if lateral else 0
         if self._lateral_run >= persist:
@@ -676,6 +779,9 @@ class HealthMonitor:
                      contact: bool) -> None:
         """Record the command in force (for the accelerometer check) and run the clocked checks."""
         self._thrusting = thrust_cmd_N > 0.0 and not contact and mass_kg > 0.0
+        if self._last_tick_ns is not None and t_ns > self._last_tick_ns:
+            self._tick_s = (t_ns - self._last_tick_ns) / NS_PER_S
+        self._last_tick_ns = t_ns
         if self._vision_excluded_ns is not None and t_ns - self._vision_excluded_ns >= self.cfg.vision_retry_s * NS_PER_S:
             self.failed.discard("vision")  # tried again; a new streak of rejections excludes it again
             self._vision_excluded_ns = None

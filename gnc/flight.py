@@ -47,8 +47,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gnc.control import ActuatorCommand, Controller, VehicleParams
-from gnc.estimator import IDX_C, IDX_G, IDX_H, IDX_R, IDX_SV, IDX_V, NavFilter, UpdateRecord, quat_to_matrix
-from gnc.fdir import FdirEvent, HealthMonitor
+from gnc.estimator import IDX_BA, IDX_C, IDX_G, IDX_H, IDX_R, IDX_SV, IDX_V, NavFilter, UpdateRecord, quat_to_matrix
+from gnc.fdir import FdirEvent, HealthMonitor, line_fit
 from gnc.guidance import GuidanceCommand, GuidanceLaw, LandingTarget
 from gnc.hda import HazardAvoidance
 from gnc.map_nav import MapNavigator
@@ -109,6 +109,17 @@ class VisionStats:
     last: VisionMeasurement | None = None
     last_record: UpdateRecord | None = None
     last_tracks: Tracks | None = None
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """A noisy altimeter's straight-line fit over n samples (:meth:`FlightSoftware._averaged`)."""
+
+    msg: AltimeterMessage  # the fitted range now, as one sample
+    slope: float  # the navigation's vertical-velocity error over the span [m/s]
+    var_slope: float  # its variance from the residuals [(m/s)^2]
+    span_s: float  # the samples' span [s]
+    consistent: bool  # the samples scatter about the line as the measured noise does
 
 
 @dataclass(frozen=True)
@@ -180,7 +191,7 @@ class FlightSoftware:
         self.fdir = fdir
         self.hda = hda
         self._on_ground = False  # footpad contact seen: health monitoring ends (the descent is over)
-        self._alt_buffer: list[tuple[int, float]] = []
+        self._alt_buffer: list[tuple[int, float, float]] = []  # (t, height less expected, sigma)
         self._discounted = False  # the vertical covariance was re-inflated on a noisy-altimeter detection
         # Non-volatile memory, written at every control tick: (t_ns, filter state (24,), covariance (24, 24),
         # mass [kg], attitude q_LB (4,) or None).
@@ -223,9 +234,11 @@ class FlightSoftware:
                 P = self.filter.ekf.P
                 P[2, 2] += k2 * sigma**2  # one noisy range's error, and its slope over the detection window
                 P[5, 5] += k2 * sigma**2 / window_s**2
-            used = self._averaged(used, est_range)
-            if used is None:
+            fit = self._averaged(used, est_range, sigma)
+            if fit is None:
                 return
+            self._fitted_update(fit, est_range)
+            return
         record = self.filter.update_altimeter(used)
         if record is not None and record.reason in ("", "gate"):
             var = self.filter.altimeter_sigma_m(float(used.range_m), include_relief=False) ** 2
@@ -233,23 +246,84 @@ class FlightSoftware:
             if self.fdir.terrain_reinit is not None:
                 self._reinit_terrain(used)
 
-    def _averaged(self, msg: AltimeterMessage, est_range_m: float) -> AltimeterMessage | None:
-        """Collect each range's difference from the range the navigation expects at its time; every n-th sample,
-        the expected range now plus the straight-line fit of those differences evaluated now (else None).
+    def _cos_nadir(self, msg: AltimeterMessage) -> float:
+        """Cosine of the altimeter boresight's angle from nadir, from the filter's attitude (1 without one)."""
+        q = self.filter.q_LB
+        if q is None:
+            return 1.0
+        b = np.asarray(msg.boresight_B, float)
+        c = -float((quat_to_matrix(q) @ b)[2]) / float(np.linalg.norm(b))
+        return c if c > 0.1 else 1.0
 
-        The motion between the samples is the IMU's; the line's slope takes up a vertical-velocity error of
-        the navigation, so the update is not biased by it (its endpoint has about 4/n of one sample's variance;
-        :mod:`gnc.fdir` chooses n = 2 k^2 for a noise k times the specification).
+    def _averaged(self, msg: AltimeterMessage, est_range_m: float, sigma_m: float) -> _Fit | None:
+        """Collect each sample's height (range times the boresight's cosine) less the height the navigation
+        expects at its time; every n-th sample, the straight-line fit of those differences (else None).
+
+        The motion between the samples is the IMU's, so the line's intercept now is the navigation's height
+        error and its slope the navigation's vertical-velocity error (less the rate at which the ground
+        under the footprint rises). The endpoint has about 4/n of one sample's variance; :mod:`gnc.fdir`
+        chooses n = 2 k^2 for a noise k times the specification.
         """
         buf = self._alt_buffer
-        buf.append((msg.t_ns, float(msg.range_m) - est_range_m))
+        c = self._cos_nadir(msg)
+        buf.append((msg.t_ns, float(msg.range_m) * c - est_range_m, sigma_m))
         if len(buf) < self.fdir.alt_average_n:
             return None
         t = np.array([b[0] - msg.t_ns for b in buf], float) / NS_PER_S
         d = np.array([b[1] for b in buf])
-        slope, intercept = np.polyfit(t, d, 1)
+        sig = max(b[2] for b in buf)
         buf.clear()
-        return AltimeterMessage(msg.t_ns, est_range_m + float(intercept), True, msg.boresight_B)
+        slope, intercept, var_slope, s2 = line_fit(t, d)
+        # Self-consistent: the samples scatter about the line by no more than twice the noise measured at the
+        # detection (a line, not a step or a frozen stretch, explains them).
+        consistent = math.sqrt(s2) <= 2.0 * self.fdir.alt_noise_factor * sig
+        return _Fit(AltimeterMessage(msg.t_ns, (est_range_m + float(intercept)) / c, True, msg.boresight_B),
+                    float(slope), var_slope, float(-t[0]), consistent)
+
+    def _fitted_update(self, fit: _Fit, est_range_m: float) -> None:
+        """A noisy altimeter's fitted height and vertical velocity, with the vertical channel re-initialised
+        when the gate refuses a self-consistent fit (the filter, not the sensor, is then wrong)."""
+        used, fd, flt = fit.msg, self.fdir, self.filter
+        record = flt.update_altimeter(used)
+        if record is None or record.reason not in ("", "gate"):
+            return
+        reinit = not record.accepted and fit.consistent and fd.cfg.recovery
+        if reinit:
+            y = float(record.y[0]) * self._cos_nadir(used)  # the height error [m]
+            P = flt.ekf.P
+            P[2, 2] += y * y
+            P[5, 5] += (y / fit.span_s) ** 2
+            fd.note(used.t_ns, "altimeter", f"gate refused a self-consistent altimeter fit ({y:+.1f} m of height, "
+                                            f"NIS {record.nis:.0f}): the navigation's vertical channel is wrong",
+                    "vertical covariance re-initialised, fit applied", once_key="fit_reinit")
+            record = flt.update_altimeter(used)
+            if record is None:
+                return
+        var = flt.altimeter_sigma_m(float(used.range_m), include_relief=False) ** 2
+        fd.altimeter_record(used.t_ns, record.accepted, float(record.nis), float(used.range_m), est_range_m, var)
+        if fd.terrain_reinit is not None:
+            self._reinit_terrain(used)
+        if not (record.accepted and fit.consistent and math.isfinite(fit.var_slope)):
+            return
+        # The slope: the mean vertical-velocity error over the fit's span, less the ground's rise under the
+        # moving footprint (the relief's slope 1-sigma, relief over correlation length, times the horizontal
+        # speed) and the change of the error over half the span (the vertical bias's uncertainty).
+        x, P = flt.ekf.x, flt.ekf.P
+        cfg = flt.cfg
+        relief_slope = cfg.terrain_relief_sigma_m / max(cfg.terrain_correlation_length_m, 1e-9)
+        ib = IDX_BA.start + 2
+        var_v = fit.var_slope + (relief_slope * math.hypot(x[3], x[4])) ** 2 + (0.5 * fit.span_s) ** 2 * P[ib, ib]
+        z = np.array([float(x[5]) + fit.slope])
+        rec = flt.update_velocity(used.t_ns, z, np.array([[var_v]]), axes=(2,))
+        if not rec.accepted and rec.reason == "gate" and fd.cfg.recovery:
+            yv = float(rec.y[0])
+            P[5, 5] += yv * yv
+            P[ib, ib] += (yv / fit.span_s) ** 2
+            fd.note(used.t_ns, "altimeter", f"gate refused a self-consistent altimeter fit's vertical velocity "
+                                            f"({yv:+.2f} m/s, NIS {rec.nis:.0f}): the navigation's vertical "
+                                            "velocity is wrong", "vertical velocity covariance re-initialised, fit "
+                                                                  "applied", once_key="fit_reinit_v")
+            flt.update_velocity(used.t_ns, np.array([float(x[5]) + fit.slope]), np.array([[var_v]]), axes=(2,))
 
     def _reinit_terrain(self, msg: AltimeterMessage) -> None:
         """The Hakuto-R recovery: the filter's ground height re-initialised to the one this range measures."""
@@ -430,6 +504,11 @@ class FlightSoftware:
             self.controller.vehicle = dataclasses.replace(
                 self.controller.vehicle, thrust_scale=self.controller.vehicle.thrust_scale * eff)
         x, P = self.filter.ekf.x, self.filter.ekf.P
+        ib = IDX_BA.start
+        reset = fd.bias_check(t_ns, (float(x[ib]), float(x[ib + 1])), (float(P[ib, ib]), float(P[ib + 1, ib + 1])),
+                              self.filter.cfg.accel_noise_density, self.filter.cfg.init_accel_bias_sigma_mps2)
+        if reset is not None:
+            self._reset_lateral_bias(t_ns, reset)
         observed = not fd.altitude_lost(t_ns, float(x[2] - x[IDX_H]))
         if oracle:
             return
@@ -440,6 +519,31 @@ class FlightSoftware:
                         # the horizontal-velocity knowledge is judged when vision is meant to provide it
                         math.sqrt(max(float(P[3, 3] + P[4, 4]), 0.0)) if self.vision_enabled else 0.0,
                         float(x[5]), decel, math.hypot(x[3], x[4]))
+
+    def _reset_lateral_bias(self, t_ns: int, reset: tuple[float, float, float]) -> None:
+        """Re-initialise the filter's lateral accelerometer bias to the measured mean lateral specific force.
+
+        The bias's x and y are set to ``reset[:2]`` with variance ``reset[2]`` and no correlation (a principal
+        block of a positive semi-definite matrix stays so). The horizontal velocity (and position) has
+        integrated the bias error since the filter last saw an accepted vision measurement (at least over the
+        check's window), so its variance grows by that error times that time, squared (the position's by the
+        time squared over two).
+        """
+        fx, fy, var = reset
+        x, P = self.filter.ekf.x, self.filter.ekf.P
+        ib = IDX_BA.start
+        db = math.hypot(fx - float(x[ib]), fy - float(x[ib + 1]))
+        x[ib], x[ib + 1] = fx, fy
+        for i in (ib, ib + 1):
+            P[i, :] = 0.0
+            P[:, i] = 0.0
+            P[i, i] = var
+        last = self.vision.last_record
+        window_s = self.fdir.cfg.accel_window_s
+        tau = max((t_ns - last.t_ns) / NS_PER_S, window_s) if last is not None and last.accepted else window_s
+        for i in (0, 1):
+            P[3 + i, 3 + i] += (db * tau) ** 2
+            P[i, i] += (0.5 * db * tau**2) ** 2
 
     def _inflate_velocity(self, dt_ns: int) -> None:
         """Add the synthetic accelerometer's error over ``dt_ns`` to the filter's velocity (and position) covariance."""

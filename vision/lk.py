@@ -258,6 +258,17 @@ def lucas_kanade_opencv(
     return LKResult(xy=pos, status=st.reshape(-1).astype(bool) & on_image, iterations=np.full(n_pts, -1, np.int64))
 
 
+def _seeded_lk_kwargs(window: int, max_iter: int, eps: float, min_eig: float) -> dict:
+    """``calcOpticalFlowPyrLK`` keywords of the lean paths: one level, seeded, OpenCV's eigenvalue gate."""
+    return dict(
+        winSize=(window, window),
+        maxLevel=0,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, int(max_iter), float(eps)),
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        minEigThreshold=float(min_eig) * OPENCV_MIN_EIG_SCALE,
+    )
+
+
 def forward_backward_opencv_fast(
     prev_image: np.ndarray,
     image: np.ndarray,
@@ -286,13 +297,7 @@ def forward_backward_opencv_fast(
         (xy_k1 (P, 2) float64 [px], fb_error (P,) float64 [px], inf where a
         solve failed).
     """
-    kw = dict(
-        winSize=(window, window),
-        maxLevel=0,
-        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, int(max_iter), float(eps)),
-        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-        minEigThreshold=float(min_eig) * OPENCV_MIN_EIG_SCALE,
-    )
+    kw = _seeded_lk_kwargs(window, max_iter, eps, min_eig)
     p0 = xy.astype(np.float32).reshape(-1, 1, 2)
     fwd, st1, _ = cv2.calcOpticalFlowPyrLK(prev_image, image, p0, init_xy.astype(np.float32).reshape(-1, 1, 2), **kw)
     bwd_init = fwd + back_offset.astype(np.float32).reshape(-1, 1, 2)
@@ -323,13 +328,7 @@ def forward_opencv_fast(
         well-conditioned G, residual (P,) float64 [DN]: OpenCV's mean absolute
         difference of the aligned windows).
     """
-    kw = dict(
-        winSize=(window, window),
-        maxLevel=0,
-        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, int(max_iter), float(eps)),
-        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-        minEigThreshold=float(min_eig) * OPENCV_MIN_EIG_SCALE,
-    )
+    kw = _seeded_lk_kwargs(window, max_iter, eps, min_eig)
     p0 = xy.astype(np.float32).reshape(-1, 1, 2)
     fwd, st, err = cv2.calcOpticalFlowPyrLK(prev_image, image, p0, init_xy.astype(np.float32).reshape(-1, 1, 2), **kw)
     return fwd.reshape(-1, 2).astype(np.float64), st.ravel() != 0, err.ravel().astype(np.float64)

@@ -825,9 +825,14 @@ class HealthMonitor:
             reason = (f"horizontal velocity 1-sigma {sigma_vh_mps:.2f} m/s at {height_m:.0f} m, beyond "
                       f"{c.abort_sigma_vh_mps:g} m/s")
         if reason is not None:
-            self.abort = FdirEvent(int(t_ns), NAVIGATION, reason, "safe abort: hover")
-            self.events.append(self.abort)
+            self.declare_abort(t_ns, NAVIGATION, reason)
         return reason
+
+    def declare_abort(self, t_ns: int, subsystem: str, reason: str) -> None:
+        """Declare the safe abort (hover) for ``reason``, unless one is declared already; recorded as an event."""
+        if self.abort is None:
+            self.abort = FdirEvent(int(t_ns), subsystem, reason, "safe abort: hover")
+            self.events.append(self.abort)
 
 
 def restart_estimate(x: np.ndarray, P: np.ndarray, dt_s: float, gravity_mps2: float,

@@ -48,7 +48,7 @@ import numpy as np
 
 from gnc.control import ActuatorCommand, Controller, VehicleParams
 from gnc.estimator import IDX_BA, IDX_C, IDX_G, IDX_H, IDX_R, IDX_SV, IDX_V, NavFilter, UpdateRecord, quat_to_matrix
-from gnc.fdir import FdirEvent, HealthMonitor, line_fit
+from gnc.fdir import HealthMonitor, line_fit
 from gnc.guidance import GuidanceCommand, GuidanceLaw, LandingTarget
 from gnc.hda import HazardAvoidance
 from gnc.map_nav import MapNavigator
@@ -323,7 +323,7 @@ class FlightSoftware:
                                             f"({yv:+.2f} m/s, NIS {rec.nis:.0f}): the navigation's vertical "
                                             "velocity is wrong", "vertical velocity covariance re-initialised, fit "
                                                                   "applied", once_key="fit_reinit_v")
-            flt.update_velocity(used.t_ns, np.array([float(x[5]) + fit.slope]), np.array([[var_v]]), axes=(2,))
+            flt.update_velocity(used.t_ns, z, np.array([[var_v]]), axes=(2,))
 
     def _reinit_terrain(self, msg: AltimeterMessage) -> None:
         """The Hakuto-R recovery: the filter's ground height re-initialised to the one this range measures."""
@@ -453,10 +453,8 @@ class FlightSoftware:
         if new is not None:
             self.target = LandingTarget(r_L=new)
             return
-        if self.hda.cfg.no_site_action == "abort" and self.fdir is not None and self.fdir.abort is None:
-            self.fdir.abort = FdirEvent(int(msg.t_ns), HAZARD, "no safe site within the divert limit",
-                                        "safe abort: hover")
-            self.fdir.events.append(self.fdir.abort)
+        if self.hda.cfg.no_site_action == "abort" and self.fdir is not None:
+            self.fdir.declare_abort(msg.t_ns, HAZARD, "no safe site within the divert limit")
 
     # ------------------------------------------------------------------ control
     def control(self, t_ns: int, contact: ContactMessage, nav: NavState | None = None) -> ActuatorCommand:

@@ -725,8 +725,13 @@ class HealthMonitor:
         in_range = est_range_m is not None and est_range_m < 0.9 * self.spec.altimeter_max_range_m
         return in_range and self._alt_invalid >= c.invalid_streak and not self._alt_override
 
-    def vision_record(self, t_ns: int, accepted: bool) -> None:
-        """The filter's verdict on a vision measurement (the rejection rate over a window)."""
+    def vision_record(self, t_ns: int, accepted: bool) -> bool:
+        """The filter's verdict on a vision measurement (the rejection rate over a window).
+
+        Returns True when this verdict excludes vision and recovery is on: the measurements of the window
+        that the gate let through are then suspect too, and what only vision observes (the lateral
+        accelerometer bias) is to be re-initialised (:meth:`gnc.flight.FlightSoftware._measure`).
+        """
         c = self.cfg
         self._vision_hist.append(accepted)
         del self._vision_hist[:-c.vision_window]
@@ -735,9 +740,13 @@ class HealthMonitor:
             if frac > c.vision_rejected_max and "vision" not in self.failed:
                 self._vision_exclusions += 1
                 retry = self._vision_exclusions == 1
+                action = f"vision excluded for {c.vision_retry_s:g} s" if retry else "vision excluded"
                 self._fail(t_ns, "vision", f"vision measurements {100 * frac:.0f} % rejected by the gate",
-                           f"vision excluded for {c.vision_retry_s:g} s" if retry else "vision excluded")
+                           action + ("; lateral accelerometer bias re-initialised to its specification"
+                                     if c.recovery else ""))
                 self._vision_excluded_ns = t_ns if retry else None
+                return c.recovery
+        return False
 
     # ------------------------------------------------------------------ camera
     def image(self, t_ns: int, mean_dn: float | None) -> None:

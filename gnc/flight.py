@@ -284,6 +284,10 @@ class FlightSoftware:
         """A noisy altimeter's fitted height and vertical velocity, with the vertical channel re-initialised
         when the gate refuses a self-consistent fit (the filter, not the sensor, is then wrong)."""
         used, fd, flt = fit.msg, self.fdir, self.filter
+        # The slope is the vertical-velocity error of the navigation the samples were compared with, i.e. of
+        # the state before this update: the height update below moves the velocity too (through their
+        # correlation), so the velocity measurement is fixed now, not taken from the updated state.
+        z = np.array([float(flt.ekf.x[5]) + fit.slope])
         record = flt.update_altimeter(used)
         if record is None or record.reason not in ("", "gate"):
             return
@@ -313,7 +317,6 @@ class FlightSoftware:
         relief_slope = cfg.terrain_relief_sigma_m / max(cfg.terrain_correlation_length_m, 1e-9)
         ib = IDX_BA.start + 2
         var_v = fit.var_slope + (relief_slope * math.hypot(x[3], x[4])) ** 2 + (0.5 * fit.span_s) ** 2 * P[ib, ib]
-        z = np.array([float(x[5]) + fit.slope])
         rec = flt.update_velocity(used.t_ns, z, np.array([[var_v]]), axes=(2,))
         if not rec.accepted and rec.reason == "gate" and fd.cfg.recovery:
             yv = float(rec.y[0])
@@ -418,8 +421,20 @@ class FlightSoftware:
         self.vision.last_record = record
         if not record.accepted:
             self.vision.rejected += 1
-        if self._monitoring():
-            self.fdir.vision_record(m.t_ns, record.accepted)
+        if self._monitoring() and self.fdir.vision_record(m.t_ns, record.accepted):
+            self._vision_excluded(t_ns, self.fdir.cfg.vision_window * (t_ns - prev.t_ns) / NS_PER_S)
+
+    def _vision_excluded(self, t_ns: int, window_s: float) -> None:
+        """Vision was excluded for a majority of rejections over the last ``window_s`` [s].
+
+        The measurements of that window that passed the gate are suspect as well, and the lateral
+        accelerometer bias, which only vision observes (the altimeter sees the vertical), may have been pulled
+        by them; below the vision cut-off such a bias error grows into a horizontal-velocity error nothing
+        sees. The bias goes back to its specification (mean 0, the datasheet's 1-sigma per axis), and the
+        velocity covariance takes the change over the window (:meth:`_reset_lateral_bias`).
+        """
+        sig_b = self.filter.cfg.init_accel_bias_sigma_mps2
+        self._reset_lateral_bias(t_ns, (0.0, 0.0, sig_b**2), since_s=window_s)
 
     def _end_vision(self) -> None:
         """No vision at this frame: the next frame starts a new pair."""
@@ -518,14 +533,15 @@ class FlightSoftware:
                         math.sqrt(max(float(P[3, 3] + P[4, 4]), 0.0)) if self.vision_enabled else 0.0,
                         float(x[5]), decel, math.hypot(x[3], x[4]))
 
-    def _reset_lateral_bias(self, t_ns: int, reset: tuple[float, float, float]) -> None:
-        """Re-initialise the filter's lateral accelerometer bias to the measured mean lateral specific force.
+    def _reset_lateral_bias(self, t_ns: int, reset: tuple[float, float, float], since_s: float | None = None) -> None:
+        """Re-initialise the filter's lateral accelerometer bias (to the measured mean lateral specific force,
+        or to its specification when vision is excluded).
 
         The bias's x and y are set to ``reset[:2]`` with variance ``reset[2]`` and no correlation (a principal
         block of a positive semi-definite matrix stays so). The horizontal velocity (and position) has
         integrated the bias error since the filter last saw an accepted vision measurement (at least over the
-        check's window), so its variance grows by that error times that time, squared (the position's by the
-        time squared over two).
+        check's window; ``since_s`` when given), so its variance grows by that error times that time, squared
+        (the position's by the time squared over two).
         """
         fx, fy, var = reset
         x, P = self.filter.ekf.x, self.filter.ekf.P
@@ -539,6 +555,8 @@ class FlightSoftware:
         last = self.vision.last_record
         window_s = self.fdir.cfg.accel_window_s
         tau = max((t_ns - last.t_ns) / NS_PER_S, window_s) if last is not None and last.accepted else window_s
+        if since_s is not None:
+            tau = since_s
         for i in (0, 1):
             P[3 + i, 3 + i] += (db * tau) ** 2
             P[i, i] += (0.5 * db * tau**2) ** 2

@@ -4,7 +4,8 @@
   force must be detected and re-initialised to it; a consistent one must not;
 * the noisy altimeter's line fit: slope, intercept and their statistics against the normal equations summed in
   a loop; a self-consistent fit that the gate refuses re-initialises the vertical channel (a filter made
-  confidently wrong about its vertical velocity is brought back to the truth), and a right filter is left alone.
+  confidently wrong about its vertical velocity is brought back to the truth), and a right filter is left alone;
+  the fit's velocity is not counted twice through the height-velocity correlation.
 """
 
 from __future__ import annotations
@@ -109,22 +110,25 @@ def _knowledge() -> OnboardKnowledge:
                             r_alt_B_m=np.array([0.0, 0.0, -0.77]))
 
 
-def _noisy_altimeter_descent(v_err_mps: float, seed: int) -> tuple[FlightSoftware, float, float]:
-    """A 6 s descent at -1 m/s from 30 m (truth), the filter started with ``v_err_mps`` of vertical-velocity error
-    and a vertical covariance that does not admit it; the altimeter 5x noisier than its specification, which
-    the health monitor has already detected (ranges fitted 50 at a time). Returns (the flight software, the
+def _noisy_altimeter_descent(v_err_mps: float, seed: int, sigmas_corr: tuple[float, float, float] = (0.05, 0.01, 0.0),
+                             h_err_m: float = 0.0, seconds: float = 6.0) -> tuple[FlightSoftware, float, float]:
+    """A 6 s (``seconds``) descent at -1 m/s from 30 m (truth), the filter started with ``v_err_mps`` of
+    vertical-velocity error (and ``h_err_m`` of height error) and a vertical covariance that does not admit it; the altimeter 5x noisier than its specification, which
+    the health monitor has already detected (ranges fitted 50 at a time). ``sigmas_corr``: the filter's initial
+    height and vertical-velocity sigmas [m, m/s] and their correlation. Returns (the flight software, the
     true height of the altimeter at the end, the true vertical velocity)."""
     k = _knowledge()
     controller = Controller(None, k.vehicle)
     guidance = make_guidance(None, controller.guidance_limits())
     z0, v_true = 30.0, -1.0
-    nav = make_estimator(None, [0.0, 0.0, z0], [0.0, 0.0, v_true + v_err_mps], 0, q0_LB=[1, 0, 0, 0],
+    nav = make_estimator(None, [0.0, 0.0, z0 + h_err_m], [0.0, 0.0, v_true + v_err_mps], 0, q0_LB=[1, 0, 0, 0],
                          altimeter_mount_B_m=k.r_alt_B_m)
     P = nav.ekf.P
-    P[2, 2], P[5, 5] = 0.05**2, 0.01**2  # confident
-    for i in range(2, 24):
-        if i not in (2, 5):
-            P[2, i] = P[i, 2] = P[5, i] = P[i, 5] = 0.0
+    s_h, s_v, rho = sigmas_corr
+    for i in range(24):
+        P[2, i] = P[i, 2] = P[5, i] = P[i, 5] = 0.0
+    P[2, 2], P[5, 5] = s_h**2, s_v**2  # by default confident
+    P[2, 5] = P[5, 2] = rho * s_h * s_v
     P[IDX_BA, IDX_BA] = np.eye(3) * 1e-3**2
     fd = HealthMonitor(FdirConfig(), SPEC)
     fsw = FlightSoftware(guidance, controller, nav, None, VisionNavConfig(), False, k, fdir=fd)
@@ -133,7 +137,7 @@ def _noisy_altimeter_descent(v_err_mps: float, seed: int) -> tuple[FlightSoftwar
     rng = np.random.default_rng(seed)
     t = 0
     fsw.on_attitude(AttitudeMessage(0, np.array([1.0, 0.0, 0.0, 0.0])))
-    while t < 6 * NS:
+    while t < seconds * NS:
         t += IMU_NS
         fsw.on_imu(ImuMessage(t, np.array([0.0, 0.0, G]) + rng.normal(0.0, 1e-3, 3), rng.normal(0.0, 1e-5, 3)))
         if t % ALT_NS == 0:
@@ -158,3 +162,64 @@ def test_noisy_altimeter_fit_leaves_a_right_filter_alone():
     x = fsw.filter.ekf.x
     assert not any("self-consistent altimeter fit" in e.reason for e in fsw.fdir.events)
     assert abs(x[5] - v_true) < 0.05 and abs(x[2] - x[IDX_H] - z_true) < 0.3
+
+
+def test_noisy_altimeter_fit_velocity_is_not_counted_twice_through_the_height_velocity_correlation():
+    """In flight the height and vertical velocity errors are strongly correlated (0.5-0.9 below 30 m), so the
+    fit's height update already moves the velocity; the fit's slope measures the velocity error of the state
+    before that update. A filter 1.5 m high and descending 0.17 m/s too slowly, both inside its own sigmas
+    (1.2 m, 0.15 m/s, correlation 0.7, as flown in IM-2 at 20 m), so that nothing is refused: after one fit
+    (50 samples, 2.5 s) its velocity must be near the truth (0.01 m/s off), not pushed past it by the height
+    update's share counted a second time (0.08 m/s off before the fix). Without an initial correlation the
+    propagation builds one, and the same holds."""
+    for rho in (0.0, 0.7):
+        fsw, z_true, v_true = _noisy_altimeter_descent(0.17, seed=3, sigmas_corr=(1.2, 0.15, rho), h_err_m=1.5,
+                                                       seconds=2.55)
+        x = fsw.filter.ekf.x
+        assert not any("self-consistent altimeter fit" in e.reason for e in fsw.fdir.events)
+        assert abs(x[5] - v_true) < 0.05, (rho, x[5] - v_true)
+
+
+def test_vision_exclusion_is_reported_once_at_the_streak_and_only_with_recovery():
+    """The monitor's verdict on vision, counted by hand: with a window of 20 and at most half rejected, nine
+    accepted measurements then rejections exclude vision at the 11th rejection (11 of the last 20), and only
+    that call says so; in detection-only mode it is reported but nothing is to be re-initialised."""
+    for recovery in (True, False):
+        fd = HealthMonitor(FdirConfig(recovery=recovery), SPEC)
+        verdicts = [True] * 9 + [False] * 15
+        said = [fd.vision_record(i * 100_000_000, ok) for i, ok in enumerate(verdicts)]
+        first = next(i for i in range(20, len(verdicts) + 1) if verdicts[i - 20:i].count(False) > 10) - 1
+        assert first == 19  # the 20th measurement (the window is full) holds the 11th rejection
+        assert said == [recovery and i == first for i in range(len(verdicts))]
+        assert any("vision" in e.subsystem for e in fd.events)
+        assert ("vision" in fd.failed) == recovery
+
+
+def test_vision_exclusion_reinitialises_the_lateral_bias_to_its_specification():
+    """After vision is excluded, the lateral bias it pulled goes back to mean 0 with the datasheet's variance and
+    no correlation, and the horizontal velocity variance grows by (bias change x window)^2, computed here by
+    hand; everything else in the state and covariance is unchanged, and the covariance stays symmetric and
+    positive semi-definite."""
+    fsw, _, _ = _noisy_altimeter_descent(0.0, seed=1, seconds=1.0)
+    x, P = fsw.filter.ekf.x, fsw.filter.ekf.P
+    ib = IDX_BA.start
+    x[ib], x[ib + 1] = 0.012, -0.009  # pulled by suspect vision measurements
+    P[ib, 3] = P[3, ib] = 0.5 * math.sqrt(P[ib, ib] * P[3, 3])  # and correlated with the velocity
+    x0, P0 = x.copy(), P.copy()
+    window_s = 2.0
+    fsw._vision_excluded(5 * NS, window_s)
+    x, P = fsw.filter.ekf.x, fsw.filter.ekf.P
+    sig_b = fsw.filter.cfg.init_accel_bias_sigma_mps2
+    db = math.hypot(0.012, -0.009)
+    expect_x = x0.copy()
+    expect_x[ib] = expect_x[ib + 1] = 0.0
+    assert np.array_equal(x, expect_x)
+    expect_P = P0.copy()
+    for i in (ib, ib + 1):
+        expect_P[i, :] = expect_P[:, i] = 0.0
+        expect_P[i, i] = sig_b**2
+    for i in (0, 1):
+        expect_P[3 + i, 3 + i] += (db * window_s) ** 2
+        expect_P[i, i] += (0.5 * db * window_s**2) ** 2
+    assert np.allclose(P, expect_P, rtol=0.0, atol=1e-15)
+    assert np.allclose(P, P.T) and np.linalg.eigvalsh(P).min() > -1e-12

@@ -46,6 +46,16 @@ Checks (thresholds in :class:`FdirConfig`):
   lateral specific force); a noisy altimeter's self-consistent line fit that the
   gate refuses (the flight software re-initialises the vertical channel,
   :meth:`gnc.flight.FlightSoftware._fitted_update`);
+* the attitude actuators: the body's angular acceleration (the slope of the
+  gyro's rates over ``torque_window_s``, times the nominal inertia, plus the
+  gyroscopic term) against the RCS torque commanded over the same window
+  (saturated at the RCS limit); a residual about an axis beyond what the
+  engine may give nominally (``torque_lever_m`` times the thrust, from the
+  centre-of-mass and alignment tolerances) plus ``torque_margin_Nm``, held for
+  ``torque_persist_s``: an RCS thruster failed or stuck on, or a torque the
+  vehicle should not have (:meth:`HealthMonitor.torque_check`; reported as
+  ``rcs``, detection only: the attitude loop's feedback carries on with what
+  the RCS still gives);
 * the camera: a frame's mean level out of ``[image_mean_min, image_mean_max]``
   (exposure);
 * the Hakuto-R guard: the altimeter rejected for ``guard_s`` while its ranges
@@ -98,6 +108,8 @@ IMU = "imu"
 ALTIMETER = "altimeter"
 STAR_TRACKER = "star_tracker"
 CAMERA = "camera"
+RCS = "rcs"
+TORQUE_EVAL_S = 0.1  # the RCS torque check's judgement period [s]
 ACCEL_THRUST = "accel_thrust"
 ENGINE = "engine"
 COMPUTER = "computer"
@@ -151,6 +163,15 @@ class FdirConfig(BaseModel):
     engine_out_frac: float = Field(0.2, ge=0.0, lt=1.0,
                                    description="at or below this delivered/commanded the engine is out: reported, "
                                                "no recalibration [-]")
+    torque_window_s: float = Field(1.0, gt=0.0, description="window of the RCS torque check [s]")
+    torque_lever_m: float = Field(
+        0.035, ge=0.0, description="RCS torque check: the largest torque the engine may give about a lateral axis "
+                                   "per unit thrust (centre-of-mass tolerance 0.03 m per axis, alignment 0.25 deg "
+                                   "over about 1.2 m) [m]")
+    torque_margin_Nm: float = Field(
+        40.0, gt=0.0, description="... plus this, on every axis (PWM impulse granularity and gyro noise over the "
+                                  "window, inertia error, RCS plume and slosh torques) [N m]")
+    torque_persist_s: float = Field(0.5, gt=0.0, description="... held this long: an RCS fault [s]")
     image_mean_min: float = Field(15.0, ge=0.0, description="darkest plausible mean frame level [DN]")
     image_mean_max: float = Field(235.0, le=255.0, description="brightest plausible mean frame level [DN]")
     negative_altitude_m: float = Field(5.0, gt=0.0, description="estimated height below ground, no contact [m]")
@@ -333,6 +354,12 @@ class HealthMonitor:
         self._cam_last_t: int | None = None
         self._cam_gap_open = False
         self.thrust_efficiency: float | None = None
+        # RCS torque check: gyro rates (t [s], wx, wy, wz) and commands (t [s], tx, ty, tz, thrust [N]) in the window
+        self._rate_win: deque[tuple[float, float, float, float]] = deque()
+        self._torque_win: deque[tuple[float, float, float, float, float]] = deque()
+        self._torque_bad_since: int | None = None
+        self._torque_eval_t: float | None = None  # the last judgement [s]
+        self.torque_residual_B_Nm: np.ndarray | None = None  # the last window's residual (telemetry, tests)
         self._vision_hist: list[bool] = []
         self._vision_excluded_ns: int | None = None
         self._vision_exclusions = 0
@@ -389,6 +416,8 @@ class HealthMonitor:
         self._gyro_sum += w_B
         self._gyro_n += 1
         self.last_gyro_B = w_B
+        wx, wy, wz = w_B.tolist()
+        self._rate_win.append((t / NS_PER_S, wx, wy, wz))
         if self._thrusting:
             fx, fy, fz = f_B.tolist()
             self._acc_push(t, fx, fy, fz, self._thrust_expect_mps2)
@@ -485,6 +514,72 @@ class HealthMonitor:
         self._bias_run = 0
         self._acc_clear()  # the next judgement needs a fresh window
         return (fx, fy, r) if c.recovery else None
+
+    def torque_check(self, t_ns: int, torque_cmd_B_Nm: np.ndarray, thrust_N: float, inertia_B_kgm2: np.ndarray,
+                     torque_max_Nm: float) -> np.ndarray | None:
+        """The RCS against its command (module docstring), at a control tick.
+
+        Args:
+            t_ns: The control tick [ns].
+            torque_cmd_B_Nm: The torque commanded from this tick on, (3,) [N m] (saturated here at
+                ``torque_max_Nm`` per axis, as the RCS can give no more).
+            thrust_N: The thrust commanded from this tick on (0: engine off) [N].
+            inertia_B_kgm2: The flight software's principal inertia now, (3,) [kg m^2].
+            torque_max_Nm: The RCS's torque limit per axis [N m].
+
+        Returns:
+            The window's residual torque (3,) [N m], measured less commanded, when the window is full and a
+            judgement is due (every ``TORQUE_EVAL_S``; also in ``torque_residual_B_Nm``); None otherwise.
+        """
+        c = self.cfg
+        t = t_ns / NS_PER_S
+        rates, cmds = self._rate_win, self._torque_win
+        if "imu.gyro" in self.failed or not (self._thrusting or thrust_N > 0.0):
+            rates.clear()
+            cmds.clear()
+            self._torque_bad_since = None
+            self._torque_eval_t = None
+            return None
+        tx, ty, tz = np.clip(np.asarray(torque_cmd_B_Nm, float), -torque_max_Nm, torque_max_Nm).tolist()
+        cmds.append((t, tx, ty, tz, float(thrust_N)))
+        t0 = t - c.torque_window_s
+        while rates and rates[0][0] < t0:
+            rates.popleft()
+        while cmds and cmds[0][0] < t0:
+            cmds.popleft()
+        if len(rates) < 5 or len(cmds) < 3 or rates[-1][0] - rates[0][0] < 0.9 * c.torque_window_s:
+            return None
+        if self._torque_eval_t is not None and t - self._torque_eval_t < TORQUE_EVAL_S - 1e-9:
+            return None  # judged at 10 Hz: the window is 1 s, the persistence 0.5 s
+        self._torque_eval_t = t
+        w = np.array(rates)
+        tc = w[:, 0] - w[:, 0].mean()
+        alpha = tc @ (w[:, 1:] - w[:, 1:].mean(axis=0)) / float(tc @ tc)  # the rates' slope [rad/s^2]
+        w_mean = w[:, 1:].mean(axis=0)
+        inertia = np.asarray(inertia_B_kgm2, float)
+        # The commands in force over the rates' span: each holds from its tick to the next (the last one,
+        # issued now, has not acted yet).
+        u = np.array(cmds)
+        in_span = (u[:, 0] >= w[0, 0] - self._tick_s) & (u[:, 0] < w[-1, 0])
+        if not np.any(in_span):
+            return None
+        tau_cmd = u[in_span, 1:4].mean(axis=0)
+        thrust = float(u[in_span, 4].mean())
+        residual = inertia * alpha + np.cross(w_mean, inertia * w_mean) - tau_cmd
+        self.torque_residual_B_Nm = residual
+        envelope = np.array([c.torque_lever_m * thrust, c.torque_lever_m * thrust, 0.0]) + c.torque_margin_Nm
+        if np.any(np.abs(residual) > envelope):
+            if self._torque_bad_since is None:
+                self._torque_bad_since = t_ns
+            elif t_ns - self._torque_bad_since >= c.torque_persist_s * NS_PER_S:
+                ax = int(np.argmax(np.abs(residual) - envelope))
+                self._event(t_ns, RCS, f"torque about body {'xyz'[ax]} {residual[ax]:+.0f} N m other than "
+                                       f"commanded (beyond the {envelope[ax]:.0f} N m the engine may give): an RCS "
+                                       "thruster failed or stuck on", "reported; attitude feedback carries on",
+                            once_key="torque")
+        else:
+            self._torque_bad_since = None
+        return residual
 
     def _check_accel(self, t: int) -> None:
         c = self.cfg

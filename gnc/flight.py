@@ -490,6 +490,9 @@ class FlightSoftware:
         if self._monitoring():
             self.fdir.control_tick(t_ns, act.thrust_N if act.engine_on else 0.0, self._thrust_scale, self.mass_kg,
                                    bool(np.any(contact.legs)))
+            veh = self.controller.vehicle
+            self.fdir.torque_check(t_ns, act.torque_B_Nm, act.thrust_N if act.engine_on else 0.0,
+                                   veh.inertia_B_kgm2(self.mass_kg), veh.rcs_torque_max_Nm)
             self.checkpoint = (t_ns, self.filter.ekf.x.copy(), self.filter.ekf.P.copy(), self.mass_kg, self.filter.q_LB)
         return act
 

@@ -12,7 +12,10 @@ Engine logic: a command <= 0 (or ``cut()``) means the engine is off; any
 positive command is clamped to ``[thrust_min_N, thrust_max_N]``, because a
 lit deep-throttle engine cannot go below its minimum. The delivered thrust is
 ``clamped * (1 + thrust_error_frac)`` (times ``fault_gain`` under a thrust-loss
-fault, :mod:`models.faults`). Mass flows at ``T / (Isp * g0)``.
+fault, :mod:`models.faults`). Mass flows at ``T / (Isp * g0)``. Under an RCS
+fault (:meth:`PropulsionModel.set_rcs_fault`) the delivered torque (saturated,
+or the PWM pulses) is scaled per axis and sense, and a stuck-on thruster's
+torque is added.
 
 Two paths (:attr:`PropulsionModel.instant`):
 
@@ -95,6 +98,23 @@ class PropulsionModel:
         self._pwm_sign = np.zeros(3)
         self._pwm_window = -1
         self._pwm_carry_Nms = np.zeros(3)  # impulse commanded but not yet fired, per axis [N m s]
+        self._rcs_fault: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (gain +, gain -, stuck [N m])
+
+    def set_rcs_fault(self, fault: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> None:
+        """Hold the RCS faults active now (:meth:`models.faults.FaultInjector.rcs_fault`): per axis the factor on
+        a positive and on a negative torque and the stuck-on torque as a fraction of the limit; None: none."""
+        if fault is None:
+            self._rcs_fault = None
+            return
+        pos, neg, stuck = (np.asarray(v, float) for v in fault)
+        self._rcs_fault = (pos, neg, stuck * float(self.cfg.rcs_torque_max_Nm))
+
+    def _rcs_faulted(self, torque_B_Nm: np.ndarray) -> np.ndarray:
+        """The delivered torque under the RCS faults (3,) [N m]."""
+        if self._rcs_fault is None:
+            return torque_B_Nm
+        pos, neg, stuck = self._rcs_fault
+        return np.where(torque_B_Nm > 0.0, torque_B_Nm * pos, torque_B_Nm * neg) + stuck
 
     def delivered_thrust_N(self, thrust_cmd_N: float) -> float:
         """Thrust the engine delivers now for a command [N] (instant path: the clamped command times the error)."""
@@ -147,7 +167,7 @@ class PropulsionModel:
         thrust = self.clamp_thrust(thrust_cmd_N) * (1.0 + self.cfg.engine.thrust_error_frac)
         if self.fault_gain != 1.0:
             thrust *= self.fault_gain
-        torque = self.clamp_torque(torque_cmd_B_Nm)
+        torque = self._rcs_faulted(self.clamp_torque(torque_cmd_B_Nm))
         if thrust <= 0.0:
             return PropulsionOutput(0.0, torque, 0, 0.0, False)
         per_step_kg = self.mass_flow_kgps(thrust) * dt_s
@@ -223,11 +243,12 @@ class PropulsionModel:
         rcs = self.cfg.rcs
         if self.propellant_kg <= 0.0:
             self.engine_thrust_N = 0.0
-            return 0.0, (np.zeros(3) if rcs.draws_propellant else self._rcs_step(torque_cmd_B_Nm, step_index, dt_ns)), False
+            return 0.0, (np.zeros(3) if rcs.draws_propellant
+                         else self._rcs_faulted(self._rcs_step(torque_cmd_B_Nm, step_index, dt_ns))), False
         thrust = self._engine_step(thrust_cmd_N, dt_s) * (1.0 + self.cfg.engine.thrust_error_frac)
         if self.fault_gain != 1.0:
             thrust *= self.fault_gain
-        torque = self._rcs_step(torque_cmd_B_Nm, step_index, dt_ns)
+        torque = self._rcs_faulted(self._rcs_step(torque_cmd_B_Nm, step_index, dt_ns))
         used = self.mass_flow_kgps(thrust) * dt_s
         if rcs.draws_propellant:
             used += float(np.sum(np.abs(torque))) / rcs.moment_arm_m / (rcs.isp_s * G0_MPS2) * dt_s

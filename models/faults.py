@@ -35,6 +35,12 @@ Kinds and targets:
   line tilted by ``angle_deg`` towards ``azimuth_deg``), ``stuck_throttle`` (a
   lit engine delivers the command held at the trigger, whatever is commanded;
   an off command still shuts it).
+* RCS (``target = "rcs"``): ``rcs_loss`` (the torque the RCS delivers about
+  each of ``axes`` times ``1 - fraction``, in both senses or only the
+  ``positive`` or ``negative`` one: thrusters failed off or clogged),
+  ``rcs_stuck_on`` (a thruster stuck open: a constant torque of
+  ``fraction`` of the RCS's limit about ``axis`` in the ``sign`` sense, on top of
+  whatever is commanded, drawing propellant when the RCS does).
 * ``computer_reset``: the flight computer is down for ``down_s`` (no message
   is received, the engine and RCS are off), then the flight software restarts
   from what it can know (its own non-volatile checkpoint).
@@ -226,6 +232,34 @@ class StuckThrottle(_Fault):
     target: Literal["engine"] = "engine"
 
 
+class RcsLoss(_Fault):
+    """The RCS torque about ``axes`` times (1 - fraction), in one sense or both."""
+
+    kind: Literal["rcs_loss"]
+    target: Literal["rcs"] = "rcs"
+    axes: list[int] = Field([0, 1, 2], min_length=1, max_length=3, description="body axes affected: 0 x, 1 y, 2 z")
+    fraction: float = Field(1.0, ge=0.0, le=1.0, description="fraction of the torque lost (1: none delivered) [-]")
+    direction: Literal["both", "positive", "negative"] = Field(
+        "both", description="the torque sense lost: both, or only the positive or negative one (one thruster of "
+                            "a pair) [-]")
+
+    @model_validator(mode="after")
+    def _axes(self) -> "RcsLoss":
+        if any(a not in (0, 1, 2) for a in self.axes) or len(set(self.axes)) != len(self.axes):
+            raise ValueError(f"fault axes = {self.axes}; allowed: distinct values among 0, 1, 2")
+        return self
+
+
+class RcsStuckOn(_Fault):
+    """A thruster stuck open: a constant torque about one axis, added to what is commanded."""
+
+    kind: Literal["rcs_stuck_on"]
+    target: Literal["rcs"] = "rcs"
+    axis: int = Field(ge=0, le=2, description="body axis of the stuck thruster's torque: 0 x, 1 y, 2 z")
+    sign: Literal[-1, 1] = Field(1, description="sense of its torque about the axis: +1 or -1")
+    fraction: float = Field(1.0, gt=0.0, le=1.0, description="its torque as a fraction of the RCS limit [-]")
+
+
 class ComputerReset(_Fault):
     """The flight computer goes down for ``down_s`` (engine and RCS off), then restarts."""
 
@@ -256,7 +290,7 @@ class TerrainStep(_Fault):
 
 FaultConfig = Annotated[
     Union[Dropout, Stuck, BiasStep, BiasRamp, Noise, Scale, Saturation, FlaggedInvalid, CameraBlackout, FrameDrop,
-          Exposure, ThrustLoss, Misalignment, StuckThrottle, ComputerReset, TerrainStep],
+          Exposure, ThrustLoss, Misalignment, StuckThrottle, RcsLoss, RcsStuckOn, ComputerReset, TerrainStep],
     Field(discriminator="kind"),
 ]
 SENSOR_KINDS = ("dropout", "stuck", "bias_step", "bias_ramp", "noise", "scale", "saturation", "flagged_invalid")
@@ -488,6 +522,25 @@ class FaultInjector:
         for s in self._active(t_ns, ("misalignment",)):
             return s.cfg.angle_deg, s.cfg.azimuth_deg
         return None
+
+    def rcs_fault(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The active RCS faults: per body axis, the factor on a positive and on a negative delivered torque,
+        and the stuck-on torque as a fraction of the RCS limit, ((3,), (3,), (3,)); None: none active."""
+        active = list(self._active(t_ns, ("rcs_loss", "rcs_stuck_on")))
+        if not active:
+            return None
+        pos, neg, stuck = np.ones(3), np.ones(3), np.zeros(3)
+        for s in active:
+            c = s.cfg
+            if c.kind == "rcs_loss":
+                for a in c.axes:
+                    if c.direction in ("both", "positive"):
+                        pos[a] *= 1.0 - c.fraction
+                    if c.direction in ("both", "negative"):
+                        neg[a] *= 1.0 - c.fraction
+            else:
+                stuck[c.axis] += c.sign * c.fraction
+        return pos, neg, stuck
 
     def computer_down(self, t_ns: int) -> bool:
         """Whether the flight computer is down at ``t_ns``."""

@@ -301,6 +301,7 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                     fsw = restart_flight_software(scenario, fsw, t_ns)
                 world.set_engine_fault(faults.thrust_gain(t_ns), faults.fault_torque_B_Nm(t_ns),
                                        faults.thrust_direction_B(t_ns))
+                world.propulsion.set_rcs_fault(faults.rcs_fault(t_ns))
             # Sensors due now (zero-order hold between samples); the filter consumes them.
             t0 = time.perf_counter()
             if t_ns % periods["imu"] == 0:
@@ -538,8 +539,8 @@ def _truth_height(terrain: Terrain, truth: TruthState) -> float:
 
 # Which detections count for a fault on each target (gnc.fdir subsystems).
 DETECTS = {"imu": ("imu", "accel_thrust"), "altimeter": ("altimeter",), "star_tracker": ("star_tracker",),
-           "camera": ("camera",), "engine": ("engine", "accel_thrust"), "computer": ("computer",),
-           "terrain": ("altimeter",)}
+           "camera": ("camera",), "engine": ("engine", "accel_thrust", "rcs"), "computer": ("computer",),
+           "terrain": ("altimeter",), "rcs": ("rcs",)}
 
 
 def _over_disc_ns(tel: dict[str, np.ndarray], step: Any) -> int | None:

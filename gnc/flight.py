@@ -519,6 +519,10 @@ class FlightSoftware:
             self._thrust_scale *= eff
             self.controller.vehicle = dataclasses.replace(
                 self.controller.vehicle, thrust_scale=self.controller.vehicle.thrust_scale * eff)
+            # ... and guidance plans again within the thrust the engine now delivers.
+            veh, lim = self.controller.vehicle, self.guidance.limits
+            self.guidance.set_limits(dataclasses.replace(lim, thrust_min_N=veh.thrust_min_N * veh.thrust_scale,
+                                                         thrust_max_N=veh.thrust_max_N * veh.thrust_scale))
         x, P = self.filter.ekf.x, self.filter.ekf.P
         ib = IDX_BA.start
         reset = fd.bias_check(t_ns, (float(x[ib]), float(x[ib + 1])), (float(P[ib, ib]), float(P[ib + 1, ib + 1])),

@@ -263,6 +263,17 @@ class GfoldGuidance(ZemZevGuidance):
         self.solve_wall_s: list[float] = []  # wall time of each path solve, search included [s]
         self.failures: list[str] = []
 
+    def set_limits(self, limits) -> None:
+        """New thrust limits: the convex problem is rebuilt with them and the path solved again at the next step."""
+        super().set_limits(limits)
+        opt: GfoldOptions = self.options
+        self.rho1 = self.cfg.plan_thrust_min_frac * limits.thrust_min_N
+        self.rho2 = self.cfg.plan_thrust_max_frac * limits.thrust_max_N
+        self.problem = GfoldProblem(opt.nodes, self.g_L, self.alpha, self.rho1, self.rho2, opt.glide_slope_deg,
+                                    opt.solver)
+        if self.phase == PHASE_APPROACH:
+            self.solution = None
+
     def reset(self) -> None:
         super().reset()
         self.solution: GfoldSolution | None = None

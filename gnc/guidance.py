@@ -494,6 +494,15 @@ class GuidanceLaw(ABC):
         # Open-loop end of the approach: (start time [ns], (c0, c1, c2)), once started.
         self._open_loop: tuple[int, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
 
+    def set_limits(self, limits: GuidanceLimits) -> None:
+        """New limits to plan within (the flight software found the engine delivers less than commanded and
+        recalibrated it): the approach is planned again from the next step, as for a moved target."""
+        if not isinstance(limits, GuidanceLimits):
+            raise ValueError(f"limits must be a GuidanceLimits, got {type(limits).__name__}")
+        self.limits = limits
+        if self.phase == PHASE_APPROACH:
+            self.t_final_ns = None
+
     # -- the law
     @abstractmethod
     def accel_L(

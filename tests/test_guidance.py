@@ -414,3 +414,31 @@ def test_bad_limits_name_the_field():
         GuidanceLimits(thrust_min_N=8000.0)
     with pytest.raises(ValueError, match="tilt_max_touchdown_deg"):
         TiltLimitConfig(tilt_max_touchdown_deg=40.0)
+
+
+@pytest.mark.parametrize("law", ["zem_zev", "apollo"])
+def test_lower_thrust_limits_replan_within_them(law):
+    """After an engine loss the flight software lowers the limits (``set_limits``): the next step plans again,
+    and the new path keeps the thrust the engine now gives along its whole length on the same fine independent
+    check as above, where the old plan's path needed more than that."""
+    gd = make_guidance({"law": law})
+    r0, v0 = np.array([-120.0, 80.0, 400.0]), np.array([6.0, -4.0, -18.0])
+    first = gd.update(nav_at(0.0, r0, v0), LandingTarget())
+    r_f, v_f = gd.gate_L(LandingTarget())
+    r1, v1 = r0 + v0 * 1.0, v0 + first.a_cmd_L * 1.0
+    lower = GuidanceLimits(thrust_min_N=0.65 * 1500.0, thrust_max_N=0.65 * 7500.0)
+
+    def peak_thrust(t_go):
+        c0, c1, c2 = gd.coeffs(r1, v1, r_f, v_f, t_go)
+        s = np.linspace(0.0, t_go, 2001)[:, None]
+        return WET_MASS_KG * np.linalg.norm(c0 + c1 * s + c2 * s * s - G_L, axis=1).max()
+
+    old_t_go = first.t_go_s - 1.0
+    assert peak_thrust(old_t_go) > lower.thrust_max_N  # the old plan needs more than is left
+    n = gd.n_plans
+    gd.set_limits(lower)
+    cmd = gd.update(nav_at(1.0, r1, v1), LandingTarget())
+    assert gd.n_plans == n + 1 and gd.limits is lower and cmd.phase == PHASE_APPROACH
+    assert peak_thrust(cmd.t_go_s) <= lower.thrust_max_N
+    with pytest.raises(ValueError, match="GuidanceLimits"):
+        gd.set_limits({"thrust_max_N": 1.0})

@@ -48,7 +48,8 @@ Phases:
         over the target at up to ``terminal_speed_max_mps``.
 
 Time to go (both laws): a fixed final time, planned and re-planned only when
-needed. At the first call (and after a target change) the law scans candidate
+needed. At the first call (and after a target change, or new limits from
+:meth:`GuidanceLaw.set_limits` when the engine turns out weaker) the law scans candidate
 ``t_go`` in ``[t_go_min_s, t_go_max_s]``; for each, the law's own polynomial
 trajectory to the gate is evaluated in closed form and checked against the
 limits *along the whole path*: thrust within ``[plan_thrust_min_frac *

@@ -183,6 +183,7 @@ KIND_ALTIMETER = "altimeter"
 KIND_VELOCITY = "velocity"
 KIND_VISION = "vision"
 KIND_MAP = "map"  # map-relative position fixes (gnc.map_nav); counted only once one is made
+KIND_DIVERGENCE = "divergence"  # vision's flow divergence without an altimeter; counted only once one is made
 # Why an update was not applied (UpdateRecord.reason); "" when accepted.
 REASON_GATE = "gate"
 REASON_NONFINITE = "nonfinite"
@@ -1062,6 +1063,55 @@ class NavFilter:
         if rec.accepted:
             self._offset_new_known = True
         return rec
+
+    def update_divergence(self, t_ns: int, z: float, hx: float, H_r: np.ndarray, H_c: np.ndarray, H_g: float,
+                          H_s: np.ndarray, R: float) -> UpdateRecord:
+        """Update with the flow's divergence of a frame pair (:class:`gnc.vision_nav.DivergenceMeasurement`):
+        the camera's vertical displacement over its height, ``w = dz / h0``.
+
+        Linearised by the caller at the prior like :meth:`update_relative`, on the current position (at
+        ``t_ns``), the clone, the viewed ground's height and slope; unlike the horizontal flow it corrects the
+        vertical channel (the flight software uses it when no altimeter is left: the ratio of the vertical
+        velocity to the height, whose scale the IMU's accelerations make observable). The frames' common
+        offsets do not enter: a shift of all tracks does not change their spread. Kind ``"divergence"``.
+
+        Args:
+            t_ns: Time of validity (the second frame) [ns].
+            z: Measured divergence [-].
+            hx: Its prediction at the prior [-].
+            H_r: Jacobian on the position at ``t_ns``, (3,) [1/m].
+            H_c: Jacobian on the clone, (3,) [1/m].
+            H_g: Jacobian on the viewed ground's height [1/m].
+            H_s: Jacobian on the viewed ground's slope, (2,) [-].
+            R: Variance of ``z`` [-].
+
+        Returns:
+            The update's record (not applied without a clone, or when gated, stale or non-finite).
+        """
+        self.counters.setdefault(KIND_DIVERGENCE, {"accepted": 0, "rejected": 0, "invalid": 0})
+        self.consecutive_rejections.setdefault(KIND_DIVERGENCE, 0)
+        zv = np.array([float(z)])
+        H_r = np.asarray(H_r, dtype=float)
+        H_c = np.asarray(H_c, dtype=float)
+        H_s = np.asarray(H_s, dtype=float)
+        if H_r.shape != (3,) or H_c.shape != (3,) or H_s.shape != (2,):
+            raise ValueError(f"update_divergence: shapes H_r {H_r.shape}, H_c {H_c.shape}, H_s {H_s.shape}; "
+                             "expected (3,), (3,), (2,)")
+        if not all_finite(H_r, H_c, H_s, np.array([hx, H_g])):
+            return self._not_applied(t_ns, KIND_DIVERGENCE, zv, REASON_NONFINITE, "invalid")
+        if self._clone_t_ns is None:
+            return self._not_applied(t_ns, KIND_DIVERGENCE, zv, REASON_NO_CLONE, "invalid")
+        checked = self._checked_noise_and_lag(t_ns, KIND_DIVERGENCE, zv, np.array([[float(R)]]))
+        if isinstance(checked, UpdateRecord):
+            return checked
+        Rm, lag_ns = checked
+        H = np.zeros((1, DIM_X))
+        H[0, IDX_R] = H_r
+        H[0, IDX_V] = H_r * (lag_ns / NS_PER_S)
+        H[0, IDX_C] = H_c
+        H[0, IDX_G] = H_g
+        H[0, IDX_SV] = H_s
+        return self._gated_update(int(t_ns), KIND_DIVERGENCE, zv, np.array([float(hx)]), H, Rm)
 
     def altimeter_sigma_m(self, range_m: float, cos_nadir: float = 1.0, include_relief: bool = True) -> float:
         """1-sigma of a slant range [m]: the altimeter spec, plus the relief by default.

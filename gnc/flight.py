@@ -193,6 +193,7 @@ class FlightSoftware:
         self._on_ground = False  # footpad contact seen: health monitoring ends (the descent is over)
         self._alt_buffer: list[tuple[int, float, float]] = []  # (t, height less expected, sigma)
         self._discounted = False  # the vertical covariance was re-inflated on a noisy-altimeter detection
+        self._altimeter_lost = False  # no usable altimeter (health monitoring): vision's divergence is used
         # Non-volatile memory, written at every control tick: (t_ns, filter state (24,), covariance (24, 24),
         # mass [kg], attitude q_LB (4,) or None).
         self.checkpoint: tuple[int, np.ndarray, np.ndarray, float, np.ndarray | None] | None = None
@@ -408,12 +409,28 @@ class FlightSoftware:
         ids = tracks.ids[np.all(np.isfinite(tracks.prev_xy), axis=1)]
         overlap = frame_overlap(self._prev_pair_ids, ids)
         self._prev_pair_ids = ids
+        divergence = self._altimeter_lost
         m = vision_measurement(tracks, prev.t_ns, t_ns, k.K, k.R_BC, k.r_cam_B_m, R_LB0, R_LB1,
                                x[IDX_C].copy(), r1, float(x[IDX_G]), sigma_rot, self.vision_cfg,
-                               s_view=x[IDX_SV].copy())
+                               s_view=x[IDX_SV].copy(), with_divergence=divergence)
         if m is None:
             self.vision.unusable += 1
             return
+        if divergence and m.divergence is not None:
+            # No altimeter: the divergence measures the vertical velocity over the height (made at the same
+            # prior as the horizontal flow, so applied first; the horizontal flow's consider update leaves
+            # the vertical channel alone). Below the usual cut-off only the divergence is used.
+            d = m.divergence
+            self.filter.update_divergence(d.t_ns, d.z, d.hx, d.H_r, d.H_c, d.H_g, d.H_s, d.R)
+            x = self.filter.ekf.x  # the update made a new state vector
+            if float(x[2]) <= self.vision_cfg.cutoff_altitude_m:
+                return
+            m = vision_measurement(tracks, prev.t_ns, t_ns, k.K, k.R_BC, k.r_cam_B_m, R_LB0, R_LB1,
+                                   x[IDX_C].copy(), x[IDX_R] + x[IDX_V] * lag_s, float(x[IDX_G]), sigma_rot,
+                                   self.vision_cfg, s_view=x[IDX_SV].copy())
+            if m is None:
+                self.vision.unusable += 1
+                return
         self.vision.measurements += 1
         self.vision.last = m
         record = self.filter.update_relative(m.t_ns, m.z, m.hx, m.H_r, m.H_c, m.R, m.R_frame, m.H_g, m.H_s,
@@ -443,10 +460,13 @@ class FlightSoftware:
         self.filter.drop_clone()
 
     def vision_active(self) -> bool:
-        """Vision is enabled and the estimated altitude is above the cut-off."""
+        """Vision is enabled and the estimated altitude is above the cut-off (without an altimeter, above
+        the divergence's lower cut-off)."""
         if not self.vision_enabled or (self.fdir is not None and "vision" in self.fdir.failed):
             return False
-        return float(self.filter.ekf.x[2]) > self.vision_cfg.cutoff_altitude_m
+        cfg = self.vision_cfg
+        cutoff = min(cfg.cutoff_altitude_m, cfg.divergence_cutoff_m) if self._altimeter_lost else cfg.cutoff_altitude_m
+        return float(self.filter.ekf.x[2]) > cutoff
 
     # ------------------------------------------------------------------ hazard avoidance
     def wants_lidar_scan(self) -> bool:
@@ -530,6 +550,8 @@ class FlightSoftware:
         if reset is not None:
             self._reset_lateral_bias(t_ns, reset)
         observed = not fd.altitude_lost(t_ns, float(x[2] - x[IDX_H]))
+        # Without an altimeter (and with recovery on), vision's divergence carries the vertical channel.
+        self._altimeter_lost = not observed and fd.cfg.recovery
         if oracle:
             return
         veh = self.controller.vehicle

@@ -121,6 +121,44 @@ class VisionNavConfig(BaseModel):
     cutoff_altitude_m: float = Field(
         30.0, ge=0.0, description="vision is used only above this estimated altitude; below, IMU + altimeter [m]"
     )
+    divergence_cutoff_m: float = Field(
+        4.0, ge=0.0,
+        description="without an altimeter (failed or lost), the flow's divergence is used down to this estimated "
+                    "altitude (and the horizontal flow down to cutoff_altitude_m as usual) [m]",
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class DivergenceMeasurement:
+    """The flow's divergence between two frames, linearised at the filter's prior: the camera's vertical
+    displacement over its height, ``w = dz / h0``, which scales every track's flow with its ray.
+
+    Each kept track's flow is fitted as ``g_i = u + w b_i`` (``b_i`` its unit-height ray at the second frame,
+    ``u`` the common horizontal part): ``w`` is the least-squares slope. The prediction fits the same line to
+    the flows the prior predicts for the same tracks (with the viewed ground's slope), so a slope in view
+    that makes the flow vary across the image is in the model, not read as vertical motion.
+
+    Attributes:
+        t_ns: Time of validity (the second frame) [ns].
+        z: The fitted divergence ``w`` [-].
+        hx: Its prediction at the prior [-].
+        H_r: Jacobian on the body position at ``t_ns``, (3,) [1/m].
+        H_c: Jacobian on the clone (body position at the first frame), (3,) [1/m].
+        H_g: Jacobian on the viewed ground's height [1/m].
+        H_s: Jacobian on the viewed ground's slope, (2,) [-].
+        R: Variance of ``z`` [-]: cluster-robust from the fit's residuals, floored by the pixel noise,
+            times ``covariance_inflation`` (an offset of a whole frame moves every track alike and does not
+            change the slope).
+    """
+
+    t_ns: int
+    z: float
+    hx: float
+    H_r: np.ndarray
+    H_c: np.ndarray
+    H_g: float
+    H_s: np.ndarray
+    R: float
 
 
 @dataclass(frozen=True, slots=True)
@@ -146,6 +184,8 @@ class VisionMeasurement:
         n_tracks: Tracks offered.
         n_used: Tracks kept after outlier rejection.
         residual_px: Robust residual scatter of the kept tracks, in pixels.
+        divergence: The same pair's :class:`DivergenceMeasurement` when asked for (None otherwise, or when
+            the kept tracks do not span the image enough to fit it).
     """
 
     t0_ns: int
@@ -163,6 +203,7 @@ class VisionMeasurement:
     n_tracks: int
     n_used: int
     residual_px: float
+    divergence: DivergenceMeasurement | None = None
 
 
 def vision_measurement(
@@ -180,6 +221,7 @@ def vision_measurement(
     sigma_rot_rad: float,
     cfg: VisionNavConfig,
     s_view: np.ndarray | None = None,
+    with_divergence: bool = False,
 ) -> VisionMeasurement | None:
     """The vision measurement of a frame pair, for :meth:`NavFilter.update_relative`.
 
@@ -198,6 +240,7 @@ def vision_measurement(
         sigma_rot_rad: 1-sigma per axis of the relative rotation between the frames [rad].
         cfg: Settings.
         s_view: Prior slope ``(dh/dx, dh/dy)`` of the viewed ground, (2,) [-]; None: level.
+        with_divergence: Also fit the flow's divergence (:class:`DivergenceMeasurement`).
 
     Returns:
         The measurement, or None when there are too few usable tracks or the
@@ -300,11 +343,61 @@ def vision_measurement(
     R = cfg.covariance_inflation * R
     R_frame = cfg.covariance_inflation * R_frame
     v_xy = (h0 * z - dz * b_mean - ((R_LB1 - R_LB0) @ r_cam_B)[:2]) / dt_s
+    divergence = None
+    if with_divergence:
+        divergence = _divergence(int(t1_ns), gk, ak, bk, xy0[keep], dr_xy, dz, h0, sv, f_px, cfg)
     return VisionMeasurement(
         t0_ns=int(t0_ns), t_ns=int(t1_ns), z=z, hx=hx, H_r=H_r, H_c=H_c, H_g=H_g, H_s=H_s, R=0.5 * (R + R.T),
         R_frame=R_frame, b_mean=b_mean, v_L=v_xy, n_tracks=n_tracks, n_used=n_used,
-        residual_px=math.sqrt(s2) * f_px / h0,
+        residual_px=math.sqrt(s2) * f_px / h0, divergence=divergence,
     )
+
+
+def divergence_fit_weights(b: np.ndarray) -> np.ndarray | None:
+    """The weights ``l_i`` (N, 2) with ``w = sum_i l_i . g_i`` the least-squares slope of ``g_i = u + w b_i``
+    (``u`` free, 2-D; ``b`` (N, 2)); None when the rays do not spread (a singular fit)."""
+    bc = b - b.mean(axis=0)
+    sbb = float((bc * bc).sum())
+    if not sbb > 1e-12:
+        return None
+    return bc / sbb
+
+
+def _divergence(t_ns: int, g: np.ndarray, a: np.ndarray, b: np.ndarray, xy: np.ndarray, dr_xy: np.ndarray,
+                dz: float, h0: float, sv: np.ndarray, f_px: float, cfg: VisionNavConfig) -> DivergenceMeasurement | None:
+    """The flow's divergence of the kept tracks (flows ``g``, rays ``a``, ``b``, pixels ``xy`` at the first
+    frame) and its model at the prior (:class:`DivergenceMeasurement`)."""
+    lw = divergence_fit_weights(b)
+    if lw is None:
+        return None
+    n = g.shape[0]
+    z = float((lw * g).sum())
+    # The prior's flow per track and its derivatives, with the slope factor (1 + s . a_i).
+    k = 1.0 + a @ sv  # (n,)
+    pred = (dr_xy[None, :] + dz * b) * k[:, None] / h0
+    hx = float((lw * pred).sum())
+    d_dr = np.array([float((lw[:, 0] * k).sum()), float((lw[:, 1] * k).sum())]) / h0  # d hx / d dr_xy
+    d_dz = float((lw * b * k[:, None]).sum()) / h0
+    d_h0 = -hx / h0
+    # dr = c1 - c0 (horizontal), dz = c1_z - c0_z, h0 = c0_z - h_view.
+    H_r = np.array([d_dr[0], d_dr[1], d_dz])
+    H_c = np.array([-d_dr[0], -d_dr[1], -d_dz + d_h0])
+    H_g = -d_h0
+    # d hx / d s = sum_i l_i . (dr + dz b_i) a_i^T / h0
+    H_s = ((lw * (dr_xy[None, :] + dz * b)).sum(axis=1)[:, None] * a).sum(axis=0) / h0
+    # Variance: the fit's residuals, cluster-robust over image cells (one template's tracks err together),
+    # floored by the pixel noise of the two frames.
+    u = (g - z * b).mean(axis=0)
+    res = g - u - z * b
+    contrib = (lw * res).sum(axis=1)  # each track's share of the slope's error
+    cluster, n_clusters = _image_cells(xy, cfg.cluster_px)
+    sums = np.bincount(cluster, weights=contrib, minlength=n_clusters)
+    var = float(sums @ sums) * (n_clusters / max(n_clusters - 1, 1))
+    floor = (cfg.pixel_sigma_px / f_px) ** 2 * 2.0 * float((lw * lw).sum())
+    R = cfg.covariance_inflation * max(var, floor)
+    if not (math.isfinite(z) and math.isfinite(R) and n >= cfg.min_tracks):
+        return None
+    return DivergenceMeasurement(t_ns=t_ns, z=z, hx=hx, H_r=H_r, H_c=H_c, H_g=float(H_g), H_s=H_s, R=R)
 
 
 _K_INV_CACHE: dict[bytes, np.ndarray] = {}

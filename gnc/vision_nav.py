@@ -146,8 +146,8 @@ class DivergenceMeasurement:
         H_c: Jacobian on the clone (body position at the first frame), (3,) [1/m].
         H_g: Jacobian on the viewed ground's height [1/m].
         H_s: Jacobian on the viewed ground's slope, (2,) [-].
-        R: Variance of ``z`` [-]: cluster-robust from the fit's residuals, floored by the pixel noise,
-            times ``covariance_inflation`` (an offset of a whole frame moves every track alike and does not
+        R: Variance of ``z`` [-]: from the fit's residuals (the larger of the classical and the
+            cluster-robust estimate), floored by the pixel noise, times ``covariance_inflation`` (an offset of a whole frame moves every track alike and does not
             change the slope).
     """
 
@@ -385,16 +385,19 @@ def _divergence(t_ns: int, g: np.ndarray, a: np.ndarray, b: np.ndarray, xy: np.n
     H_g = -d_h0
     # d hx / d s = sum_i l_i . (dr + dz b_i) a_i^T / h0
     H_s = ((lw * (dr_xy[None, :] + dz * b)).sum(axis=1)[:, None] * a).sum(axis=0) / h0
-    # Variance: the fit's residuals, cluster-robust over image cells (one template's tracks err together),
-    # floored by the pixel noise of the two frames.
+    # Variance from the fit's residuals: the larger of the classical one (independent tracks) and the
+    # cluster-robust one over image cells (one template's tracks err together), both with the three fitted
+    # parameters' degrees of freedom taken out, floored by the pixel noise of the two frames.
     u = (g - z * b).mean(axis=0)
     res = g - u - z * b
+    l2 = float((lw * lw).sum())
+    var_white = float((res * res).sum()) / max(2 * n - 3, 1) * l2
     contrib = (lw * res).sum(axis=1)  # each track's share of the slope's error
     cluster, n_clusters = _image_cells(xy, cfg.cluster_px)
     sums = np.bincount(cluster, weights=contrib, minlength=n_clusters)
-    var = float(sums @ sums) * (n_clusters / max(n_clusters - 1, 1))
-    floor = (cfg.pixel_sigma_px / f_px) ** 2 * 2.0 * float((lw * lw).sum())
-    R = cfg.covariance_inflation * max(var, floor)
+    var_cluster = float(sums @ sums) * (n_clusters / max(n_clusters - 3, 1))
+    floor = (cfg.pixel_sigma_px / f_px) ** 2 * 2.0 * l2
+    R = cfg.covariance_inflation * max(var_white, var_cluster, floor)
     if not (math.isfinite(z) and math.isfinite(R) and n >= cfg.min_tracks):
         return None
     return DivergenceMeasurement(t_ns=t_ns, z=z, hx=hx, H_r=H_r, H_c=H_c, H_g=float(H_g), H_s=H_s, R=R)

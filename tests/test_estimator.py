@@ -959,3 +959,32 @@ def test_view_ground_sigma_averages_the_relief_over_the_patch(width_m):
     rho = ((model / cfg.view_ground_sigma_m) ** 2 - 1 / big) / (1 - 1 / big)
     assert view_ground_sigma(few, width_m / cfg.view_width_per_height, 1.0) == pytest.approx(
         cfg.view_ground_sigma_m * math.sqrt(rho + (1 - rho) / 4))
+
+
+def test_divergence_update_is_the_textbook_scalar_update_and_corrects_the_vertical_channel():
+    """The flow divergence (no altimeter): the update must equal the ordinary Kalman update written out here
+    (H on the position, the clone, the viewed ground's height and slope; no consider rows, the frames' offsets
+    not involved), and unlike the horizontal flow it moves the height and the vertical velocity."""
+    nav = make(None, [5.0, -3.0, 60.0], [1.0, 0.5, -3.0], 0, q0_LB=[1, 0, 0, 0])
+    assert nav.clone_frame(0)
+    for k in range(1, 11):
+        nav.propagate_imu(_imu(k, [0.05, -0.02, G + 0.4]))
+    x0, P0 = nav.ekf.x.copy(), nav.ekf.P.copy()
+    h0 = 60.0
+    H_r = np.array([2e-4, -1e-4, 1.0 / h0])
+    H_c = np.array([-2e-4, 1e-4, -1.0 / h0 - 0.005 / h0])
+    H_g, H_s, R = 0.005 / h0, np.array([3e-4, -2e-4]), 4e-8
+    hx = -0.3 / h0
+    z = hx + 4e-4
+    rec = nav.update_divergence(nav.time_ns, z, hx, H_r, H_c, H_g, H_s, R)
+    assert rec.accepted and rec.kind == "divergence" and nav.counters["divergence"]["accepted"] == 1
+    H = np.zeros((1, 24))
+    H[0, 0:3], H[0, 10:13], H[0, 19], H[0, 22:24] = H_r, H_c, H_g, H_s
+    S = float((H @ P0 @ H.T)[0, 0]) + R
+    K = (P0 @ H.T / S)[:, 0]
+    x_post = x0 + K * (z - hx)
+    P_post = P0 - np.outer(K, K) * S
+    np.testing.assert_allclose(nav.ekf.x, x_post, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(nav.ekf.P, P_post, rtol=1e-7, atol=1e-10)
+    assert abs(nav.ekf.x[2] - x0[2]) > 1e-3 and abs(nav.ekf.x[5] - x0[5]) > 1e-4  # the vertical channel moved
+    assert "divergence" not in make(None, [0.0, 0.0, 60.0], [0.0, 0.0, -3.0], 0).counters  # counted once used

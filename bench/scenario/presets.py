@@ -45,6 +45,10 @@ PRESETS: dict[str, Preset] = {p.name: p for p in (
                        "plateau under the start of the track that the onboard terrain model lacks",
            {"faults": [{"kind": "terrain_step", "height_m": 150.0, "center_xy_m": [-130.0, 90.0],
                         "radius_m": 60.0}]}),
+    Preset("dead_altimeter", "IM-1's situation without its flagged-but-good backup ranges: no altimeter range at "
+                             "all for the whole descent (the issue's first try, sensors.altimeter.dropout_prob = 1). "
+                             "Here: altimeter dropout from hand-over to touchdown",
+           {"faults": [{"kind": "dropout", "target": "altimeter"}]}),
     Preset("slim", "SLIM (Jan 2024): lost part of one of its two main-engine nozzles at about 50 m: thrust loss "
                    "plus an off-axis torque; it landed on its nose. Here: 35 % thrust loss and 60 N m about body y "
                    "from 50 m",

@@ -328,6 +328,31 @@ def test_dead_altimeter_without_altitude_declares_a_safe_abort():
     assert s["faults"][0]["detected"] and s["touchdown"]["t_s"] is None
 
 
+def test_dead_altimeter_vision_divergence_carries_the_height():
+    """No altimeter from the start: vision's flow divergence (the vertical velocity over the height, whose
+    scale the IMU's accelerations make observable) must shrink the height's 1-sigma from its 20 m at hand-over
+    within 8 s (dead reckoning alone grows it), with the error inside 3 sigma throughout."""
+    from bench.sim.run import run
+
+    res = run(load_scenario(None, [*SMALL_SET, "sim.t_max_ns=8_000_000_000",
+                                   'faults=[{kind="dropout", target="altimeter"}]']))
+    tel = res.telemetry
+    sz, ez = tel["nav_sigma_r_z_m"], tel["nav_err_r_z_m"]
+    assert sz[-1] < 0.7 * sz[0], (sz[0], sz[-1])
+    assert np.all(np.abs(ez) < 3.0 * sz)
+    assert res.summary["faults"][0]["detected"]
+
+
+@pytest.mark.slow
+def test_dead_altimeter_default_descent_lands():
+    """The default descent with no altimeter range at all lands within the criteria on vision's divergence."""
+    from bench.sim.run import run
+
+    s = run(load_scenario(None, ["seed=1", 'faults=[{kind="dropout", target="altimeter"}]'])).summary
+    assert s["outcome"] == "landed", s["outcome"]
+    assert s["touchdown"]["v_vertical_mps"] < 1.0
+
+
 # --------------------------------------------------------------------------- command line and the matrix
 def test_faults_list_and_bad_names_get_one_line(capsys, tmp_path):
     from bench.cli import main

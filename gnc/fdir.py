@@ -109,6 +109,7 @@ ALTIMETER = "altimeter"
 STAR_TRACKER = "star_tracker"
 CAMERA = "camera"
 RCS = "rcs"
+INERTIAL_SUBSYSTEMS = frozenset({"imu", "star_tracker", "computer", "accel_thrust"})
 TORQUE_EVAL_S = 0.1  # the RCS torque check's judgement period [s]
 ACCEL_THRUST = "accel_thrust"
 ENGINE = "engine"
@@ -180,6 +181,10 @@ class FdirConfig(BaseModel):
     vision_window: int = Field(20, ge=5, description="vision measurements in the rejection-rate window [-]")
     vision_rejected_max: float = Field(0.5, gt=0.0, le=1.0,
                                        description="largest fraction of them the filter's gate may reject [-]")
+    vision_attribution_s: float = Field(
+        20.0, gt=0.0, description="vision excluded for good within this of an inertial fault's detection (IMU, "
+                                  "star tracker, computer) is that fault's doing: the lateral bias vision gave is "
+                                  "kept [s]")
     vision_retry_s: float = Field(5.0, gt=0.0, description="an excluded vision is tried again once, after this [s] "
                                                            "(its cause may have passed: a gyro or IMU outage)")
     abort_check_height_m: float = Field(
@@ -360,6 +365,7 @@ class HealthMonitor:
         self._torque_bad_since: int | None = None
         self._torque_eval_t: float | None = None  # the last judgement [s]
         self.torque_residual_B_Nm: np.ndarray | None = None  # the last window's residual (telemetry, tests)
+        self._inertial_fault_ns: int | None = None  # the last detection on the IMU, star tracker or computer
         self._vision_hist: list[bool] = []
         self._vision_excluded_ns: int | None = None
         self._vision_exclusions = 0
@@ -368,6 +374,8 @@ class HealthMonitor:
 
     # ------------------------------------------------------------------ events
     def _event(self, t_ns: int, subsystem: str, reason: str, action: str = "", once_key: str | None = None) -> None:
+        if subsystem in INERTIAL_SUBSYSTEMS:
+            self._inertial_fault_ns = t_ns
         key = (subsystem, once_key or reason)
         if key in self._seen:
             return
@@ -823,9 +831,13 @@ class HealthMonitor:
     def vision_record(self, t_ns: int, accepted: bool) -> bool:
         """The filter's verdict on a vision measurement (the rejection rate over a window).
 
-        Returns True when this verdict excludes vision and recovery is on: the measurements of the window
-        that the gate let through are then suspect too, and what only vision observes (the lateral
-        accelerometer bias) is to be re-initialised (:meth:`gnc.flight.FlightSoftware._measure`).
+        Returns True when this verdict excludes vision for good (its second exclusion: the first is
+        retried, its cause may have been another sensor's) and recovery is on, unless an inertial fault
+        (IMU, star tracker, computer) was detected within ``vision_attribution_s`` before: vision itself is
+        then the failing sensor, the measurements the gate let through while it failed are suspect too,
+        and what only vision observes (the lateral accelerometer bias) is to be re-initialised
+        (:meth:`gnc.flight.FlightSoftware._measure`). After an inertial fault the rejections are that
+        fault's (the filter's state went wrong, vision did not), and the bias vision gave before is kept.
         """
         c = self.cfg
         self._vision_hist.append(accepted)
@@ -835,12 +847,17 @@ class HealthMonitor:
             if frac > c.vision_rejected_max and "vision" not in self.failed:
                 self._vision_exclusions += 1
                 retry = self._vision_exclusions == 1
-                action = f"vision excluded for {c.vision_retry_s:g} s" if retry else "vision excluded"
                 self._fail(t_ns, "vision", f"vision measurements {100 * frac:.0f} % rejected by the gate",
-                           action + ("; lateral accelerometer bias re-initialised to its specification"
-                                     if c.recovery else ""))
+                           f"vision excluded for {c.vision_retry_s:g} s" if retry else "vision excluded")
                 self._vision_excluded_ns = t_ns if retry else None
-                return c.recovery
+                inertial = self._inertial_fault_ns is not None and \
+                    t_ns - self._inertial_fault_ns <= c.vision_attribution_s * NS_PER_S
+                if not retry and c.recovery:  # the second exclusion's event has the first's key: a note of its own
+                    self._event(t_ns, "vision", "vision measurements rejected again after the retry",
+                                "vision excluded" + ("" if inertial else
+                                                     "; lateral accelerometer bias re-initialised to its "
+                                                     "specification"), once_key="vision_final")
+                return c.recovery and not retry and not inertial
         return False
 
     # ------------------------------------------------------------------ camera

@@ -442,7 +442,8 @@ class FlightSoftware:
             self._vision_excluded(t_ns, self.fdir.cfg.vision_window * (t_ns - prev.t_ns) / NS_PER_S)
 
     def _vision_excluded(self, t_ns: int, window_s: float) -> None:
-        """Vision was excluded for a majority of rejections over the last ``window_s`` [s].
+        """Vision was excluded for good (a majority of rejections again after its retry) over the last
+        ``window_s`` [s].
 
         The measurements of that window that passed the gate are suspect as well, and the lateral
         accelerometer bias, which only vision observes (the altimeter sees the vertical), may have been pulled

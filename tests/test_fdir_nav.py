@@ -180,19 +180,27 @@ def test_noisy_altimeter_fit_velocity_is_not_counted_twice_through_the_height_ve
         assert abs(x[5] - v_true) < 0.05, (rho, x[5] - v_true)
 
 
-def test_vision_exclusion_is_reported_once_at_the_streak_and_only_with_recovery():
-    """The monitor's verdict on vision, counted by hand: with a window of 20 and at most half rejected, nine
-    accepted measurements then rejections exclude vision at the 11th rejection (11 of the last 20), and only
-    that call says so; in detection-only mode it is reported but nothing is to be re-initialised."""
+def test_vision_exclusion_for_good_is_reported_once_and_only_with_recovery():
+    """The monitor's verdicts on vision, counted by hand: with a window of 20 and at most half rejected, nine
+    accepted measurements then rejections exclude vision at the 11th rejection (11 of the last 20); that first
+    exclusion is retried after 5 s and does not ask for a re-initialisation (its cause may be another sensor's);
+    the same streak after the retry excludes vision for good, and only that call says so. In detection-only
+    mode nothing is excluded and nothing is to be re-initialised."""
     for recovery in (True, False):
         fd = HealthMonitor(FdirConfig(recovery=recovery), SPEC)
         verdicts = [True] * 9 + [False] * 15
-        said = [fd.vision_record(i * 100_000_000, ok) for i, ok in enumerate(verdicts)]
         first = next(i for i in range(20, len(verdicts) + 1) if verdicts[i - 20:i].count(False) > 10) - 1
         assert first == 19  # the 20th measurement (the window is full) holds the 11th rejection
-        assert said == [recovery and i == first for i in range(len(verdicts))]
-        assert any("vision" in e.subsystem for e in fd.events)
+        said = [fd.vision_record(i * 100_000_000, ok) for i, ok in enumerate(verdicts)]
+        assert said == [False] * len(verdicts)
         assert ("vision" in fd.failed) == recovery
+        fd.control_tick(8 * NS, 3000.0, 1.0, 2000.0, False)  # 5 s after the exclusion (at 1.9 s): retried
+        assert "vision" not in fd.failed
+        said = [fd.vision_record(9 * NS + i * 100_000_000, ok) for i, ok in enumerate(verdicts)]
+        assert said == [recovery and i == first for i in range(len(verdicts))]
+        assert ("vision" in fd.failed) == recovery
+        reasons = [e.reason for e in fd.events if e.subsystem == "vision"]
+        assert len(reasons) == (2 if recovery else 1)
 
 
 def test_vision_exclusion_reinitialises_the_lateral_bias_to_its_specification():
@@ -223,3 +231,18 @@ def test_vision_exclusion_reinitialises_the_lateral_bias_to_its_specification():
         expect_P[i, i] += (0.5 * db * window_s**2) ** 2
     assert np.allclose(P, expect_P, rtol=0.0, atol=1e-15)
     assert np.allclose(P, P.T) and np.linalg.eigvalsh(P).min() > -1e-12
+
+
+def test_vision_excluded_after_an_inertial_fault_keeps_the_bias():
+    """Vision rejected for good within 20 s of a detected inertial fault (here a gyro event noted at 8 s) is
+    that fault's doing (the filter's state went wrong, not vision): no re-initialisation is asked for; the same
+    streaks 30 s after it ask for one."""
+    for t_fault_s, expect in ((8.0, False), (-25.0, True)):
+        fd = HealthMonitor(FdirConfig(), SPEC)
+        fd.note(int((t_fault_s + 30.0) * NS) if t_fault_s < 0 else int(t_fault_s * NS), "imu", "gyro disagrees")
+        verdicts = [True] * 9 + [False] * 15
+        base = 60 * NS if t_fault_s < 0 else 0
+        [fd.vision_record(base + i * 100_000_000, ok) for i, ok in enumerate(verdicts)]
+        fd.control_tick(base + 8 * NS, 3000.0, 1.0, 2000.0, False)  # retried
+        said = [fd.vision_record(base + 9 * NS + i * 100_000_000, ok) for i, ok in enumerate(verdicts)]
+        assert any(said) == expect, (t_fault_s, said)

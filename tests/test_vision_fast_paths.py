@@ -1,0 +1,69 @@
+"""The tracker's lean hot-path routines against the reference computations
+they replace (issue 11, item 4: the tracker's time at 256^2)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from vision.fixation import centred_energy, ssd_maps
+from vision.lk import forward_backward_opencv_fast, forward_backward_opencv_ok, seeded_lk_kwargs
+
+
+@pytest.mark.parametrize(("n_t", "wy", "wx", "ry", "rx"), [(7, 30, 30, 1, 1), (3, 12, 17, 2, 0), (1, 5, 5, 3, 4)])
+def test_ssd_maps_equal_an_explicit_loop_and_match_template(n_t, wy, wx, ry, rx):
+    rng = np.random.default_rng(11)
+    windows = rng.integers(0, 256, (n_t, wy + 2 * ry, wx + 2 * rx)).astype(np.float32)
+    templates = rng.integers(0, 256, (n_t, wy, wx)).astype(np.float32)
+    got = ssd_maps(windows, templates)
+    assert got.shape == (n_t, 2 * ry + 1, 2 * rx + 1)
+    for t in range(n_t):
+        for j in range(2 * ry + 1):
+            for i in range(2 * rx + 1):
+                d = windows[t, j : j + wy, i : i + wx].astype(np.float64) - templates[t]
+                # Integer differences: the float32 sum is exact below 2^24.
+                assert got[t, j, i] == pytest.approx((d * d).sum(), rel=1e-6)
+        ref = cv2.matchTemplate(windows[t], templates[t], cv2.TM_SQDIFF)
+        np.testing.assert_allclose(got[t], ref, rtol=1e-4, atol=1.0)
+
+
+def test_ssd_maps_minimum_is_the_true_shift():
+    rng = np.random.default_rng(2)
+    frame = rng.integers(0, 256, (60, 60)).astype(np.float32)
+    tpl = frame[20:40, 22:42]
+    # Window of +-2 px around (21, 19): the template's own place is at (1, 3).
+    win = frame[17:17 + 24, 21 - 2 : 21 - 2 + 24]
+    got = ssd_maps(win[None], tpl[None])[0]
+    assert got[3, 3] == 0.0 and np.unravel_index(np.argmin(got), got.shape) == (3, 3)
+
+
+def test_centred_energy_equals_variance_times_area():
+    rng = np.random.default_rng(5)
+    templates = rng.normal(120.0, 30.0, (6, 30, 30)).astype(np.float32)
+    templates[2] = 77.0  # flat: zero energy, not a small negative
+    got = centred_energy(templates)
+    ref = np.array([cv2.meanStdDev(t)[1][0, 0] ** 2 * t.size for t in templates])
+    np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-6)
+    np.testing.assert_allclose(got, templates.astype(np.float64).reshape(6, -1).var(axis=1) * 900, rtol=1e-9)
+    assert got[2] == 0.0
+
+
+def test_forward_backward_opencv_ok_matches_the_checked_lean_path():
+    rng = np.random.default_rng(8)
+    base = cv2.GaussianBlur(rng.random((80, 300)).astype(np.float32) * 255, (0, 0), 1.5)
+    prev = np.clip(base, 0, 255).astype(np.uint8)
+    shift = np.float32([[1, 0, 0.4], [0, 1, -0.3]])
+    cur = cv2.warpAffine(prev, shift, (300, 80), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    cur[:, 200:] = rng.integers(0, 256, (80, 100))  # unrelated content: those round trips fail
+    xy = np.column_stack([rng.uniform(15, 285, 120), rng.uniform(15, 65, 120)])
+    init = xy + np.array([0.4, -0.3]) + rng.normal(0.0, 0.15, xy.shape)
+    back = -(init - xy)
+    for window, back_window, fb_max in ((13, 9, 0.5), (9, None, 0.2)):
+        xy1, err = forward_backward_opencv_fast(prev, cur, xy, init, back, window, 20, 0.03, 1e-2, back_window)
+        pts = np.stack([xy, init, back]).astype(np.float32)
+        kw_fwd, kw_back = seeded_lk_kwargs(window, 20, 0.03, 1e-2, back_window)
+        got_xy, ok = forward_backward_opencv_ok(prev, cur, pts, kw_fwd, kw_back, fb_max)
+        np.testing.assert_array_equal(got_xy, xy1.astype(np.float32))
+        np.testing.assert_array_equal(ok, err <= fb_max)
+        assert 0 < ok.sum() < ok.size  # both verdicts occur

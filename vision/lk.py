@@ -310,14 +310,25 @@ def forward_backward_opencv_fast(
 
 
 def seeded_lk_kwargs(
-    window: int, max_iter: int, eps: float, min_eig: float, back_window: int | None = None
+    window: int,
+    max_iter: int,
+    eps: float,
+    min_eig: float,
+    back_window: int | None = None,
+    back_max_iter: int | None = None,
+    back_eps: float | None = None,
 ) -> tuple[dict, dict]:
     """``calcOpticalFlowPyrLK`` keywords of :func:`forward_backward_opencv_ok`'s
-    forward and backward solves (built once per sequence by the tracker)."""
+    forward and backward solves (built once per sequence by the tracker); the
+    backward solve's window, iteration cap and convergence threshold default
+    to the forward one's."""
     fwd = _seeded_lk_kwargs(window, max_iter, eps, min_eig)
-    back = dict(fwd)
-    if back_window is not None:
-        back["winSize"] = (back_window, back_window)
+    back = _seeded_lk_kwargs(
+        window if back_window is None else back_window,
+        max_iter if back_max_iter is None else back_max_iter,
+        eps if back_eps is None else back_eps,
+        min_eig,
+    )
     return fwd, back
 
 

@@ -89,6 +89,20 @@ def lk_tile_margin(template_size: int, lk_window: int) -> int:
     return int(np.ceil(FP_BOX_SLACK_FRAC * template_size)) + lk_window // 2 + TILE_GUARD_PX
 
 
+def _match_region(
+    img: np.ndarray, tpl: np.ndarray, cx: int, cy: int, radius: int, xmax: int, ymax: int
+) -> tuple[int, int, float, bool, float, float]:
+    """:func:`vision.fixation.match_one` of a float32 template in a frame of
+    any dtype: only the search region (clipped to the frame as match_one
+    clips it) is converted to float32, not the whole frame."""
+    wy, wx = tpl.shape
+    x0, x1 = min(max(cx - radius, 0), xmax), min(max(cx + radius, 0), xmax)
+    y0, y1 = min(max(cy - radius, 0), ymax), min(max(cy + radius, 0), ymax)
+    region = img[y0 : y1 + wy, x0 : x1 + wx].astype(np.float32)
+    bx, by, ssd, at_edge, fx, fy = match_one(region, tpl, cx - x0, cy - y0, radius, x1 - x0, y1 - y0)
+    return bx + x0, by + y0, ssd, at_edge, fx, fy
+
+
 def _median_rows(a: np.ndarray) -> np.ndarray:
     """Column-wise median of a small (n >= 1, k) array (``np.median`` costs ~10x
     more on arrays this small)."""
@@ -222,6 +236,14 @@ class TrackerConfig(BaseModel):
         description="LK window of the backward solve of the forward-backward check [px]; odd; the smaller of "
         "this and lk_window is used (None: lk_window)",
     )
+    fb_max_iter: int | None = Field(
+        None, ge=1, le=100, description="iteration cap of the backward solve of the forward-backward check [-] "
+        "(None: lk_max_iter)",
+    )
+    fb_eps_px: float | None = Field(
+        None, gt=0.0, le=1.0, description="the backward solve stops when its update is below this [px] "
+        "(None: lk_eps_px)",
+    )
     max_seed_deviation_px: float = Field(
         0.6, gt=0.0, description="without fb_check: largest distance of an LK result from its seed [px]"
     )
@@ -347,7 +369,6 @@ class Tracker:
         """Forget the previous frame, templates and tracks; ids restart at 0."""
         self._rng = self._rng_arg
         self._prev: np.ndarray | None = None
-        self._prev_f32: np.ndarray | None = None  # the same frame in float32, for block matching
         self._tpl_xy = np.zeros((0, 2), np.int64)  # template top-left corners (x, y) [px]
         self._tpl_pred = np.zeros((0, 2), np.int64)  # predicted next displacement (last one, rounded) [px]
         self._tpl_sub = np.zeros((0, 2), np.float64)  # last (sub-pixel) block-matching displacement [px]
@@ -367,7 +388,10 @@ class Tracker:
         if self._cfg is None or self._prev is None:
             cfg = self._cfg = self.config.for_side(int(min(shape[:2])))
             back_window = cfg.lk_window if cfg.fb_window is None else min(cfg.fb_window, cfg.lk_window)
-            self._lk_kwargs = seeded_lk_kwargs(cfg.lk_window, cfg.lk_max_iter, cfg.lk_eps_px, cfg.lk_min_eig, back_window)
+            self._lk_kwargs = seeded_lk_kwargs(
+                cfg.lk_window, cfg.lk_max_iter, cfg.lk_eps_px, cfg.lk_min_eig, back_window,
+                back_max_iter=cfg.fb_max_iter, back_eps=cfg.fb_eps_px,
+            )
         return self._cfg
 
     @property
@@ -413,12 +437,11 @@ class Tracker:
         cfg = self.config_for(img.shape)
         # OpenCV's float32 matchTemplate has a smaller fixed cost per call than its
         # 8-bit one on windows this small; convert each frame once and keep it.
-        img_f32 = img.astype(np.float32)
         if self._prev is not None and self._tpl_xy.shape[0]:
-            prev_xy = self._track(self._prev, img, self._prev_f32, img_f32)
+            prev_xy = self._track(self._prev, img)
         else:
             prev_xy = np.full((self._ids.size, 2), np.nan)
-        self._prev, self._prev_f32 = img, img_f32
+        self._prev = img
         n_before = self._ids.size
         # Adaptive threshold: what the templates held after their detections
         # (a fixed target would re-detect every frame on sparse texture).
@@ -435,7 +458,7 @@ class Tracker:
             prev_xy = np.concatenate([prev_xy, np.full((n_new, 2), np.nan)])
         return Tracks(ids=self._ids.copy(), xy=self._xy.copy(), prev_xy=prev_xy, age=self._age.copy())
 
-    def _track(self, prev: np.ndarray, img: np.ndarray, prev_f32: np.ndarray, img_f32: np.ndarray) -> np.ndarray:
+    def _track(self, prev: np.ndarray, img: np.ndarray) -> np.ndarray:
         """Block-match the templates (§2.4), then LK-track their features (§4)
         inside the sub-images; returns the survivors' previous positions.
 
@@ -506,10 +529,10 @@ class Tracker:
         # cost more than the small array operations themselves.
         for t, ((x, y), (px, py)) in enumerate(zip(tpl_xy, tpl_pred)):
             cx, cy = x + px, y + py
-            tpls[t] = prev_f32[y : y + size, x : x + size]
+            tpls[t] = prev[y : y + size, x : x + size]
             inside = near <= cx <= xmax - near and near <= cy <= ymax - near
             if inside:
-                windows[t] = img_f32[cy - near : cy + near + size, cx - near : cx + near + size]
+                windows[t] = img[cy - near : cy + near + size, cx - near : cx + near + size]
             batched.append(inside)
         n_side = 2 * near + 1
         ssd_all = ssd_maps(windows, tpls).reshape(n_t, n_side * n_side).tolist()
@@ -541,14 +564,14 @@ class Tracker:
                         if curv > 0.0:
                             fy = min(max(0.5 * (lo - hi) / curv, -0.5), 0.5)
             else:
-                bx, by, ssd, at_edge, fx, fy = match_one(img_f32, tpls[t], cx, cy, near, xmax, ymax)
+                bx, by, ssd, at_edge, fx, fy = _match_region(img, tpls[t], cx, cy, near, xmax, ymax)
             if near < wide and (at_edge or ssd > limit):
                 tpl = tpls[t]
                 if at_edge:
                     # The minimum may lie just beyond the narrow window: search once more around it.
-                    bx, by, ssd, at_edge, fx, fy = match_one(img_f32, tpl, bx, by, near, xmax, ymax)
+                    bx, by, ssd, at_edge, fx, fy = _match_region(img, tpl, bx, by, near, xmax, ymax)
                 if at_edge or ssd > limit:
-                    bx, by, ssd, at_edge, fx, fy = match_one(img_f32, tpl, cx, cy, wide, xmax, ymax)
+                    bx, by, ssd, at_edge, fx, fy = _match_region(img, tpl, cx, cy, wide, xmax, ymax)
             if not subpixel:
                 fx = fy = 0.0
             sx, sy = bx - x + fx, by - y + fy

@@ -67,3 +67,50 @@ def test_forward_backward_opencv_ok_matches_the_checked_lean_path():
         np.testing.assert_array_equal(got_xy, xy1.astype(np.float32))
         np.testing.assert_array_equal(ok, err <= fb_max)
         assert 0 < ok.sum() < ok.size  # both verdicts occur
+
+
+def _select_templates_reference(variance, n, sx, sy, size, shape, border, sep, min_var, occupied):
+    """The greedy selection of §2.3 written out with explicit loops."""
+    height, width = shape
+    cand = []
+    for v in range(variance.shape[0]):
+        for u in range(variance.shape[1]):
+            x, y = u * sx, v * sy
+            if x < border or y < border or x + size > width - border or y + size > height - border:
+                continue
+            if variance[v, u] > min_var:
+                cand.append((v, u))
+    centres = [((u * sx + 0.5 * (size - 1)), (v * sy + 0.5 * (size - 1))) for v, u in cand]
+    alive = [all((cx - ox) ** 2 + (cy - oy) ** 2 >= sep * sep for ox, oy in occupied) for cx, cy in centres]
+    chosen = []
+    while len(chosen) < n:
+        best = None
+        for i, (v, u) in enumerate(cand):  # raster order: the first of equal variances wins
+            if alive[i] and (best is None or variance[v, u] > variance[cand[best]]):
+                best = i
+        if best is None:
+            break
+        v, u = cand[best]
+        chosen.append([u * sx, v * sy])
+        bx, by = centres[best]
+        for i, (cx, cy) in enumerate(centres):
+            if (cx - bx) ** 2 + (cy - by) ** 2 < sep * sep:
+                alive[i] = False
+    return chosen
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_select_templates_equals_the_greedy_written_out(seed):
+    from vision.fixation import select_templates
+
+    rng = np.random.default_rng(seed)
+    sx, sy = (5, 5) if seed % 2 else (4, 3)
+    size = int(np.lcm(sx, sy)) * 2
+    shape = (int(rng.integers(120, 200)), int(rng.integers(120, 200)))
+    var = rng.integers(0, 6, (shape[0] // sy - size // sy + 1, shape[1] // sx - size // sx + 1)).astype(np.float64)
+    sep = float(rng.uniform(0.0, 60.0))
+    occ = rng.uniform(0, 200, (int(rng.integers(0, 5)), 2))
+    n = int(rng.integers(1, 12))
+    got = select_templates(var, n, sx, sy, (size, size), shape, 9, sep, 1.0, occupied_xy=occ)
+    ref = _select_templates_reference(var, n, sx, sy, size, shape, 9, sep, 1.0, occ.tolist())
+    assert got.tolist() == ref

@@ -186,33 +186,33 @@ def select_templates(
     cy = np.arange(v_lo, v_hi + 1) * sy + 0.5 * (wy_full - 1)
     min_sep = float(min_separation_px)
     min_sep2 = min_sep * min_sep
-
-    def rule_out_near(x: float, y: float) -> None:
-        """Drop the candidates whose centre is closer than the separation to (x, y)."""
-        c0, c1 = np.searchsorted(cx, x - min_sep, "right"), np.searchsorted(cx, x + min_sep, "left")
-        r0, r1 = np.searchsorted(cy, y - min_sep, "right"), np.searchsorted(cy, y + min_sep, "left")
-        if c1 <= c0 or r1 <= r0:
-            return
-        d2 = (cy[r0:r1, None] - y) ** 2 + (cx[None, c0:c1] - x) ** 2
-        score[r0:r1, c0:c1][d2 < min_sep2] = -np.inf
-
     if occupied_xy is not None and len(occupied_xy):
-        # All occupied centres at once (|d| < separation implies the box of rule_out_near).
+        # All occupied centres at once: no candidate closer than the separation.
         occ = np.asarray(occupied_xy, dtype=np.float64).reshape(-1, 2)
-        d2 = (cy[None, :, None] - occ[:, 1, None, None]) ** 2 + (cx[None, None, :] - occ[:, 0, None, None]) ** 2
-        score[d2.min(axis=0) < min_sep2] = -np.inf
+        dy2 = (cy[None, :] - occ[:, 1, None]) ** 2
+        dx2 = (cx[None, :] - occ[:, 0, None]) ** 2
+        score[(dy2[:, :, None] + dx2[:, None, :] < min_sep2).any(axis=0)] = -np.inf
+    # Candidates lie on a grid of sx x sy px, so the candidates within the
+    # separation of a chosen one are a fixed disc of grid offsets around it
+    # (the same distances as between the centres: sums of exact squares).
+    n_r, n_c = -(-int(np.ceil(min_sep)) // sy), -(-int(np.ceil(min_sep)) // sx)
+    dr = np.arange(-n_r, n_r + 1, dtype=np.float64)[:, None] * sy
+    dc = np.arange(-n_c, n_c + 1, dtype=np.float64)[None, :] * sx
+    disc = dr * dr + dc * dc < min_sep2
+    rows, cols = score.shape
     chosen: list[tuple[int, int]] = []
     # Greedy in decreasing variance (np.argmax: first in raster order on ties):
     # take the best free candidate, then rule out every candidate within the
     # separation of it (itself included).
     while len(chosen) < n:
         k = int(np.argmax(score))
-        r, c = divmod(k, score.shape[1])
+        r, c = divmod(k, cols)
         if score[r, c] == -np.inf:
             break
         chosen.append(((u_lo + c) * sx, (v_lo + r) * sy))
         score[r, c] = -np.inf
-        rule_out_near(cx[c], cy[r])
+        r0, r1, c0, c1 = max(r - n_r, 0), min(r + n_r + 1, rows), max(c - n_c, 0), min(c + n_c + 1, cols)
+        score[r0:r1, c0:c1][disc[r0 - r + n_r : r1 - r + n_r, c0 - c + n_c : c1 - c + n_c]] = -np.inf
     return np.array(chosen, dtype=np.int64).reshape(-1, 2)
 
 

@@ -229,18 +229,46 @@ def detect_in_subimages(
     stack = np.empty((n_t, h + 2 * m, w + 2 * m), np.float32)
     for t, (x, y) in enumerate(top_left.tolist()):
         stack[t] = image[y - m : y + h + m, x - m : x + w + m]
-    ix, iy = gradients(stack)
-    inner = (slice(None), slice(m, m + h), slice(m, m + w))
     if strategy == "exhaustive":
-        a, b, c = structure_tensor(ix, iy, window)
-        a, b, c = a[inner], b[inner], c[inner]
+        a, b, c = _inner_structure_tensor(stack, window, m, h, w)
         keep = eigen_threshold_test(a, b, c, lambda_t)
         t_idx, r_idx, c_idx, score = _nms_top_k(keep, a, b, c, nms_radius, max_features)
     else:
         assert rng is not None
+        ix, iy = gradients(stack)
         t_idx, r_idx, c_idx, score = _random_search(ix, iy, m, (h, w), window, lambda_t, max_features, nms_radius, rng)
     xy = np.stack([top_left[t_idx, 0] + c_idx, top_left[t_idx, 1] + r_idx], axis=1).astype(np.float64)
     return Features(xy=xy.reshape(-1, 2), score=score.astype(np.float64), region=t_idx.astype(np.int64))
+
+
+def _inner_structure_tensor(
+    stack: np.ndarray, window: int, m: int, h: int, w: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`gradients` then :func:`structure_tensor` of a stack of
+    sub-images (T, h + 2m, w + 2m), cropped to the inner (T, h, w): the same
+    values in fewer array operations (the detector's hot path at refills).
+
+    The stack is filtered as one tall image: central differences with
+    ``cv2.Sobel(ksize=1, scale=0.5)`` and the three products boxed in one
+    ``cv2.boxFilter`` call. Inner pixels (``m = window // 2 + 1`` from every
+    edge) use only their own sub-image's differences, never the outermost
+    row or column, so seams and borders do not reach them. On 8-bit data
+    every sum is an exact multiple of 1/4 well inside float32's integers, so
+    the result equals the two-stage one exactly.
+    """
+    n_t, rows, cols = stack.shape
+    flat = stack.reshape(n_t * rows, cols)
+    ix = cv2.Sobel(flat, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
+    iy = cv2.Sobel(flat, cv2.CV_32F, 0, 1, ksize=1, scale=0.5)
+    prods = np.empty((3, n_t * rows, cols), np.float32)
+    np.multiply(ix, ix, out=prods[0])
+    np.multiply(ix, iy, out=prods[1])
+    np.multiply(iy, iy, out=prods[2])
+    boxed = cv2.boxFilter(
+        prods.reshape(3 * n_t * rows, cols), cv2.CV_32F, (window, window), normalize=False,
+        borderType=cv2.BORDER_CONSTANT,
+    ).reshape(3, n_t, rows, cols)[:, :, m : m + h, m : m + w]
+    return boxed[0], boxed[1], boxed[2]
 
 
 def _nms_top_k(

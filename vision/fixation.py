@@ -186,33 +186,33 @@ def select_templates(
     cy = np.arange(v_lo, v_hi + 1) * sy + 0.5 * (wy_full - 1)
     min_sep = float(min_separation_px)
     min_sep2 = min_sep * min_sep
-
-    def rule_out_near(x: float, y: float) -> None:
-        """Drop the candidates whose centre is closer than the separation to (x, y)."""
-        c0, c1 = np.searchsorted(cx, x - min_sep, "right"), np.searchsorted(cx, x + min_sep, "left")
-        r0, r1 = np.searchsorted(cy, y - min_sep, "right"), np.searchsorted(cy, y + min_sep, "left")
-        if c1 <= c0 or r1 <= r0:
-            return
-        d2 = (cy[r0:r1, None] - y) ** 2 + (cx[None, c0:c1] - x) ** 2
-        score[r0:r1, c0:c1][d2 < min_sep2] = -np.inf
-
     if occupied_xy is not None and len(occupied_xy):
-        # All occupied centres at once (|d| < separation implies the box of rule_out_near).
+        # All occupied centres at once: no candidate closer than the separation.
         occ = np.asarray(occupied_xy, dtype=np.float64).reshape(-1, 2)
-        d2 = (cy[None, :, None] - occ[:, 1, None, None]) ** 2 + (cx[None, None, :] - occ[:, 0, None, None]) ** 2
-        score[d2.min(axis=0) < min_sep2] = -np.inf
+        dy2 = (cy[None, :] - occ[:, 1, None]) ** 2
+        dx2 = (cx[None, :] - occ[:, 0, None]) ** 2
+        score[(dy2[:, :, None] + dx2[:, None, :] < min_sep2).any(axis=0)] = -np.inf
+    # Candidates lie on a grid of sx x sy px, so the candidates within the
+    # separation of a chosen one are a fixed disc of grid offsets around it
+    # (the same distances as between the centres: sums of exact squares).
+    n_r, n_c = -(-int(np.ceil(min_sep)) // sy), -(-int(np.ceil(min_sep)) // sx)
+    dr = np.arange(-n_r, n_r + 1, dtype=np.float64)[:, None] * sy
+    dc = np.arange(-n_c, n_c + 1, dtype=np.float64)[None, :] * sx
+    disc = dr * dr + dc * dc < min_sep2
+    rows, cols = score.shape
     chosen: list[tuple[int, int]] = []
     # Greedy in decreasing variance (np.argmax: first in raster order on ties):
     # take the best free candidate, then rule out every candidate within the
     # separation of it (itself included).
     while len(chosen) < n:
         k = int(np.argmax(score))
-        r, c = divmod(k, score.shape[1])
+        r, c = divmod(k, cols)
         if score[r, c] == -np.inf:
             break
         chosen.append(((u_lo + c) * sx, (v_lo + r) * sy))
         score[r, c] = -np.inf
-        rule_out_near(cx[c], cy[r])
+        r0, r1, c0, c1 = max(r - n_r, 0), min(r + n_r + 1, rows), max(c - n_c, 0), min(c + n_c + 1, cols)
+        score[r0:r1, c0:c1][disc[r0 - r + n_r : r1 - r + n_r, c0 - c + n_c : c1 - c + n_c]] = -np.inf
     return np.array(chosen, dtype=np.int64).reshape(-1, 2)
 
 
@@ -429,6 +429,48 @@ def match_one(
     fx = parabola_vertex(float(res[my, mx - 1]), mid, float(res[my, mx + 1])) if 0 < mx < w - 1 else 0.0
     fy = parabola_vertex(float(res[my - 1, mx]), mid, float(res[my + 1, mx])) if 0 < my < h - 1 else 0.0
     return bx, by, max(min_val, 0.0), at_edge, fx, fy
+
+
+def ssd_maps(windows: np.ndarray, templates: np.ndarray) -> np.ndarray:
+    """SSD block matching (§2.4) of several templates at once, each inside its
+    own search window: what ``cv2.matchTemplate(window, template, TM_SQDIFF)``
+    gives for each pair, summed directly (the differences first, so the
+    minimum is not lost to cancellation) in a few vectorised operations
+    instead of one OpenCV call per template (whose fixed cost dominates at
+    the tracker's +-1 px windows).
+
+    Rate: once per frame, for all templates (the tracker's hot path).
+
+    Args:
+        windows: Search windows, (T, Wy + 2 ry, Wx + 2 rx) float32 [DN].
+        templates: Templates, (T, Wy, Wx) float32 [DN].
+
+    Returns:
+        (T, 2 ry + 1, 2 rx + 1) float32 [DN^2]: ``out[t, j, i] = sum((windows[t,
+        j:j+Wy, i:i+Wx] - templates[t]) ** 2)``.
+    """
+    n_t, wy, wx = templates.shape
+    ny, nx = windows.shape[1] - wy + 1, windows.shape[2] - wx + 1
+    assert windows.shape[0] == n_t and ny >= 1 and nx >= 1
+    windows = np.ascontiguousarray(windows, dtype=np.float32)
+    s0, s1, s2 = windows.strides
+    # A read-only strided view of every placement (the ndarray constructor:
+    # numpy's as_strided wrapper costs more than the subtraction here).
+    placements = np.ndarray((n_t, ny, nx, wy, wx), np.float32, windows, 0, (s0, s1, s2, s1, s2))
+    placements.flags.writeable = False
+    diff = np.empty((n_t, ny, nx, wy, wx), np.float32)
+    np.subtract(placements, templates.reshape(n_t, 1, 1, wy, wx), out=diff)
+    flat = diff.reshape(n_t * ny * nx, wy * wx)
+    return np.einsum("ij,ij->i", flat, flat).reshape(n_t, ny, nx)
+
+
+def centred_energy(templates: np.ndarray) -> np.ndarray:
+    """``sum((T - mean T) ** 2)`` of each template, (T, Wy, Wx) -> (T,) float64
+    [DN^2] (the scale of :attr:`MatchResult.rel_ssd`)."""
+    flat = templates.reshape(templates.shape[0], -1)
+    s1 = flat.sum(axis=1, dtype=np.float64)
+    s2 = np.einsum("ij,ij->i", flat, flat, dtype=np.float64)
+    return np.maximum(s2 - s1 * s1 / flat.shape[1], 0.0)
 
 
 def parabola_vertex(lo: float, mid: float, hi: float) -> float:

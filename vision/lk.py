@@ -309,6 +309,60 @@ def forward_backward_opencv_fast(
     return fwd.reshape(-1, 2).astype(np.float64), err
 
 
+def seeded_lk_kwargs(
+    window: int,
+    max_iter: int,
+    eps: float,
+    min_eig: float,
+    back_window: int | None = None,
+    back_max_iter: int | None = None,
+    back_eps: float | None = None,
+) -> tuple[dict, dict]:
+    """``calcOpticalFlowPyrLK`` keywords of :func:`forward_backward_opencv_ok`'s
+    forward and backward solves (built once per sequence by the tracker); the
+    backward solve's window, iteration cap and convergence threshold default
+    to the forward one's."""
+    fwd = _seeded_lk_kwargs(window, max_iter, eps, min_eig)
+    back = _seeded_lk_kwargs(
+        window if back_window is None else back_window,
+        max_iter if back_max_iter is None else back_max_iter,
+        eps if back_eps is None else back_eps,
+        min_eig,
+    )
+    return fwd, back
+
+
+def forward_backward_opencv_ok(
+    prev_image: np.ndarray, image: np.ndarray, pts: np.ndarray, kw_fwd: dict, kw_back: dict, fb_max_px: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`forward_backward_opencv_fast` with the tracker's inputs already
+    in OpenCV's form, returning the verdict instead of the round-trip error
+    (the tracker's hot path: fewer conversions and array operations).
+
+    Args:
+        prev_image, image: uint8 frames k and k+1.
+        pts: (3, P, 2) float32 [px]: the points in frame k, the forward
+            initial guesses in frame k+1, and the backward offsets (the
+            backward solve starts at forward result + offset).
+        kw_fwd, kw_back: Keywords of the forward and backward solves
+            (:func:`seeded_lk_kwargs`).
+        fb_max_px: Largest accepted round-trip error [px].
+
+    Returns:
+        (xy_k1 (P, 2) float32 [px], ok (P,) bool: both solves valid and the
+        round trip within ``fb_max_px``; the same verdict as
+        ``forward_backward_opencv_fast(...)[1] <= fb_max_px``).
+    """
+    p0 = pts[0]
+    fwd, st1, _ = cv2.calcOpticalFlowPyrLK(prev_image, image, p0, pts[1].copy(), **kw_fwd)
+    fwd = fwd.reshape(-1, 2)
+    bwd, st2, _ = cv2.calcOpticalFlowPyrLK(image, prev_image, fwd, fwd + pts[2], **kw_back)
+    d = bwd.reshape(-1, 2) - p0
+    ok = np.einsum("ij,ij->i", d, d, dtype=np.float64) <= fb_max_px * fb_max_px
+    ok &= (st1 & st2).reshape(-1).view(bool)
+    return fwd, ok
+
+
 def forward_opencv_fast(
     prev_image: np.ndarray,
     image: np.ndarray,

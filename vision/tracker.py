@@ -30,8 +30,9 @@ Per frame (Step 1-3 of the paper):
 
 Only image-processing happens here: no truth, no simulator.
 
-Cost: per frame, one ``cv2.matchTemplate`` per template and two
-single-level LK passes (the backward one in a smaller window) over mosaics
+Cost: per frame, one vectorised SSD pass over every template's narrow
+search window (:func:`vision.fixation.ssd_maps`; ``cv2.matchTemplate`` only
+for the rarer re-searches) and two single-level LK passes (the backward one in a smaller window) over mosaics
 of the sub-images (not the whole frame);
 the variance map and feature detection run only when templates are replaced
 or tracks run low. The per-frame cost therefore hardly grows with the frame
@@ -58,8 +59,15 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from vision.features import detect_in_subimages, detection_margin
-from vision.fixation import TEMPLATE_ENERGY_FLOOR, FixationAreas, fixation_areas, match_one
-from vision.lk import forward_backward, forward_backward_opencv_fast, forward_opencv_fast
+from vision.fixation import (
+    TEMPLATE_ENERGY_FLOOR,
+    FixationAreas,
+    centred_energy,
+    fixation_areas,
+    match_one,
+    ssd_maps,
+)
+from vision.lk import forward_backward, forward_backward_opencv_ok, forward_opencv_fast, seeded_lk_kwargs
 from vision.tracks import Tracks, check_image
 
 FULL_SCALE_DN = 255.0
@@ -80,6 +88,20 @@ def lk_tile_margin(template_size: int, lk_window: int) -> int:
     drift slack, half the LK window and the guard. A tile is
     ``template_size + 2 * margin`` px square."""
     return int(np.ceil(FP_BOX_SLACK_FRAC * template_size)) + lk_window // 2 + TILE_GUARD_PX
+
+
+def _match_region(
+    img: np.ndarray, tpl: np.ndarray, cx: int, cy: int, radius: int, xmax: int, ymax: int
+) -> tuple[int, int, float, bool, float, float]:
+    """:func:`vision.fixation.match_one` of a float32 template in a frame of
+    any dtype: only the search region (clipped to the frame as match_one
+    clips it) is converted to float32, not the whole frame."""
+    wy, wx = tpl.shape
+    x0, x1 = min(max(cx - radius, 0), xmax), min(max(cx + radius, 0), xmax)
+    y0, y1 = min(max(cy - radius, 0), ymax), min(max(cy + radius, 0), ymax)
+    region = img[y0 : y1 + wy, x0 : x1 + wx].astype(np.float32)
+    bx, by, ssd, at_edge, fx, fy = match_one(region, tpl, cx - x0, cy - y0, radius, x1 - x0, y1 - y0)
+    return bx + x0, by + y0, ssd, at_edge, fx, fy
 
 
 def _median_rows(a: np.ndarray) -> np.ndarray:
@@ -121,7 +143,12 @@ class TrackerConfig(BaseModel):
     * lost templates are replaced two at a time (``refill_min_missing``):
       each replacement costs a variance-map pass;
     * LK stops at updates below 0.03 px: the bilinear-interpolation bias is of
-      that size, and iterating further did not improve the endpoint error;
+      that size, and iterating further did not improve the endpoint error.
+      Stopping at 0.05 px and the backward solve after 3 iterations
+      (``fb_max_iter``) cost ~10-20 % less LK time at the same median error on
+      the rendered descents, but on 10 closed-loop cases the vision NIS at
+      400-600 m rose (1.19 against 1.10 per dof, 17 against 13 measurements
+      gated out), so they are options, not the default;
     * forward-backward limit 0.5 px rejects mis-tracks well before the 1 px
       accuracy requirement. Without the check (``fb_check=False``: one LK pass
       validated against its seed and residual) the tracker is as accurate on
@@ -214,6 +241,14 @@ class TrackerConfig(BaseModel):
         9, ge=3, le=31,
         description="LK window of the backward solve of the forward-backward check [px]; odd; the smaller of "
         "this and lk_window is used (None: lk_window)",
+    )
+    fb_max_iter: int | None = Field(
+        None, ge=1, le=100, description="iteration cap of the backward solve of the forward-backward check [-] "
+        "(None: lk_max_iter)",
+    )
+    fb_eps_px: float | None = Field(
+        None, gt=0.0, le=1.0, description="the backward solve stops when its update is below this [px] "
+        "(None: lk_eps_px)",
     )
     max_seed_deviation_px: float = Field(
         0.6, gt=0.0, description="without fb_check: largest distance of an LK result from its seed [px]"
@@ -308,9 +343,12 @@ class Tracker:
     Output: :class:`vision.tracks.Tracks` for that frame.
     State: the previous frame, the templates and the live tracks.
     Rate: camera frame rate (one call per frame, frames in time order).
-    Cost (2-core x86, single OpenCV thread, ``landbench track-eval``): about
-    1.1x the OpenCV baseline's time at 256^2 and 0.6x at 512^2, in the same
-    process (README, "The tracker against its baseline").
+    Cost (2-core x86, single OpenCV thread, ``landbench track-eval``, each
+    tracker interleaved with the OpenCV baseline in one process): about 1.0x
+    the baseline's time at 256^2 and 0.8x at 512^2 (README, "A cheaper
+    implementation at 256^2"). Shares at 256^2: LK 36 %, the Python and small
+    NumPy operations of the per-frame step 23 %, block matching 18 %, refills
+    and re-detection 15 %.
 
     Args:
         config: A :class:`TrackerConfig` (defaults when None).
@@ -340,7 +378,6 @@ class Tracker:
         """Forget the previous frame, templates and tracks; ids restart at 0."""
         self._rng = self._rng_arg
         self._prev: np.ndarray | None = None
-        self._prev_f32: np.ndarray | None = None  # the same frame in float32, for block matching
         self._tpl_xy = np.zeros((0, 2), np.int64)  # template top-left corners (x, y) [px]
         self._tpl_pred = np.zeros((0, 2), np.int64)  # predicted next displacement (last one, rounded) [px]
         self._tpl_sub = np.zeros((0, 2), np.float64)  # last (sub-pixel) block-matching displacement [px]
@@ -358,7 +395,12 @@ class Tracker:
         :meth:`TrackerConfig.for_side` of the shorter side (fixed by the first
         frame until :meth:`reset`)."""
         if self._cfg is None or self._prev is None:
-            self._cfg = self.config.for_side(int(min(shape[:2])))
+            cfg = self._cfg = self.config.for_side(int(min(shape[:2])))
+            back_window = cfg.lk_window if cfg.fb_window is None else min(cfg.fb_window, cfg.lk_window)
+            self._lk_kwargs = seeded_lk_kwargs(
+                cfg.lk_window, cfg.lk_max_iter, cfg.lk_eps_px, cfg.lk_min_eig, back_window,
+                back_max_iter=cfg.fb_max_iter, back_eps=cfg.fb_eps_px,
+            )
         return self._cfg
 
     @property
@@ -404,12 +446,11 @@ class Tracker:
         cfg = self.config_for(img.shape)
         # OpenCV's float32 matchTemplate has a smaller fixed cost per call than its
         # 8-bit one on windows this small; convert each frame once and keep it.
-        img_f32 = img.astype(np.float32)
         if self._prev is not None and self._tpl_xy.shape[0]:
-            prev_xy = self._track(self._prev, img, self._prev_f32, img_f32)
+            prev_xy = self._track(self._prev, img)
         else:
             prev_xy = np.full((self._ids.size, 2), np.nan)
-        self._prev, self._prev_f32 = img, img_f32
+        self._prev = img
         n_before = self._ids.size
         # Adaptive threshold: what the templates held after their detections
         # (a fixed target would re-detect every frame on sparse texture).
@@ -426,11 +467,13 @@ class Tracker:
             prev_xy = np.concatenate([prev_xy, np.full((n_new, 2), np.nan)])
         return Tracks(ids=self._ids.copy(), xy=self._xy.copy(), prev_xy=prev_xy, age=self._age.copy())
 
-    def _track(self, prev: np.ndarray, img: np.ndarray, prev_f32: np.ndarray, img_f32: np.ndarray) -> np.ndarray:
+    def _track(self, prev: np.ndarray, img: np.ndarray) -> np.ndarray:
         """Block-match the templates (§2.4), then LK-track their features (§4)
         inside the sub-images; returns the survivors' previous positions.
 
-        Block matching (SSD, :func:`vision.fixation.match_one`) first searches
+        Block matching (SSD: :func:`vision.fixation.ssd_maps` for every
+        template's narrow window at once, :func:`vision.fixation.match_one`
+        for the re-searches) first searches
         ``search_radius_near_px`` around the prediction (the template's last
         displacement, rounded), once more around a minimum that lies on that
         window's edge, and falls back to ``search_radius_px`` when the minimum
@@ -462,9 +505,10 @@ class Tracker:
         wide = cfg.search_radius_px
         near = min(cfg.search_radius_near_px, wide)
         xmax, ymax = width - size, height - size
-        area = float(size * size)
+        xok_hi, yok_hi = width - e - size, height - e - size
         max_rel = cfg.max_rel_ssd
         subpixel = cfg.subpixel_match
+        track_seed = cfg.lk_seed == "track"
         half = cfg.lk_window // 2
         slack = int(np.ceil(FP_BOX_SLACK_FRAC * size))
         margin = lk_tile_margin(size, cfg.lk_window)
@@ -482,91 +526,150 @@ class Tracker:
         mos_cur = np.empty((tile, n_t * tile), img.dtype)
         lo_in, hi_in = half + 1, tile - 2 - half
         rows: list[tuple] = []
-        # Plain Python ints and floats in the loop: NumPy scalar handling would
-        # cost more than the small OpenCV calls themselves.
-        for t, ((x, y), (px, py), (sx0, sy0)) in enumerate(
-            zip(self._tpl_xy.tolist(), self._tpl_pred.tolist(), self._tpl_sub.tolist())
-        ):
-            tpl = prev_f32[y : y + size, x : x + size]
-            energy = max(cv2.meanStdDev(tpl)[1][0, 0] ** 2 * area, TEMPLATE_ENERGY_FLOOR)
+        kept: list[tuple] = []
+        tpl_xy, tpl_pred = self._tpl_xy.tolist(), self._tpl_pred.tolist()
+        # Block matching, first the narrow search of every template at once
+        # (ssd_maps: one SSD map of (2 near + 1)^2 placements per template).
+        # A template whose window would leave the frame is searched alone
+        # (match_one clips the window to the frame).
+        side = size + 2 * near
+        windows = np.empty((n_t, side, side), np.float32)
+        tpls = np.empty((n_t, size, size), np.float32)
+        batched: list[bool] = []
+        # Plain Python ints and floats in the loops: NumPy scalar handling would
+        # cost more than the small array operations themselves.
+        for t, ((x, y), (px, py)) in enumerate(zip(tpl_xy, tpl_pred)):
             cx, cy = x + px, y + py
-            bx, by, ssd, at_edge, fx, fy = match_one(img_f32, tpl, cx, cy, near, xmax, ymax)
-            if at_edge and near < wide:
-                # The minimum may lie just beyond the narrow window: search once more around it.
-                bx, by, ssd, at_edge, fx, fy = match_one(img_f32, tpl, bx, by, near, xmax, ymax)
-            if near < wide and (at_edge or ssd > max_rel * energy):
-                bx, by, ssd, at_edge, fx, fy = match_one(img_f32, tpl, cx, cy, wide, xmax, ymax)
+            tpls[t] = prev[y : y + size, x : x + size]
+            inside = near <= cx <= xmax - near and near <= cy <= ymax - near
+            if inside:
+                windows[t] = img[cy - near : cy + near + size, cx - near : cx + near + size]
+            else:
+                windows[t] = 0.0  # searched alone below; no uninitialised values in ssd_maps
+            batched.append(inside)
+        n_side = 2 * near + 1
+        ssd_all = ssd_maps(windows, tpls).reshape(n_t, n_side * n_side).tolist()
+        energies = centred_energy(tpls).tolist()
+        for t, ((x, y), (px, py), (sx0, sy0)) in enumerate(zip(tpl_xy, tpl_pred, self._tpl_sub.tolist())):
+            limit = max_rel * max(energies[t], TEMPLATE_ENERGY_FLOOR)
+            cx, cy = x + px, y + py
+            if batched[t]:
+                # As match_one on the same map: the first minimum in raster
+                # order, at_edge on the search limit, the parabola through the
+                # minimum and its neighbours on each axis (parabola_vertex).
+                vals = ssd_all[t]
+                mid = min(vals)
+                k = vals.index(mid)
+                my, mx = divmod(k, n_side)
+                bx, by = cx - near + mx, cy - near + my
+                at_edge = mx == 0 or my == 0 or mx == n_side - 1 or my == n_side - 1
+                ssd = mid if mid > 0.0 else 0.0
+                fx = fy = 0.0
+                if subpixel:
+                    if 0 < mx < n_side - 1:
+                        lo, hi = vals[k - 1], vals[k + 1]
+                        curv = lo - 2.0 * mid + hi
+                        if curv > 0.0:
+                            fx = min(max(0.5 * (lo - hi) / curv, -0.5), 0.5)
+                    if 0 < my < n_side - 1:
+                        lo, hi = vals[k - n_side], vals[k + n_side]
+                        curv = lo - 2.0 * mid + hi
+                        if curv > 0.0:
+                            fy = min(max(0.5 * (lo - hi) / curv, -0.5), 0.5)
+            else:
+                bx, by, ssd, at_edge, fx, fy = _match_region(img, tpls[t], cx, cy, near, xmax, ymax)
+            if near < wide and (at_edge or ssd > limit):
+                tpl = tpls[t]
+                if at_edge:
+                    # The minimum may lie just beyond the narrow window: search once more around it.
+                    bx, by, ssd, at_edge, fx, fy = _match_region(img, tpl, bx, by, near, xmax, ymax)
+                if at_edge or ssd > limit:
+                    bx, by, ssd, at_edge, fx, fy = _match_region(img, tpl, cx, cy, wide, xmax, ymax)
             if not subpixel:
                 fx = fy = 0.0
             sx, sy = bx - x + fx, by - y + fy
-            ok = not at_edge and ssd <= max_rel * energy and e <= bx <= width - e - size and e <= by <= height - e - size
+            ok = not at_edge and ssd <= limit and e <= bx <= xok_hi and e <= by <= yok_hi
             # Tile corners in frames k and k+1, and the tiles.
             xp, yp = min(max(x - margin, 0), tx_max), min(max(y - margin, 0), ty_max)
             xc, yc = min(max(bx - margin, 0), tx_max), min(max(by - margin, 0), ty_max)
             c0 = t * tile
             mos_prev[:, c0 : c0 + tile] = prev[yp : yp + tile, xp : xp + tile]
             mos_cur[:, c0 : c0 + tile] = img[yc : yc + tile, xc : xc + tile]
-            # Bounds of a tracked point in mosaic coordinates: window inside the
-            # tile, point within the slack of the template's new box.
+            # Per template, in mosaic coordinates: the offsets that take a
+            # point's frame position (and its last displacement, with the
+            # 'track' seed) to its LK start in each solve, the offset back to
+            # the frame, and the bounds of a tracked point (window inside the
+            # tile, point within the slack of the template's new box; empty
+            # for a lost template, so its tracks go with it).
+            ox_p, oy_p, ox_c, oy_c = xp - c0, yp, xc - c0, yc
+            dx, dy = (sx - sx0, sy - sy0) if track_seed else (sx, sy)
             bxt, byt = bx - xc, by - yc
+            if ok:
+                kept.append((t, bx, by, sx, sy))
+                bounds = (
+                    max(bxt - slack, lo_in) + c0, max(byt - slack, lo_in),
+                    min(bxt + size - 1 + slack, hi_in) + c0, min(byt + size - 1 + slack, hi_in),
+                )
+            else:
+                bounds = (math.inf, math.inf, -math.inf, -math.inf)
             rows.append((
-                xp - c0, yp, xc - c0, yc, sx, sy, sx - sx0, sy - sy0,
-                max(bxt - slack, lo_in) + c0, max(byt - slack, lo_in),
-                min(bxt + size - 1 + slack, hi_in) + c0, min(byt + size - 1 + slack, hi_in),
-                1.0 if ok else 0.0, bx, by,
+                -ox_p, -oy_p, dx - ox_c, dy - oy_c, ox_c - ox_p - dx, oy_c - oy_p - dy, ox_c, oy_c, *bounds,
             ))
-        per_t = np.array(rows, dtype=np.float64).reshape(-1, 15)
-        ok_t = per_t[:, 12] > 0
+        per_t = np.array(rows, dtype=np.float64).reshape(-1, 12)
         # Per point: one gather of its template's row.
         g = per_t[self._tpl_of]
         xy = self._xy
-        if cfg.lk_seed == "track":
-            # Constant velocity per track, corrected by the change of its
-            # template's block-matching displacement. A new track's "last
-            # displacement" is its template's (set in _detect), so it starts
-            # at its template's displacement.
-            seed = self._flow + g[:, 6:8]
+        n = xy.shape[0]
+        # LK inputs in mosaic coordinates, float32 as OpenCV takes them: the
+        # points of frame k, the forward starts (position + seed) and the
+        # backward offsets (the backward solve starts at the forward result
+        # minus the seed). The 'track' seed is the track's own last
+        # displacement plus the change of its template's block-matching
+        # displacement; a new track's "last displacement" is its template's
+        # (set in _detect), so it starts at its template's displacement. The
+        # 'template' seed is the template's displacement.
+        pts = np.empty((3, n, 2), np.float32)
+        np.add(xy, g[:, 0:2], out=pts[0], casting="unsafe")
+        if track_seed:
+            np.add(xy + self._flow, g[:, 2:4], out=pts[1], casting="unsafe")
+            np.subtract(g[:, 4:6], self._flow, out=pts[2], casting="unsafe")
         else:
-            seed = g[:, 4:6]
-        p_mos = xy - g[:, 0:2]
-        guess = xy + seed - g[:, 2:4]
-        if cfg.lk_backend == "opencv" and not cfg.fb_check:
+            np.add(xy, g[:, 2:4], out=pts[1], casting="unsafe")
+            pts[2] = g[:, 4:6]
+        if cfg.lk_backend == "opencv" and cfg.fb_check:
+            kw_fwd, kw_back = self._lk_kwargs
+            q_mos, ok = forward_backward_opencv_ok(mos_prev, mos_cur, pts, kw_fwd, kw_back, cfg.fb_max_px)
+        elif cfg.lk_backend == "opencv":
             q_mos, ok, resid = forward_opencv_fast(
-                mos_prev, mos_cur, p_mos, guess, cfg.lk_window, cfg.lk_max_iter, cfg.lk_eps_px, cfg.lk_min_eig
+                mos_prev, mos_cur, pts[0], pts[1], cfg.lk_window, cfg.lk_max_iter, cfg.lk_eps_px, cfg.lk_min_eig
             )
-            dev = q_mos - guess
+            dev = q_mos - pts[1]
             ok &= (resid <= cfg.max_residual_dn) & ((dev * dev).sum(axis=1) <= cfg.max_seed_deviation_px**2)
         else:
-            back = g[:, 2:4] - g[:, 0:2] - seed  # backward guess = forward result - seed
             back_window = cfg.lk_window if cfg.fb_window is None else min(cfg.fb_window, cfg.lk_window)
-            if cfg.lk_backend == "opencv":
-                q_mos, fb_err = forward_backward_opencv_fast(
-                    mos_prev, mos_cur, p_mos, guess, back, cfg.lk_window, cfg.lk_max_iter, cfg.lk_eps_px,
-                    cfg.lk_min_eig, back_window,
-                )
-            else:
-                fb = forward_backward(mos_prev, mos_cur, p_mos, guess, None, cfg.fb_max_px, backend="numpy",
-                                      window=cfg.lk_window, max_iter=cfg.lk_max_iter, eps=cfg.lk_eps_px,
-                                      min_eig=cfg.lk_min_eig, back_window=back_window)
-                q_mos, fb_err = fb.xy, fb.fb_error
-            ok = fb_err <= cfg.fb_max_px
-        ok &= ok_t[self._tpl_of] & ((q_mos >= g[:, 8:10]) & (q_mos <= g[:, 10:12])).all(axis=1)
-        old_xy = xy[ok]
-        self._xy = q_mos[ok] + g[ok, 2:4]
+            p_mos = xy + g[:, 0:2]
+            guess = (xy + self._flow if track_seed else xy) + g[:, 2:4]
+            fb = forward_backward(mos_prev, mos_cur, p_mos, guess, None, cfg.fb_max_px, backend="numpy",
+                                  window=cfg.lk_window, max_iter=cfg.lk_max_iter, eps=cfg.lk_eps_px,
+                                  min_eig=cfg.lk_min_eig, back_window=back_window)
+            q_mos, ok = fb.xy, fb.fb_error <= cfg.fb_max_px
+        ok &= ((q_mos >= g[:, 8:10]) & (q_mos <= g[:, 10:12])).all(axis=1)
+        idx = np.flatnonzero(ok)
+        old_xy = xy[idx]
+        self._xy = q_mos[idx] + g[idx, 6:8]
         self._flow = self._xy - old_xy
-        self._ids = self._ids[ok]
-        self._age = self._age[ok] + 1
-        if ok_t.all():
-            kept = per_t
-            self._tpl_of = self._tpl_of[ok]
-        else:
+        self._ids = self._ids[idx]
+        self._age = self._age[idx] + 1
+        self._tpl_of = self._tpl_of[idx]
+        if len(kept) < n_t:
             # Re-index tracks onto the surviving templates.
-            kept = per_t[ok_t]
-            self._tpl_of = (np.cumsum(ok_t) - 1)[self._tpl_of[ok]]
-            self._tpl_expect = self._tpl_expect[ok_t]
-        self._tpl_xy = kept[:, 13:15].astype(np.int64)
-        self._tpl_sub = kept[:, 4:6]
-        self._tpl_pred = np.rint(self._tpl_sub).astype(np.int64)
+            keep = np.zeros(n_t, bool)
+            keep[[k[0] for k in kept]] = True
+            self._tpl_of = (np.cumsum(keep) - 1)[self._tpl_of]
+            self._tpl_expect = self._tpl_expect[keep]
+        self._tpl_xy = np.array([k[1:3] for k in kept], dtype=np.int64).reshape(-1, 2)
+        self._tpl_sub = np.array([k[3:5] for k in kept], dtype=np.float64).reshape(-1, 2)
+        self._tpl_pred = np.array([(round(k[3]), round(k[4])) for k in kept], dtype=np.int64).reshape(-1, 2)
         return old_xy
 
     def fixation_areas(self, img: np.ndarray, n: int) -> FixationAreas:

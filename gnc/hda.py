@@ -9,10 +9,23 @@ Ports:
         declared "no safe site" event; :class:`HdaStats` for the summary.
     Rate: one scan, when the estimated height above the target first falls to
         ``scan_altitude_m`` during the approach (Chang'e-3/4: a hover near
-        100 m; here a pass: a flash lidar takes its whole image in one pulse).
+        100 m; here a pass: a flash lidar takes its whole image in one pulse),
+        of ``flashes`` flashes on consecutive control ticks; and a second scan
+        at ``rescan_altitude_m`` only when the first found no safe site.
 
 Steps of :meth:`HazardAvoidance.on_scan`:
 
+0. **Several flashes, one DEM** (ALHAT's mosaic): a flash of 256^2 rays from
+   100 m samples the ground every 0.14 m, coarser than the 0.1 m posts, so
+   half the posts get no return and are filled from their neighbours, and a
+   rock's top is read up to 0.1 m off it: a rock at the 0.3 m threshold (a
+   Gaussian of sigma D/4 = 0.15 m) reads up to 20 % low. ``flashes`` flashes
+   on consecutive control ticks (the first ``flashes - 1`` are kept by
+   :meth:`HazardAvoidance.add_flash`) sample it at different sub-pixel
+   phases: the lander moves (about 0.2 m down, 0.06 m across) and turns
+   (0.1 deg: 0.17 m on the ground at 100 m) between ticks. Each flash is
+   placed through the pose estimated at its own tick; 4 flashes give about 2
+   returns per post.
 1. **DEM in the estimated frame**: each ray's return point is placed through
    the filter's pose (estimated position, star-tracker attitude, the nominal
    mounting), never the truth: the navigation error enters as it would in
@@ -27,8 +40,9 @@ Steps of :meth:`HazardAvoidance.on_scan`:
    so the error that matters is what the estimate drifts between the scan and
    touchdown, not its absolute error: sigma^2 = (sigma_vh T)^2 + (rho
    sigma_att)^2 + (sigma_z tan(fov/2))^2 + floor^2, with sigma_vh the filter's
-   horizontal-velocity 1-sigma, T the time left (``t_go_s`` guess: the height
-   over ``mean_descent_mps``), rho the slant range, sigma_att the star
+   horizontal-velocity 1-sigma, T the time left (the height over
+   ``mean_descent_mps``, or the guidance plan's time left when that is
+   longer: the time to the gate plus the terminal descent), rho the slant range, sigma_att the star
    tracker's 1-sigma, sigma_z the filter's height 1-sigma (a height error
    scales the map about nadir).
 4. The target moves to the site (its height: the DEM's mean under the body
@@ -36,6 +50,15 @@ Steps of :meth:`HazardAvoidance.on_scan`:
    (``no_safe_site``); the flight software then aborts (``no_site_action =
    "abort"``, the safe-abort hover of :mod:`gnc.fdir`) or lands at the target
    it had (``"land"``).
+5. **Second chance** (``rescan = "on"``): when the first scan finds no site
+   with the margin, nothing is declared yet. The target moves to the safe
+   post of the largest margin within the divert limit (the best-margin area;
+   it stays where it is when no post is safe) and a second scan is taken when
+   the estimated height falls to ``rescan_altitude_m`` (50 m). From there the
+   drift to touchdown is smaller (so is its margin) and the ground sample
+   finer (0.07 m at 50 m), and its footprint is centred near the new target.
+   Its own site choice (steps 0-4, DEM posts of ``rescan_dem_spacing_m``)
+   retargets, or declares no safe site.
 """
 
 from __future__ import annotations
@@ -66,6 +89,19 @@ class HdaConfig(BaseModel):
         2.0, gt=0.0, description="height over this is the time left to touchdown, for the drift margin [m/s]")
     attitude_sigma_rad: float = Field(1e-4, ge=0.0, description="star tracker's attitude 1-sigma (specification) [rad]")
     nav_sigma_floor_m: float = Field(0.1, ge=0.0, description="floor of the navigation sigma of the margin [m]")
+    flashes: int = Field(
+        4, ge=1, le=16, description="flashes per scan, one per control tick, mosaicked into one DEM: each flash "
+                                    "samples the ground at another sub-pixel phase (the lander moves and turns "
+                                    "between ticks), so a rock's top is read closer to it [-]")
+    rescan: Literal["on", "off"] = Field(
+        "on", description="no safe site in the first scan: divert to its best-margin area and scan again at "
+                          "rescan_altitude_m before declaring no safe site ('off': declare at once)")
+    rescan_altitude_m: float = Field(
+        50.0, gt=0.0, description="estimated height above the target of the second scan (only after a first "
+                                  "scan with no safe site) [m]")
+    rescan_dem_spacing_m: float = Field(
+        0.07, gt=0.0, le=2.0, description="post spacing of the second scan's DEM: about its ground sample "
+                                          "(50 m x 2 tan 10 deg / 256 = 0.069 m) [m]")
     no_site_action: Literal["abort", "land"] = Field(
         "abort", description="no safe site: the safe-abort hover, or land at the current target")
     map: HazardConfig = Field(HazardConfig(), description="hazard thresholds, legs and site-choice weights")
@@ -82,7 +118,9 @@ class HdaStats:
     unsafe_frac: float | None = None
     site: SafeSite | None = None
     target_before_L: np.ndarray | None = None
-    no_safe_site: bool = False
+    no_safe_site: bool = False  # this scan found no site with the margin
+    flashes: int = 0
+    best_margin_m: float | None = None  # no site: the largest margin of a safe post within the divert limit
     compute_s: dict[str, float] = field(default_factory=dict)
 
 
@@ -140,72 +178,150 @@ def grid_dem(points_L: np.ndarray, spacing_m: float) -> ScanDem:
 
 
 def drift_sigma_m(cfg: HdaConfig, sigma_vh_mps: float, sigma_z_m: float, height_m: float, range_m: float,
-                  fov_deg: float) -> float:
+                  fov_deg: float, t_go_plan_s: float | None = None) -> float:
     """1-sigma of the estimate's horizontal drift from the scan to touchdown (module docstring, step 3) [m]."""
     t_go = max(height_m, 0.0) / cfg.mean_descent_mps
+    if t_go_plan_s is not None and math.isfinite(t_go_plan_s):
+        t_go = max(t_go, t_go_plan_s)
     return math.sqrt((sigma_vh_mps * t_go) ** 2 + (range_m * cfg.attitude_sigma_rad) ** 2
                      + (sigma_z_m * math.tan(math.radians(fov_deg) / 2)) ** 2 + cfg.nav_sigma_floor_m ** 2)
 
 
+def best_margin_post(hmap: HazardMap, target_xy_m: np.ndarray, max_divert_m: float) -> tuple[np.ndarray, float] | None:
+    """The safe post of the largest margin within ``max_divert_m`` of the target (the nearer on a tie), or None.
+
+    Returns:
+        (its L position (2,) [m], its margin [m]), or None when no post there is safe.
+    """
+    rows, cols = hmap.unsafe.shape
+    x, y = hmap.xy_of(np.arange(rows)[:, None], np.arange(cols)[None, :])
+    divert = np.hypot(x - target_xy_m[0], y - target_xy_m[1])
+    ok = ~hmap.unsafe & (divert <= max_divert_m)
+    if not ok.any():
+        return None
+    margin = np.where(ok, hmap.hazard_distance_m, -1.0)
+    best = margin == margin.max()
+    i, j = np.unravel_index(int(np.argmin(np.where(best, divert, np.inf))), margin.shape)
+    return np.array([float(x[0, j]), float(y[i, 0])]), float(margin[i, j])
+
+
 class HazardAvoidance:
-    """One hazard scan and the retarget it leads to (module docstring)."""
+    """The hazard scan(s) and the retarget they lead to (module docstring)."""
 
     def __init__(self, cfg: HdaConfig):
         self.cfg = cfg
-        self.stats = HdaStats()
-        self.scanned = False
-        self.last_dem: ScanDem | None = None
+        self.stats = HdaStats()  # the first scan
+        self.rescan_stats: HdaStats | None = None  # the second scan, when there was one
+        self.scanned = False  # the first scan is done
+        self.awaiting_rescan = False  # the first found no site: a second scan is due
+        self.rescanned = False
+        self.no_safe_site = False  # declared: no safe site (after the second scan, when there is one)
+        self.last_dem: ScanDem | None = None  # the first scan's DEM and map
         self.last_map: HazardMap | None = None
+        self.rescan_dem: ScanDem | None = None
+        self.rescan_map: HazardMap | None = None
+        self._flashes: list[np.ndarray] = []  # return points (L) of the flashes kept for the scan under way
 
     def wants_scan(self, height_above_target_m: float, phase: str | None) -> bool:
-        """A flash now: not scanned yet, on the approach, at or below the scan height."""
-        return (not self.scanned and phase == "approach" and math.isfinite(height_above_target_m)
-                and height_above_target_m <= self.cfg.scan_altitude_m)
+        """A flash now: a scan under way, the first scan due (on the approach, at or below its height), or the second."""
+        if self._flashes:
+            return True
+        if not math.isfinite(height_above_target_m):
+            return False
+        if not self.scanned:
+            return phase == "approach" and height_above_target_m <= self.cfg.scan_altitude_m
+        return (self.awaiting_rescan and phase in ("approach", "terminal")
+                and height_above_target_m <= self.cfg.rescan_altitude_m)
+
+    def flashes_wanted(self) -> int:
+        """Flashes still to come in the scan under way, this one included (1: this flash completes the scan)."""
+        return self.cfg.flashes - len(self._flashes)
+
+    def add_flash(self, msg: LidarScanMessage, r_BL_L: np.ndarray, R_LB: np.ndarray) -> None:
+        """Keep one flash of a scan (not its last), placed through the pose estimated at its tick."""
+        self._flashes.append(scan_points_L(msg, r_BL_L, R_LB))
 
     def on_scan(self, msg: LidarScanMessage, r_BL_L: np.ndarray, R_LB: np.ndarray, sigma_vh_mps: float,
-                sigma_z_m: float, target_L: np.ndarray) -> np.ndarray | None:
-        """Process one scan through the estimated pose; the new target (3,) [m], or None (no safe site).
+                sigma_z_m: float, target_L: np.ndarray, t_go_plan_s: float | None = None) -> np.ndarray | None:
+        """The scan's last flash: process the scan; the new target (3,) [m], or None (the target stays).
+
+        After a None, :attr:`no_safe_site` says whether no safe site was declared (the first scan's
+        no-site, with ``rescan = "on"``, is not: it may move the target to the best-margin area, and
+        a second scan follows).
 
         Args:
-            msg: The scan.
+            msg: The scan's last flash (the flashes before it were given to :meth:`add_flash`).
             r_BL_L: Estimated body position in L (3,) [m].
             R_LB: Estimated attitude (3, 3).
             sigma_vh_mps: Filter's horizontal-velocity 1-sigma per axis [m/s].
             sigma_z_m: Filter's height 1-sigma [m].
             target_L: Current target (3,) [m].
+            t_go_plan_s: The guidance plan's time left to touchdown [s] (None: the height over
+                ``mean_descent_mps`` alone).
         """
         cfg = self.cfg
-        self.scanned = True
-        st = self.stats
+        first = not self.scanned
+        if first:
+            self.scanned = True
+            st = self.stats
+            spacing = cfg.dem_spacing_m
+        else:
+            self.awaiting_rescan = False
+            self.rescanned = True
+            st = self.rescan_stats = HdaStats()
+            spacing = cfg.rescan_dem_spacing_m
         st.scan_t_ns = msg.t_ns
         st.target_before_L = np.asarray(target_L, float).copy()
         t0 = time.perf_counter()
-        pts = scan_points_L(msg, r_BL_L, R_LB)
+        pts = np.concatenate(self._flashes + [scan_points_L(msg, r_BL_L, R_LB)], axis=0)
+        st.flashes = len(self._flashes) + 1
+        self._flashes = []
         st.points = int(pts.shape[0])
         if pts.shape[0] < 16:
             st.no_safe_site = True
-            return None
-        dem = grid_dem(pts, cfg.dem_spacing_m)
+            return self._no_site(first, None, target_L)
+        dem = grid_dem(pts, spacing)
         t1 = time.perf_counter()
         hmap = hazard_map(dem.height_m, dem.spacing_m, dem.origin_xy_m, cfg.map, known=dem.known)
         t2 = time.perf_counter()
         height = float(r_BL_L[2] - target_L[2])
         range_m = float(np.nanmedian(msg.ranges_m))
-        sigma = drift_sigma_m(cfg, sigma_vh_mps, sigma_z_m, height, range_m, msg.fov_deg)
+        sigma = drift_sigma_m(cfg, sigma_vh_mps, sigma_z_m, height, range_m, msg.fov_deg, t_go_plan_s)
         site = choose_site(hmap, np.asarray(target_L, float)[:2], sigma, cfg.map)
         t3 = time.perf_counter()
         st.compute_s = {"dem_s": t1 - t0, "hazard_map_s": t2 - t1, "site_s": t3 - t2}
         st.posts_known_frac = float(dem.known.mean())
         st.nav_sigma_m = sigma
         st.unsafe_frac = float(hmap.unsafe.mean())
-        self.last_dem, self.last_map = dem, hmap
+        if first:
+            self.last_dem, self.last_map = dem, hmap
+        else:
+            self.rescan_dem, self.rescan_map = dem, hmap
         if site is None:
             st.no_safe_site = True
-            return None
+            return self._no_site(first, (dem, hmap), target_L)
         st.site = site
-        # The site's height: the DEM's mean under the body there.
-        j = int(round((site.xy_m[0] - dem.origin_xy_m[0]) / dem.spacing_m))
-        i = int(round((site.xy_m[1] - dem.origin_xy_m[1]) / dem.spacing_m))
-        r = max(int(round(cfg.map.body_radius_m / dem.spacing_m)), 1)
-        z = float(np.mean(dem.height_m[max(i - r, 0):i + r + 1, max(j - r, 0):j + r + 1]))
-        return np.array([site.xy_m[0], site.xy_m[1], z])
+        return np.array([site.xy_m[0], site.xy_m[1], _height_under_body(dem, site.xy_m, cfg.map.body_radius_m)])
+
+    def _no_site(self, first: bool, scan: tuple[ScanDem, HazardMap] | None, target_L: np.ndarray) -> np.ndarray | None:
+        """No site with the margin in this scan: the second chance after the first, else a declared no-site."""
+        if not (first and self.cfg.rescan == "on"):
+            self.no_safe_site = True
+            return None
+        self.awaiting_rescan = True
+        if scan is None:
+            return None
+        dem, hmap = scan
+        best = best_margin_post(hmap, np.asarray(target_L, float)[:2], self.cfg.map.max_divert_m)
+        if best is None:  # nothing safe in view: the second scan looks from lower over the same target
+            return None
+        xy, self.stats.best_margin_m = best
+        return np.array([xy[0], xy[1], _height_under_body(dem, xy, self.cfg.map.body_radius_m)])
+
+
+def _height_under_body(dem: ScanDem, xy_m: np.ndarray, body_radius_m: float) -> float:
+    """The DEM's mean under the body at ``xy_m`` (the site's height) [m]."""
+    j = int(round((xy_m[0] - dem.origin_xy_m[0]) / dem.spacing_m))
+    i = int(round((xy_m[1] - dem.origin_xy_m[1]) / dem.spacing_m))
+    r = max(int(round(body_radius_m / dem.spacing_m)), 1)
+    return float(np.mean(dem.height_m[max(i - r, 0):i + r + 1, max(j - r, 0):j + r + 1]))

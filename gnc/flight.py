@@ -440,8 +440,10 @@ class FlightSoftware:
             return False
         if self.fdir is not None and self.fdir.abort is not None:
             return False
-        height = float(self.filter.ekf.x[2]) - float(np.asarray(self.target.r_L, float)[2])
-        return self.hda.wants_scan(height, self.last_guidance.phase)
+        target = np.asarray(self.target.r_L, float)
+        height = float(self.filter.ekf.x[2]) - float(target[2])
+        return self.hda.wants_scan(height, self.last_guidance.phase, self.filter.ekf.x[:3],
+                                   quat_to_matrix(self.filter.q_LB), target)
 
     def on_lidar(self, msg: LidarScanMessage) -> None:
         """A hazard flash: kept until its scan is complete; then map the hazards through the estimate, retarget

@@ -151,7 +151,7 @@ class HazardTruth:
             "scanned": True, "t_s": st.scan_t_ns / 1e9, "height_m": float(truth["r_BL_L"][2]),
             "flashes": st.flashes, "returns": st.points, "posts_known_frac": st.posts_known_frac,
             "nav_sigma_m": st.nav_sigma_m, "nav_err_at_scan_m": float(np.hypot(*err)), "unsafe_frac": st.unsafe_frac,
-            "compute_s": st.compute_s, "no_safe_site": st.no_safe_site,
+            "compute_s": st.compute_s, "no_safe_site": st.no_safe_site, "roughness_detect_m": st.roughness_detect_m,
             "site_xy_m": [None, None], "divert_m": None, "margin_m": None, "site_truth_xy_m": [None, None],
             "site_truth_hazard_free": None,
         }

@@ -450,13 +450,15 @@ class FlightSoftware:
         to a safe site (or to the best-margin area for a second scan), or declare none."""
         x, P = self.filter.ekf.x, self.filter.ekf.P
         R_LB = quat_to_matrix(self.filter.q_LB)
+        q_gyro = self.filter.gyro_attitude()
+        R_gyro = None if q_gyro is None else quat_to_matrix(q_gyro)
         if self.hda.flashes_wanted() > 1:
-            self.hda.add_flash(msg, x[:3].copy(), R_LB)
+            self.hda.add_flash(msg, x[:3].copy(), R_LB, R_gyro)
             return
         sigma_vh = math.sqrt(max(float(P[3, 3] + P[4, 4]) / 2.0, 0.0))
         sigma_z = math.sqrt(max(float(P[2, 2]), 0.0))
         new = self.hda.on_scan(msg, x[:3].copy(), R_LB, sigma_vh, sigma_z, np.asarray(self.target.r_L, float),
-                               self._t_go_plan_s())
+                               self._t_go_plan_s(), R_gyro, x[3:6].copy())
         if new is not None:
             self.target = LandingTarget(r_L=new)
             return

@@ -476,21 +476,43 @@ class FlightSoftware:
             return False
         if self.fdir is not None and self.fdir.abort is not None:
             return False
-        height = float(self.filter.ekf.x[2]) - float(np.asarray(self.target.r_L, float)[2])
-        return self.hda.wants_scan(height, self.last_guidance.phase)
+        target = np.asarray(self.target.r_L, float)
+        height = float(self.filter.ekf.x[2]) - float(target[2])
+        return self.hda.wants_scan(height, self.last_guidance.phase, self.filter.ekf.x[:3],
+                                   quat_to_matrix(self.filter.q_LB), target)
 
     def on_lidar(self, msg: LidarScanMessage) -> None:
-        """A hazard scan: map the hazards through the estimate, retarget to a safe site, or declare none."""
+        """A hazard flash: kept until its scan is complete; then map the hazards through the estimate, retarget
+        to a safe site (or to the best-margin area for a second scan), or declare none."""
         x, P = self.filter.ekf.x, self.filter.ekf.P
+        R_LB = quat_to_matrix(self.filter.q_LB)
+        q_gyro = self.filter.gyro_attitude()
+        R_gyro = None if q_gyro is None else quat_to_matrix(q_gyro)
+        if self.hda.flashes_wanted() > 1:
+            self.hda.add_flash(msg, x[:3].copy(), R_LB, R_gyro)
+            return
         sigma_vh = math.sqrt(max(float(P[3, 3] + P[4, 4]) / 2.0, 0.0))
         sigma_z = math.sqrt(max(float(P[2, 2]), 0.0))
-        new = self.hda.on_scan(msg, x[:3].copy(), quat_to_matrix(self.filter.q_LB), sigma_vh, sigma_z,
-                               np.asarray(self.target.r_L, float))
+        new = self.hda.on_scan(msg, x[:3].copy(), R_LB, sigma_vh, sigma_z, np.asarray(self.target.r_L, float),
+                               self._t_go_plan_s(), R_gyro, x[3:6].copy())
         if new is not None:
             self.target = LandingTarget(r_L=new)
             return
+        if not self.hda.no_safe_site:  # the first scan's no-site: a second scan follows
+            return
         if self.hda.cfg.no_site_action == "abort" and self.fdir is not None:
             self.fdir.declare_abort(msg.t_ns, HAZARD, "no safe site within the divert limit")
+
+    def _t_go_plan_s(self) -> float | None:
+        """The guidance plan's time left to touchdown [s]: to the gate plus the terminal descent (None: unknown)."""
+        cmd, gcfg = self.last_guidance, getattr(self.guidance, "cfg", None)
+        if cmd is None or gcfg is None or not math.isfinite(cmd.t_go_s):
+            return None
+        if cmd.phase == "terminal":
+            return float(cmd.t_go_s)
+        if cmd.phase == "approach":
+            return float(cmd.t_go_s) + gcfg.gate_altitude_m / gcfg.terminal_descent_rate_mps
+        return None
 
     # ------------------------------------------------------------------ control
     def control(self, t_ns: int, contact: ContactMessage, nav: NavState | None = None) -> ActuatorCommand:

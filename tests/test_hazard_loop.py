@@ -256,3 +256,227 @@ def test_campaign_table_counts_hazard_free_touchdowns():
     text = campaign_table(rows)
     assert "hazard-free touchdowns: 6/8 = 75.0%" in text and "no safe site: 1/9" in text
     assert "hazard-free" not in campaign_table([{"case": 0, "outcome": "landed", "landed": True}])
+
+
+# ----------------------------------------------------------------- the mosaic, the sampling margin, the second scan
+def test_sampling_margin_bounds_a_gaussian_rocks_worst_read():
+    """The margin 4 s^2 / (3 h) bounds (and is close to) what a cell-mean post at the worst offset loses on the
+    terrain's rock shape, integrated numerically: the cell [0, s]^2 from the top, h (1 - mean of the Gaussian)."""
+    from gnc.hda import sampling_margin_m
+
+    h = 0.3
+    sigma = h / BOULDER_HEIGHT_RATIO / 4  # D / 4, with h = 0.5 D
+    assert sigma == pytest.approx(0.15)
+    for s in (0.05, 0.07, 0.1, 0.14):
+        u = np.linspace(0.0, s, 2001)
+        mean_1d = np.trapezoid(np.exp(-u**2 / (2 * sigma**2)), u) / s
+        loss = h * (1.0 - mean_1d**2)
+        margin = sampling_margin_m(s, h)
+        assert 0.8 * margin <= loss <= margin, (s, loss, margin)  # the parabola bounds the Gaussian top
+    assert sampling_margin_m(0.1, 0.3) == pytest.approx(0.0444, abs=1e-4)
+
+
+def _rock_field(half: float = 11.0, s: float = 0.025, seed: int = 11):
+    rng = np.random.default_rng(seed)
+    X, Y = _grid(half, s)
+    xy = (np.array([(x, y) for x in np.arange(-10, 11, 4.0) for y in np.arange(-10, 11, 4.0)])
+          + rng.uniform(-0.05, 0.05, (36, 2)))
+    h = sum(_gaussian_boulder(X, Y, x, y, 0.6) for x, y in xy)  # 36 rocks of 0.3 m, 4 m apart
+    return _dem(h, s, (-half, -half)), xy
+
+
+def _rock_reads(dem: SiteDem, xy: np.ndarray, flashes: int) -> np.ndarray:
+    """The flight software's mosaic of ``flashes`` flashes from 100 m, dithered by half a ground sample (0.07 m)
+    between flashes (:meth:`HazardAvoidance.add_flash`, then :meth:`HazardAvoidance.on_scan`); each rock's read."""
+    R_BS = np.diag([1.0, -1.0, -1.0])
+    lidar = FlashLidar(FlashLidarConfig(mount_B_m=(0.0, 0.0, 0.0)), np.random.default_rng(3))
+    hda = HazardAvoidance(HdaConfig(flashes=flashes, rescan="off"))
+    for k in range(flashes):
+        r = np.array([0.3 + 0.07 * (k % 2), 0.2 + 0.07 * (k // 2), 100.0])
+        msg = lidar.scan(0, r, R_BS, R_BS, dem)
+        assert hda.wants_scan(100.0 if k == 0 else 1e3, "approach") and hda.flashes_wanted() == flashes - k
+        if k < flashes - 1:
+            hda.add_flash(msg, r, np.eye(3))
+        else:
+            hda.on_scan(msg, r, np.eye(3), 0.01, 0.5, np.zeros(3))
+    assert not hda.wants_scan(50.0, "approach") and hda.stats.flashes == flashes
+    d = hda.last_dem
+    out = []
+    for x, y in xy:
+        j = int(round((x - d.origin_xy_m[0]) / d.spacing_m))
+        i = int(round((y - d.origin_xy_m[1]) / d.spacing_m))
+        out.append(float(d.height_m[i - 3:i + 4, j - 3:j + 4].max()))
+    return np.array(out)
+
+
+def test_a_threshold_rock_reads_within_its_sampling_error_and_the_mosaic_steadies_it():
+    """36 rocks of 0.3 m from 100 m (ground sample 0.14 m, posts 0.1 m): their mean read lies within the sampling
+    margin below 0.3 m (plus the noise's upward bias of a max); with 4 flashes fewer read below the margin."""
+    from gnc.hda import sampling_margin_m
+
+    dem, xy = _rock_field()
+    one, four = _rock_reads(dem, xy, 1), _rock_reads(dem, xy, 4)
+    margin = sampling_margin_m(0.1, 0.3)
+    for reads in (one, four):
+        assert 0.3 - margin <= float(np.mean(reads)) <= 0.3 + 0.02
+    assert np.sum(four < 0.3 - margin) < np.sum(one < 0.3 - margin)
+    assert float(np.min(four)) >= 0.3 - margin - 2 * 0.03 / math.sqrt(2)  # 2 returns a post: noise 0.021 m
+
+
+def test_fused_margin_equals_brute_force_over_both_scans_hazards():
+    """fuse_maps against an explicit loop: candidates are the second scan's rated safe posts; the margin is the
+    least of the distance to its rated hazards and to the first scan's hazards outside them, less the shift."""
+    from gnc.hazard import HazardMap
+    from gnc.hda import fuse_maps
+
+    rng = np.random.default_rng(4)
+    s = 0.5
+
+    def hmap(unsafe, origin):
+        z = np.zeros(unsafe.shape, np.float32)
+        return HazardMap(tilt_deg=z, roughness_m=z, unsafe=unsafe, hazard_distance_m=z, spacing_m=s, origin_xy_m=origin)
+
+    first = hmap(rng.random((40, 40)) < 0.05, (-10.0, -10.0))
+    second = hmap(rng.random((12, 12)) < 0.08, (-2.0, -1.0))
+    rated = np.zeros((12, 12), bool)
+    rated[2:10, 3:11] = True
+    shift, pad = 0.7, 3.0
+    fused = fuse_maps(second, rated, first, pad, shift)
+    p = int(round(pad / s))
+    assert fused.unsafe.shape == (12 + 2 * p, 12 + 2 * p) and fused.origin_xy_m == (-2.0 - pad, -1.0 - pad)
+    # Hazards in L: the second's rated unsafe posts; the first's unsafe posts at the fused posts outside the rated.
+    fx = fused.origin_xy_m[0] + s * np.arange(fused.unsafe.shape[1])
+    fy = fused.origin_xy_m[1] + s * np.arange(fused.unsafe.shape[0])
+    h2, h1 = [], []
+    for i in range(len(fy)):
+        for j in range(len(fx)):
+            ii, jj = i - p, j - p
+            if 0 <= ii < 12 and 0 <= jj < 12 and rated[ii, jj]:
+                if second.unsafe[ii, jj]:
+                    h2.append((fx[j], fy[i]))
+            else:
+                i1, j1 = int(round((fy[i] + 10.0) / s)), int(round((fx[j] + 10.0) / s))
+                inside = 0 <= i1 < 40 and 0 <= j1 < 40
+                if not inside or first.unsafe[i1, j1]:
+                    h1.append((fx[j], fy[i]))
+    h2, h1 = np.array(h2), np.array(h1)
+    for i in range(len(fy)):
+        for j in range(len(fx)):
+            ii, jj = i - p, j - p
+            cand = 0 <= ii < 12 and 0 <= jj < 12 and rated[ii, jj] and not second.unsafe[ii, jj]
+            assert fused.unsafe[i, j] == (not cand)
+            if cand:
+                d2 = np.hypot(h2[:, 0] - fx[j], h2[:, 1] - fy[i]).min()
+                d1 = np.hypot(h1[:, 0] - fx[j], h1[:, 1] - fy[i]).min()
+                assert fused.hazard_distance_m[i, j] == pytest.approx(min(d2, max(d1 - shift, 0.0)), abs=1e-3)
+
+
+def test_view_offset_is_where_the_boresight_meets_the_ground():
+    """A lander tilted by theta about x, h above the target, the sensor on the axis: the boresight meets the
+    ground h tan(theta) off, in y; the second scan waits for it to come within rescan_view_frac of the half-width."""
+    hda = HazardAvoidance(HdaConfig())
+    R_BS = np.diag([1.0, -1.0, -1.0])
+    hda._mount = (R_BS, np.zeros(3), 20.0)  # what the first scan's message states
+    hda.scanned, hda.awaiting_rescan = True, True
+    h, theta = 45.0, math.radians(8.0)
+    R_LB = Rotation.from_rotvec([theta, 0.0, 0.0]).as_matrix()
+    target = np.array([3.0, -2.0, 1.0])
+    r = target + np.array([0.0, 0.0, h])
+    assert hda.view_offset_m(r, R_LB, target) == pytest.approx(h * math.tan(theta), rel=1e-9)
+    half = h * math.tan(math.radians(10.0))
+    assert h * math.tan(theta) > 0.5 * half and not hda.wants_scan(h, "approach", r, R_LB, target)
+    assert hda.wants_scan(h, "terminal", r, np.eye(3), target)  # upright over the target
+    assert not hda.wants_scan(55.0, "terminal", target + [0, 0, 55.0], np.eye(3), target)  # above rescan_altitude_m
+    r_off = r + np.array([0.6 * half, 0.0, 0.0])  # upright but beside it
+    assert not hda.wants_scan(h, "approach", r_off, np.eye(3), target)
+
+
+def test_no_site_in_the_first_scan_gives_a_second_chance_before_declaring():
+    """Egg-crate ground with a 7 m flat disk: too small for the first scan's margin (a large drift sigma), so it
+    moves the target to the disk's centre (its best-margin post) without declaring; the second scan, with a
+    smaller drift, finds a site in the disk. Without the disk the second scan declares; with rescan = 'off'
+    the first one does."""
+    half, s = 25.0, 0.1
+    X, Y = _grid(half, s)
+    rough = 0.5 * np.sin(2 * np.pi * X / 3.0) * np.sin(2 * np.pi * Y / 3.0)
+    centre = np.array([6.0, -5.0])
+    h = np.where(np.hypot(X - centre[0], Y - centre[1]) <= 7.0, 0.0, rough)
+    e = np.array([-3.0, 2.0, 0.0])  # the navigation error
+    target = np.zeros(3) + e
+    cfg = HdaConfig(flashes=1, map=HazardConfig(max_divert_m=30.0))
+    msg, R_LB = _scan_over(h, half, s, np.array([0.0, 0.0, 70.0]), pixels=192)
+    hda = HazardAvoidance(cfg)
+    new = hda.on_scan(msg, np.array([0.0, 0.0, 70.0]) + e, R_LB, 0.1, 0.5, target)  # sigma about 3.5 m
+    assert hda.stats.no_safe_site and not hda.no_safe_site and hda.awaiting_rescan
+    # The disk's best-margin post: its centre, to within the posts' rounding and the lidar's sampling.
+    assert new is not None and np.hypot(*(new[:2] - e[:2] - centre)) <= 0.5
+    assert hda.stats.best_margin_m == pytest.approx(7.0 - 2.4, abs=0.4)  # the disk less the footprint's reach
+    # The second scan from 40 m over the new target, a smaller drift.
+    r2 = np.array([*(new[:2] - e[:2]), 40.0])
+    assert hda.wants_scan(39.0, "approach", r2 + e, R_LB, np.array([*new[:2], 0.0]))
+    msg2, _ = _scan_over(h, half, s, r2, pixels=192)
+    site = hda.on_scan(msg2, r2 + e, R_LB, 0.005, 0.2, new)
+    assert site is not None and not hda.no_safe_site and hda.rescanned and not hda.wants_scan(30.0, "terminal")
+    st2 = hda.rescan_stats
+    assert st2.site.margin_m >= 3 * st2.nav_sigma_m
+    assert np.hypot(*(site[:2] - e[:2] - centre)) <= 7.0 - 2.2 - 3 * st2.nav_sigma_m + 0.2
+    # No disk: the second scan declares.
+    msg_r, _ = _scan_over(rough, half, s, np.array([0.0, 0.0, 70.0]), pixels=192)
+    hda2 = HazardAvoidance(cfg)
+    assert hda2.on_scan(msg_r, np.array([0.0, 0.0, 70.0]) + e, R_LB, 0.1, 0.5, target) is None
+    assert not hda2.no_safe_site and hda2.awaiting_rescan  # nothing safe in view: the target stays, scan again
+    msg_r2, _ = _scan_over(rough, half, s, np.array([0.0, 0.0, 40.0]), pixels=192)
+    assert hda2.on_scan(msg_r2, np.array([0.0, 0.0, 40.0]) + e, R_LB, 0.005, 0.2, target) is None
+    assert hda2.no_safe_site
+    # rescan = 'off': declared at the first scan.
+    hda3 = HazardAvoidance(cfg.model_copy(update={"rescan": "off"}))
+    assert hda3.on_scan(msg, np.array([0.0, 0.0, 70.0]) + e, R_LB, 0.1, 0.5, target) is None and hda3.no_safe_site
+
+
+def test_the_flashes_are_registered_through_the_estimated_motion_not_the_jumping_estimate():
+    """Four flashes while descending at 10 m/s; a filter update moves the estimate 0.12 m up and 0.04 m across
+    between the second and third (as measured in the loop). Registered through the estimated velocity, the
+    mosaic equals the one placed through the true poses (plus the last flash's error, then common to all);
+    through each tick's estimate, the rocks' tops read off by centimetres."""
+    dem, xy = _rock_field()
+    R_BS = np.diag([1.0, -1.0, -1.0])
+    lidar = FlashLidar(FlashLidarConfig(mount_B_m=(0.0, 0.0, 0.0)), np.random.default_rng(3))
+    v = np.array([0.5, -0.3, -10.0])
+    common = np.array([3.0, -2.0, 0.5])  # the navigation error all flashes share
+    jump = np.array([0.04, 0.0, 0.12])
+    poses = [np.array([0.3, 0.2, 100.0]) + v * 0.02 * k for k in range(4)]
+    msgs = []
+    for k, r in enumerate(poses):
+        R_LS = Rotation.from_rotvec([2e-3 * k, 1e-3 * k, 0.0]).as_matrix() @ R_BS  # it turns, too
+        m = lidar.scan(20_000_000 * k, r, R_LS, R_BS, dem)
+        msgs.append((m, R_LS @ R_BS.T))
+
+    def mosaic(v_est):
+        hda = HazardAvoidance(HdaConfig(rescan="off"))
+        for k, (m, R_LB) in enumerate(msgs):
+            r_est = poses[k] + common + (jump if k >= 2 else 0.0)
+            G = Rotation.from_rotvec([0.01, 0.0, 0.0]).as_matrix() @ R_LB  # a drifted gyro attitude: only its
+            R_est = Rotation.from_rotvec([0.0, 0.0, 1e-5]).as_matrix() @ R_LB if k < 3 else R_LB  # relative use
+            if k < 3:
+                hda.add_flash(m, r_est, R_est, G)
+            else:
+                hda.on_scan(m, r_est, R_est, 0.01, 0.5, np.zeros(3), None, G, v_est)
+        d = hda.last_dem
+        return np.array([float(d.height_m[int(round((y + common[1] - d.origin_xy_m[1]) / 0.1)) - 3:
+                                           int(round((y + common[1] - d.origin_xy_m[1]) / 0.1)) + 4,
+                                           int(round((x + common[0] - d.origin_xy_m[0]) / 0.1)) - 3:
+                                           int(round((x + common[0] - d.origin_xy_m[0]) / 0.1)) + 4].max())
+                         for x, y in xy])
+
+    # The reference: every flash through its true pose, moved by the error of the last flash's estimate.
+    pts = np.concatenate([scan_points_L(m, poses[k] + common + jump, R_LB) for k, (m, R_LB) in enumerate(msgs)])
+    ref_dem = grid_dem(pts, 0.1)
+    ref = np.array([float(ref_dem.height_m[int(round((y + common[1] - ref_dem.origin_xy_m[1]) / 0.1)) - 3:
+                                           int(round((y + common[1] - ref_dem.origin_xy_m[1]) / 0.1)) + 4,
+                                           int(round((x + common[0] - ref_dem.origin_xy_m[0]) / 0.1)) - 3:
+                                           int(round((x + common[0] - ref_dem.origin_xy_m[0]) / 0.1)) + 4].max())
+                    for x, y in xy])
+    registered, jumping = mosaic(v), mosaic(None)
+    # Registered to the last flash: the reference (the jump is then common to all flashes), to 1 mm.
+    np.testing.assert_allclose(registered, ref, atol=1e-3)
+    assert np.max(np.abs(jumping - ref)) > 0.03

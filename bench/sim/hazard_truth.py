@@ -6,7 +6,8 @@ pose at a flash and at touchdown, the flight software's hazard-avoidance
 state.
 Outputs: :class:`gnc.messages.LidarScanMessage` for the flight software, and
 the summary's ``hazard`` block.
-Rate: setup once per run (about 1 s), one flash, one scoring after touchdown.
+Rate: setup once per run (about 1 s), the flashes of one scan (two when the
+first found no safe site), one scoring after touchdown.
 
 The summary's ``hazard`` block:
 
@@ -14,9 +15,12 @@ The summary's ``hazard`` block:
   at touchdown (``hazard_free``, tilt, slope, rock);
 * ``scan`` (avoidance on): when and from how high, the flight software's
   DEM and hazard map figures and their compute time, the site, its divert and
-  margin, ``no_safe_site``; the site's **truth** position (the flight
-  software's site minus its horizontal navigation error at the scan) and the
-  truth footprint there;
+  margin; ``no_safe_site`` (declared, after the second scan when there was
+  one), ``first_no_site`` (the first scan found none) and ``rescanned``; the
+  site's **truth** position (the flight software's site minus its horizontal
+  navigation error at the scan) and the truth footprint there;
+* ``rescan`` (avoidance on): the same figures for the second scan, when the
+  first found no safe site (``scanned`` false otherwise);
 * ``detection``: the flight software's unsafe posts against the truth's. The
   truth hazard map is :func:`gnc.hazard.hazard_map` of the fine truth DEM at
   the same posts moved to where they truly are (each post's estimated
@@ -46,6 +50,7 @@ from models.lander import footpad_positions_B
 from models.site_dem import SiteGround
 
 TOUCHDOWN_DEM_HALF_M = 5.0  # half-side of the fine DEM scored around the touchdown point [m]
+SCAN_GAP_NS = 1_000_000_000  # a flash this long after the last starts a new scan [ns]
 
 
 class HazardTruth:
@@ -57,23 +62,33 @@ class HazardTruth:
         self.ground = SiteGround(scenario.terrain, component_rng(scenario.terrain_seed(), "terrain"))
         self.lidar = (FlashLidar(self.cfg.lidar, component_rng(scenario.seed, "lidar"))
                       if self.cfg.avoidance == "on" else None)
-        self.scan_truth: dict[str, Any] | None = None  # the truth at the flash
+        self.scans: list[dict[str, Any]] = []  # the truth at each scan's first flash
+        self.scan_truth: dict[str, Any] | None = None  # the first scan's
+        self._last_flash_ns: int | None = None
 
     def flash(self, t_ns: int, r_BL_L: np.ndarray, q_LB: np.ndarray, nav_r_L: np.ndarray) -> LidarScanMessage:
-        """One flash from the truth pose; remembers the truth (and the navigation error) for the summary."""
+        """One flash from the truth pose; remembers each scan's truth (and navigation error) for the summary.
+
+        A flash more than ``SCAN_GAP_NS`` after the last starts a new scan (the flashes of one scan are on
+        consecutive control ticks); its truth DEM (the footprint with a 2 m and 10 deg allowance) serves
+        the scan's later flashes too.
+        """
         assert self.lidar is not None
         R_LB = Rotation.from_quat(q_LB, scalar_first=True).as_matrix()
         r_SL_L = np.asarray(r_BL_L, float) + R_LB @ np.asarray(self.cfg.lidar.mount_B_m, float)
         R_LS = R_LB @ R_BC
-        nadir = r_SL_L[:2]
-        height = float(r_SL_L[2])
-        tilt = math.degrees(math.acos(min(1.0, abs(float(R_LS[2, 2])))))
-        half = self.lidar.footprint_half_m(height, tilt)
-        dem = self.ground.dem((float(nadir[0]), float(nadir[1])), half, self.cfg.site_spacing_m)
-        msg = self.lidar.scan(t_ns, r_SL_L, R_LS, R_BC, dem)
-        self.scan_truth = {"t_ns": int(t_ns), "r_BL_L": np.asarray(r_BL_L, float).copy(),
-                           "nav_err_xy_m": (np.asarray(nav_r_L, float) - np.asarray(r_BL_L, float))[:2], "dem": dem}
-        return msg
+        if self._last_flash_ns is None or t_ns - self._last_flash_ns > SCAN_GAP_NS:
+            nadir = r_SL_L[:2]
+            height = float(r_SL_L[2])
+            tilt = math.degrees(math.acos(min(1.0, abs(float(R_LS[2, 2])))))
+            half = self.lidar.footprint_half_m(height, tilt)
+            dem = self.ground.dem((float(nadir[0]), float(nadir[1])), half, self.cfg.site_spacing_m)
+            self.scans.append({"t_ns": int(t_ns), "r_BL_L": np.asarray(r_BL_L, float).copy(),
+                               "nav_err_xy_m": (np.asarray(nav_r_L, float) - np.asarray(r_BL_L, float))[:2],
+                               "dem": dem})
+            self.scan_truth = self.scans[0]
+        self._last_flash_ns = int(t_ns)
+        return self.lidar.scan(t_ns, r_SL_L, R_LS, R_BC, self.scans[-1]["dem"])
 
     def footprint(self, r_BL_L: np.ndarray, q_LB: np.ndarray) -> dict[str, Any]:
         """The footprint score of a pose (the pads' positions), against a fine DEM around it."""
@@ -107,6 +122,7 @@ class HazardTruth:
         out["unsafe"] = None if free is None else float(not free)  # numeric, for landbench compare
         if self.cfg.avoidance == "on":
             out["scan"] = self._scan_summary(fsw)
+            out["rescan"] = self._rescan_summary(fsw)
         return out
 
     def _scan_summary(self, fsw: Any) -> dict[str, Any]:
@@ -114,13 +130,28 @@ class HazardTruth:
         st = hda.stats
         if st.scan_t_ns is None or self.scan_truth is None:
             return {"scanned": False, "no_safe_site": False}
-        truth = self.scan_truth
+        out = self._one_scan(st, self.scan_truth, hda.last_dem, hda.last_map, hda.cfg.map)
+        # no_safe_site: declared (after the second scan, when there was one); first_no_site: this scan found none.
+        out.update({"no_safe_site": bool(hda.no_safe_site), "first_no_site": st.no_safe_site,
+                    "best_margin_m": st.best_margin_m, "rescanned": bool(hda.rescanned)})
+        return out
+
+    def _rescan_summary(self, fsw: Any) -> dict[str, Any]:
+        hda = fsw.hda
+        st = hda.rescan_stats
+        if st is None or st.scan_t_ns is None or len(self.scans) < 2:
+            return {"scanned": False}
+        out = self._one_scan(st, self.scans[1], hda.rescan_dem, hda.rescan_map, hda.cfg.map)
+        out["no_safe_site"] = st.no_safe_site
+        return out
+
+    def _one_scan(self, st: Any, truth: dict[str, Any], dem: Any, hmap: Any, map_cfg: Any) -> dict[str, Any]:
         err = truth["nav_err_xy_m"]
         out: dict[str, Any] = {
             "scanned": True, "t_s": st.scan_t_ns / 1e9, "height_m": float(truth["r_BL_L"][2]),
-            "returns": st.points, "posts_known_frac": st.posts_known_frac, "nav_sigma_m": st.nav_sigma_m,
-            "nav_err_at_scan_m": float(np.hypot(*err)), "unsafe_frac": st.unsafe_frac,
-            "compute_s": st.compute_s, "no_safe_site": st.no_safe_site,
+            "flashes": st.flashes, "returns": st.points, "posts_known_frac": st.posts_known_frac,
+            "nav_sigma_m": st.nav_sigma_m, "nav_err_at_scan_m": float(np.hypot(*err)), "unsafe_frac": st.unsafe_frac,
+            "compute_s": st.compute_s, "no_safe_site": st.no_safe_site, "roughness_detect_m": st.roughness_detect_m,
             "site_xy_m": [None, None], "divert_m": None, "margin_m": None, "site_truth_xy_m": [None, None],
             "site_truth_hazard_free": None,
         }
@@ -129,17 +160,19 @@ class HazardTruth:
             out.update({"site_xy_m": [float(c) for c in st.site.xy_m], "divert_m": st.site.divert_m,
                         "margin_m": st.site.margin_m, "site_truth_xy_m": [float(c) for c in site_true],
                         "site_truth_hazard_free": self.level_footprint(site_true).get("hazard_free")})
-        if hda.last_dem is not None:
-            out["detection"] = self.detection(hda.last_dem, hda.last_map, err, hda.cfg.map)
+        if dem is not None:
+            out["detection"] = self.detection(dem, hmap, err, map_cfg, truth["dem"])
         return out
 
-    def detection(self, scan_dem: Any, det_map: Any, nav_err_xy_m: np.ndarray, map_cfg: Any) -> dict[str, Any]:
-        """The flight software's unsafe posts against the truth's (module docstring)."""
+    def detection(self, scan_dem: Any, det_map: Any, nav_err_xy_m: np.ndarray, map_cfg: Any,
+                  truth_dem: Any = None) -> dict[str, Any]:
+        """The flight software's unsafe posts against the truth's (module docstring); ``truth_dem``: the scan's
+        fine truth DEM (None: the first scan's)."""
         rows, cols = scan_dem.height_m.shape
         x = scan_dem.origin_xy_m[0] + scan_dem.spacing_m * np.arange(cols) - nav_err_xy_m[0]
         y = scan_dem.origin_xy_m[1] + scan_dem.spacing_m * np.arange(rows) - nav_err_xy_m[1]
         X, Y = np.meshgrid(x, y)
-        dem = self.scan_truth["dem"]
+        dem = truth_dem if truth_dem is not None else self.scan_truth["dem"]
         h = dem.height_at(X, Y)
         inside = np.isfinite(h)
         truth_map = hazard_map(np.where(inside, h, 0.0).astype(np.float32), scan_dem.spacing_m,

@@ -75,6 +75,12 @@ SENSOR_TARGETS = ("imu.accel", "imu.gyro", "altimeter", "star_tracker")
 PHASES = ("approach", "terminal")
 
 
+def _check_axes(axes: list[int]) -> None:
+    """Body axes of a fault: distinct values among 0, 1, 2 (one-line ValueError)."""
+    if any(a not in (0, 1, 2) for a in axes) or len(set(axes)) != len(axes):
+        raise ValueError(f"fault axes = {axes}; allowed: distinct values among 0, 1, 2")
+
+
 class _Fault(BaseModel):
     """Trigger and duration, common to every fault."""
 
@@ -125,8 +131,7 @@ class _SensorFault(_Fault):
 
     @model_validator(mode="after")
     def _axes(self) -> "_SensorFault":
-        if any(a not in (0, 1, 2) for a in self.axes) or len(set(self.axes)) != len(self.axes):
-            raise ValueError(f"fault axes = {self.axes}; allowed: distinct values among 0, 1, 2")
+        _check_axes(self.axes)
         return self
 
 
@@ -245,8 +250,7 @@ class RcsLoss(_Fault):
 
     @model_validator(mode="after")
     def _axes(self) -> "RcsLoss":
-        if any(a not in (0, 1, 2) for a in self.axes) or len(set(self.axes)) != len(self.axes):
-            raise ValueError(f"fault axes = {self.axes}; allowed: distinct values among 0, 1, 2")
+        _check_axes(self.axes)
         return self
 
 

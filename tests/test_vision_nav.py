@@ -57,6 +57,18 @@ def _measure(tracks, r0, r1, q0, q1, h_view=0.0, cfg=CFG, dt=0.1, s_view=None):
                               0.0, cfg, s_view=s_view)
 
 
+def _random_pair(rng, xy_m, z_range_m, v_sigma_mps, v_z_mps, noise_px):
+    """A random frame pair 0.1 s apart: position within +-xy_m and z_range_m, velocity ~ N(0, v_sigma_mps) plus
+    v_z_mps downwards, attitude ~ 3 deg turning ~ 0.1 deg, noisy tracks. Returns (tracks, r0, r1, q0, q1)."""
+    r0 = np.array([rng.uniform(-xy_m, xy_m), rng.uniform(-xy_m, xy_m), rng.uniform(*z_range_m)])
+    v = rng.normal(0, v_sigma_mps) + np.array([0, 0, v_z_mps])
+    r1 = r0 + v * 0.1
+    q0 = _q(rng.normal(0, 3, 3))
+    q1 = _q(Rotation.from_quat(q0, scalar_first=True).as_euler("xyz", degrees=True) + rng.normal(0, 0.1, 3))
+    tracks, _ = _scene(rng, r0, r1, q0, q1, noise_px=noise_px)
+    return tracks, r0, r1, q0, q1
+
+
 def _flow_model(r0, r1, q0, q1, h_view, b_mean):
     """The measurement model written out: mean ray-difference of a plane at h_view, for given mean ray b."""
     c0, c1 = r0 + _R(q0) @ R_CAM_B, r1 + _R(q1) @ R_CAM_B
@@ -113,12 +125,7 @@ def test_noisy_tracks_are_consistent_with_the_reported_covariance():
     rng = np.random.default_rng(1)
     nees = []
     for _ in range(200):
-        r0 = np.array([rng.uniform(-100, 100), rng.uniform(-100, 100), rng.uniform(50, 500)])
-        v = rng.normal(0, [5, 5, 3]) + np.array([0, 0, -8])
-        r1 = r0 + v * 0.1
-        q0 = _q(rng.normal(0, 3, 3))
-        q1 = _q(Rotation.from_quat(q0, scalar_first=True).as_euler("xyz", degrees=True) + rng.normal(0, 0.1, 3))
-        tracks, _ = _scene(rng, r0, r1, q0, q1, noise_px=0.4)
+        tracks, r0, r1, q0, q1 = _random_pair(rng, 100.0, (50.0, 500.0), [5, 5, 3], -8.0, 0.4)
         m = _measure(tracks, r0, r1, q0, q1)
         e = m.z - m.hx
         nees.append(e @ np.linalg.solve(m.R + 2.0 * m.R_frame, e))
@@ -296,12 +303,7 @@ def test_divergence_noise_is_consistent_with_its_reported_variance():
     rng = np.random.default_rng(4)
     nees = []
     for _ in range(300):
-        r0 = np.array([rng.uniform(-50, 50), rng.uniform(-50, 50), rng.uniform(10, 400)])
-        v = rng.normal(0, [3, 3, 1]) + np.array([0, 0, -5])
-        r1 = r0 + v * 0.1
-        q0 = _q(rng.normal(0, 3, 3))
-        q1 = _q(Rotation.from_quat(q0, scalar_first=True).as_euler("xyz", degrees=True) + rng.normal(0, 0.1, 3))
-        tracks, _ = _scene(rng, r0, r1, q0, q1, noise_px=0.3)
+        tracks, r0, r1, q0, q1 = _random_pair(rng, 50.0, (10.0, 400.0), [3, 3, 1], -5.0, 0.3)
         d = _measure_div(tracks, r0, r1, q0, q1).divergence
         nees.append((d.z - d.hx) ** 2 / (d.R / CFG.covariance_inflation))
     n = len(nees)

@@ -127,3 +127,65 @@ def test_block_nees_many_equals_block_nees_bit_for_bit():
     many = block_nees_many(e, P)
     assert np.isnan(many[7, 2]) and np.isnan(one_by_one[7, 2])
     assert np.array_equal(many, one_by_one, equal_nan=True)
+
+
+def test_nees_profile_equals_an_explicit_loop_over_the_grid():
+    from bench.evaluation.consistency import NEES_PROFILE_ALTITUDES_M, nees_profile
+
+    rng = np.random.default_rng(21)
+    t = np.arange(0.0, 80.0, 0.1)
+    # A descent that climbs back twice (a divert, a hover's bobbing) and starts at 480 m: the rule
+    # is the first flying tick at or below each altitude, not the last and not an interpolation.
+    z = 480.0 - 6.5 * t + 25.0 * np.sin(t / 4.0) + rng.normal(0.0, 0.5, t.size)
+    flying = t < 75.0
+    nees = {block: rng.chisquare(dof, t.size) for block, dof in NEES_BLOCKS.items()}
+    nees["v_h"][100] = np.nan
+    got = nees_profile(t, z, flying, nees)
+    for block in NEES_BLOCKS:
+        assert len(got[block]) == len(NEES_PROFILE_ALTITUDES_M)
+        for j, h in enumerate(NEES_PROFILE_ALTITUDES_M):
+            want = None
+            for k in range(t.size):
+                if flying[k] and z[k] <= h:
+                    if k > 0 and np.isfinite(nees[block][k]):
+                        want = float(nees[block][k])
+                    break
+            assert got[block][j] == want, (block, h)
+    assert got["r_h"][0] is None  # 500 m: the case starts at 480 m
+    assert got["r_h"][-1] is not None
+
+
+def test_per_step_ensemble_nees_is_in_band_for_a_consistent_filter_and_not_for_a_wrong_one():
+    rng = np.random.default_rng(22)
+
+    t = np.arange(0.0, 60.0, 0.1)  # 1 m per tick: finer than the 2 m grid
+    rows_by_scale = {1.0: [], 2.0: [], 0.4: []}
+    for _ in range(120):
+        z = np.maximum(rng.uniform(505.0, 560.0) - 10.0 * t, 0.0)  # on the ground before t = 59 s
+        nees = {block: rng.chisquare(dof, t.size) for block, dof in NEES_BLOCKS.items()}
+        for scale, rows in rows_by_scale.items():
+            tel = {"t_s": t, "r_z_m": z, **{f"nees_{b}": v * scale for b, v in nees.items()}}
+            summary = {"consistency": run_consistency(tel, {"t_s": 59.0}, [])}
+            rows.append(json.loads(json.dumps(json_safe(summary_row(summary)))))
+
+    def campaign(scale):
+        return campaign_consistency(rows_by_scale[scale])
+
+    ok = campaign(1.0)["steps"]
+    assert ok["n_cases"] == 120
+    for block, b in ok["blocks"].items():
+        assert b["steps"] == 250 and b["n"][0] == 120
+        # 95 % bands, steps independent here: ~237.5 of 250 inside, sd ~3.4.
+        assert b["in_band_frac"] >= 0.9, (block, b["in_band_frac"])
+        j = 37  # one step's ANEES and band by hand
+        by_hand = sum(row["nees_profile"][block][j] for row in rows_by_scale[1.0]) / 120
+        assert b["anees"][j] == pytest.approx(by_hand, rel=1e-12)
+        assert b["band"][j] == pytest.approx(chi2_band(120, b["dof"]))
+    over = campaign(2.0)["steps"]["blocks"]
+    under = campaign(0.4)["steps"]["blocks"]
+    for block in NEES_BLOCKS:
+        assert over[block]["above"] >= 245 and over[block]["in_band_frac"] < 0.05
+        assert under[block]["below"] >= 245
+    doc = campaign(1.0)
+    text = consistency_table(json.loads(json.dumps(json_safe(doc))))
+    assert "per step (2 m grid, 500-2 m" in text and "r_h" in text

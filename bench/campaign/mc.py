@@ -81,9 +81,22 @@ _SUMMARY_SKIP = ("criteria", "modes", "time_split_s", "fdir_events")
 
 
 def summary_row(summary: dict[str, Any]) -> dict[str, Any]:
-    """A run summary flattened with ``_`` (``touchdown_miss_distance_m``, ``nav_vel_err_rms_mps``...)."""
+    """A run summary flattened with ``_`` (``touchdown_miss_distance_m``, ``nav_vel_err_rms_mps``...).
+
+    The consistency block's per-step NEES (``consistency.nees_profile``, 250 values
+    per error block) is not flattened into columns: it stays one entry,
+    ``nees_profile`` (block -> list), which no metric reads as a number.
+    """
     row: dict[str, Any] = {}
-    _flatten("", {k: v for k, v in summary.items() if k not in _SUMMARY_SKIP}, row)
+    kept = {k: v for k, v in summary.items() if k not in _SUMMARY_SKIP}
+    consistency = kept.get("consistency")
+    profile = None
+    if isinstance(consistency, dict) and "nees_profile" in consistency:
+        kept["consistency"] = {k: v for k, v in consistency.items() if k != "nees_profile"}
+        profile = consistency["nees_profile"]
+    _flatten("", kept, row)
+    if profile is not None:
+        row["nees_profile"] = profile
     return row
 
 

@@ -22,6 +22,15 @@ mean NIS lies in ``chi2.ppf(..., k m) / k`` (independent samples).
 Altitudes are the truth height of the body origin above the target's ground
 elevation (``r_z`` in L); a block's NEES at altitude ``h`` is taken at the first
 control tick at or below ``h``. A case that starts below ``h`` has no value there.
+
+**Per step.** Besides those few altitudes, every run records each block's NEES on
+a dense grid, every :data:`NEES_STEP_M` from :data:`NEES_STEP_TOP_M` down
+(:data:`NEES_PROFILE_ALTITUDES_M`, the "steps" of the descent, aligned across
+cases by altitude because the cases' trajectories differ in time). A campaign's
+ANEES at each step against that step's band gives the share of steps inside
+it: the filter is consistent throughout the descent, not only at a few heights.
+Neighbouring steps are correlated (the same errors a second apart), so that share
+is a description of where the filter is off, not a count of independent trials.
 """
 
 from __future__ import annotations
@@ -39,6 +48,9 @@ from bench.campaign.rows import column
 NEES_BLOCKS: dict[str, int] = {"r_h": 2, "r_v": 1, "v_h": 2, "v_v": 1, "b_a": 3}
 _BLOCK_INDEX: dict[str, list[int]] = {"r_h": [0, 1], "r_v": [2], "v_h": [3, 4], "v_v": [5], "b_a": [6, 7, 8]}
 NEES_ALTITUDES_M = (500, 300, 150, 80, 30, 10)
+NEES_STEP_TOP_M = 500  # [m] the dense grid's first altitude
+NEES_STEP_M = 2  # [m] its spacing
+NEES_PROFILE_ALTITUDES_M = tuple(range(NEES_STEP_TOP_M, 0, -NEES_STEP_M))  # 500, 498, ..., 2
 TOUCHDOWN = "touchdown"
 # NIS altitude bands [m], (low, high].
 NIS_BANDS_M = ((400, 600), (120, 250), (30, 120))
@@ -149,10 +161,11 @@ def run_consistency(tel: Mapping[str, np.ndarray], touchdown: Mapping[str, Any] 
     Returns:
         ``{"nees_at": {"500": {block: NEES} | None, ..., "touchdown": ...},
         "nis": {sensor: {"dof", "n", "sum", "rejected", "bands": {"400_600": {"n", "sum"}, ...}}},
-        "vision_lag1": {"x"|"y": {"n", "sum_sq", "n_pairs", "sum_prod"}}}``: sums, so
-        that a campaign can pool them.
+        "vision_lag1": {"x"|"y": {"n", "sum_sq", "n_pairs", "sum_prod"}},
+        "nees_profile": {block: [NEES or None per NEES_PROFILE_ALTITUDES_M]}}``: sums
+        and samples, so that a campaign can pool them.
     """
-    out: dict[str, Any] = {"nees_at": {}, "nis": {}, "vision_lag1": {}}
+    out: dict[str, Any] = {"nees_at": {}, "nis": {}, "vision_lag1": {}, "nees_profile": {}}
     if not tel:
         return out
     t = np.asarray(tel["t_s"], float)
@@ -168,6 +181,7 @@ def run_consistency(tel: Mapping[str, np.ndarray], touchdown: Mapping[str, Any] 
         ok = below.size > 0 and below[0] > 0  # a case that starts below the altitude has no value there
         out["nees_at"][str(alt)] = nees_row(int(below[0])) if ok else None
     out["nees_at"][TOUCHDOWN] = nees_row(int(idx_flying[-1])) if touchdown is not None and idx_flying.size else None
+    out["nees_profile"] = nees_profile(t, z, flying, {b: np.asarray(tel[f"nees_{b}"], float) for b in NEES_BLOCKS})
 
     for sensor, dof in NIS_SENSORS.items():
         recs = [r for r in log if r.kind == sensor and math.isfinite(r.nis)]
@@ -182,6 +196,39 @@ def run_consistency(tel: Mapping[str, np.ndarray], touchdown: Mapping[str, Any] 
                               "rejected": len(recs) - len(used), "bands": bands}
 
     out["vision_lag1"] = _lag1_sums([r for r in log if r.kind == "vision" and r.accepted])
+    return out
+
+
+def nees_profile(t_s: np.ndarray, z_m: np.ndarray, flying: np.ndarray,
+                 nees: Mapping[str, np.ndarray]) -> dict[str, list[float | None]]:
+    """Each block's NEES at every altitude of :data:`NEES_PROFILE_ALTITUDES_M`.
+
+    Args:
+        t_s: Telemetry times [s], (N,) (only their count is used).
+        z_m: Truth height of the body origin above the target's ground [m], (N,).
+        flying: Ticks before touchdown, (N,) bool.
+        nees: Block name -> NEES per tick, (N,).
+
+    Returns:
+        Block -> one value per grid altitude: the NEES at the first flying tick at
+        or below it, None where the case starts below it, never reaches it in
+        flight, or the value is not finite. Same rule as the fixed altitudes.
+    """
+    idx_flying = np.flatnonzero(flying)
+    grid = np.asarray(NEES_PROFILE_ALTITUDES_M, float)
+    k = np.full(grid.size, -1)
+    if idx_flying.size and len(t_s):
+        # First flying tick at or below each altitude: the running minimum of the height is
+        # monotone, so a search on it finds the first tick whose height is <= h.
+        zf = np.minimum.accumulate(z_m[idx_flying])
+        pos = np.searchsorted(-zf, -grid, side="left")
+        ok = pos < idx_flying.size
+        k[ok] = idx_flying[pos[ok]]
+        k[k == 0] = -1  # a case that starts below the altitude has no value there
+    out: dict[str, list[float | None]] = {}
+    for block in NEES_BLOCKS:
+        v = nees[block]
+        out[block] = [float(v[i]) if i >= 0 and math.isfinite(v[i]) else None for i in k]
     return out
 
 
@@ -272,7 +319,47 @@ def campaign_consistency(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         lag1[ax] = float((sum_prod / n_pairs) / (sum_sq / n)) if n_pairs and sum_sq else math.nan
         lag1["n_pairs"] = int(n_pairs)
     return {"schema": SCHEMA_VERSION, "n_cases": len(cases), "altitudes_m": [*NEES_ALTITUDES_M, TOUCHDOWN],
-            "blocks": blocks, "nis": nis, "vision_lag1": lag1}
+            "blocks": blocks, "nis": nis, "vision_lag1": lag1, "steps": campaign_nees_steps(cases)}
+
+
+def campaign_nees_steps(rows: Sequence[Mapping[str, Any]], prob: float = BAND_PROB) -> dict[str, Any]:
+    """The ensemble NEES at every step of the dense altitude grid, against each step's band.
+
+    Args:
+        rows: Case rows carrying ``nees_profile`` (block -> list over
+            :data:`NEES_PROFILE_ALTITUDES_M`); rows without it are skipped.
+        prob: The band's probability.
+
+    Returns:
+        ``{"altitudes_m": [...], "n_cases": N, "blocks": {block: {"dof", "anees": [...],
+        "n": [...], "band": [[lo, hi] | None, ...], "steps": k, "in_band": i,
+        "below": b, "above": a, "in_band_frac": i / k}}}``. A step counts when at
+        least half of the cases have a value there (so the top of the grid, which
+        only the cases handed over highest reach, does not decide the share).
+    """
+    profiles = [r["nees_profile"] for r in rows if isinstance(r.get("nees_profile"), Mapping)]
+    n_cases = len(profiles)
+    out: dict[str, Any] = {"altitudes_m": list(NEES_PROFILE_ALTITUDES_M), "n_cases": n_cases, "blocks": {}}
+    for block, dof in NEES_BLOCKS.items():
+        vals = np.array([[math.nan if v is None else float(v) for v in p.get(block, [])] for p in profiles], float)
+        if vals.size == 0:
+            vals = np.full((0, len(NEES_PROFILE_ALTITUDES_M)), math.nan)
+        finite = np.isfinite(vals)
+        n = finite.sum(axis=0)
+        with np.errstate(invalid="ignore"):
+            anees = np.where(n > 0, np.nansum(np.where(finite, vals, 0.0), axis=0) / np.maximum(n, 1), math.nan)
+        band = [chi2_band(int(k), dof, prob) for k in n]
+        counted = n >= max(1, math.ceil(0.5 * n_cases))
+        lo = np.array([b[0] if b else math.nan for b in band])
+        hi = np.array([b[1] if b else math.nan for b in band])
+        below = counted & (anees < lo)
+        above = counted & (anees > hi)
+        steps = int(counted.sum())
+        inside = steps - int(below.sum()) - int(above.sum())
+        out["blocks"][block] = {"dof": dof, "anees": anees.tolist(), "n": n.tolist(), "band": band, "steps": steps,
+                                "in_band": inside, "below": int(below.sum()), "above": int(above.sum()),
+                                "in_band_frac": inside / steps if steps else math.nan}
+    return out
 
 
 def consistency_table(doc: Mapping[str, Any]) -> str:
@@ -300,6 +387,15 @@ def consistency_table(doc: Mapping[str, Any]) -> str:
             if b["n"]:
                 parts.append(f"{b['alt_m'][0]}-{b['alt_m'][1]} m: {b['mean'] / s['dof']:.2f}/dof (n {b['n']})")
         lines.append("; ".join(parts))
+    steps = doc.get("steps")
+    if steps and steps.get("n_cases"):
+        alt = steps["altitudes_m"]
+        lines.append(f"per step ({alt[0] - alt[1]} m grid, {alt[0]}-{alt[-1]} m; ANEES inside its 95 % band "
+                     f"at k of K steps, below / above):")
+        for block, b in steps["blocks"].items():
+            if b["steps"]:
+                lines.append(f"  {block:<5} {b['in_band']}/{b['steps']} ({100 * b['in_band_frac']:.0f} %), "
+                             f"below {b['below']}, above {b['above']}")
     lag = doc["vision_lag1"]
     if lag.get("n_pairs"):
         lines.append(f"vision residual lag-1 autocorrelation: x {lag['x']:+.3f}, y {lag['y']:+.3f} "

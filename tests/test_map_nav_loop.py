@@ -132,3 +132,9 @@ def test_default_landing_with_map_navigation_lands_on_the_map_target():
     # Navigation errors are taken in the map frame: the same figure both ways.
     assert res.summary["nav"]["pos_err_touchdown_m"] < 3.0
     assert m["nav_err_map_frame_touchdown_m"] <= res.summary["nav"]["pos_err_touchdown_m"] + 1e-9
+    # The error at 50 m: the first tick at or below 50 m truth height, found here with a plain loop.
+    tel = res.telemetry
+    k = next(i for i in range(len(tel["t_s"])) if tel["r_z_m"][i] <= 50.0)
+    want = math.hypot(tel["nav_err_r_x_m"][k], tel["nav_err_r_y_m"][k])
+    assert m["nav_err_map_frame_50m_m"] == pytest.approx(want, rel=1e-12)
+    assert m["nav_err_map_frame_50m_xy_m"] == pytest.approx([tel["nav_err_r_x_m"][k], tel["nav_err_r_y_m"][k]])

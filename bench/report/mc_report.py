@@ -269,6 +269,8 @@ def campaign_table(rows: Sequence[Mapping[str, Any]], criteria: Mapping[str, Any
             line += f"; no safe site: {no_site}/{n}"
         lines.append(line)
 
+    lines.extend(map_nav_lines(rows))
+
     td = _touched_down(rows)
     n_td = int(td.sum())
     lines.append(f"touchdown statistics over {n_td} case{'s' if n_td != 1 else ''} that landed or touched down:")
@@ -304,6 +306,56 @@ def campaign_table(rows: Sequence[Mapping[str, Any]], criteria: Mapping[str, Any
     else:
         lines.append("failed cases: none")
     return "\n".join(lines)
+
+
+def _three_sigma(dx: np.ndarray, dy: np.ndarray) -> tuple[float, float, int]:
+    """3 × the per-axis RMS of 2-D errors (about zero: a bias counts), the largest radial one, and the count."""
+    ok = np.isfinite(dx) & np.isfinite(dy)
+    if not ok.any():
+        return math.nan, math.nan, 0
+    rms = math.sqrt(float(np.mean(np.concatenate((dx[ok], dy[ok])) ** 2)))
+    return 3.0 * rms, float(np.max(np.hypot(dx[ok], dy[ok]))), int(ok.sum())
+
+
+def map_nav_lines(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """The campaign's map-relative navigation figures (cases flown with ``nav_map = "on"``).
+
+    Per-axis "3σ" is 3 × the RMS over the cases and both axes, about zero (a bias
+    counts against it); "max" the largest radial value. Lines: fixes used and false
+    locks (fixes the matcher accepted with an error beyond 5 of their sigmas; Wilson
+    interval of their rate per accepted fix and of the cases with one), the
+    horizontal navigation error at 50 m in the map frame, the miss against the map
+    target, and the absolute miss (against L's origin). No lines without map rows.
+    """
+    nav = [r for r in rows if row_float(r.get("map_nav_attempts")) >= 0]
+    if not nav:
+        return []
+    attempts = int(np.nansum(column(nav, "map_nav_attempts")))
+    updates = int(np.nansum(column(nav, "map_nav_updates")))
+    accepted = int(np.nansum(column(nav, "map_nav_fixes_accepted_by_matcher")))
+    false = column(nav, "map_nav_false_locks")
+    n_false = int(np.nansum(false))
+    cases_false = int(np.sum(false > 0))
+    f_lo, f_hi = wilson_interval(n_false, accepted)
+    c_lo, c_hi = wilson_interval(cases_false, len(nav))
+    lines = [f"map navigation over {len(nav)} cases: {updates} fixes used of {attempts} attempts "
+             f"({accepted} accepted by the matcher, "
+             f"{int(np.nansum(column(nav, 'map_nav_gate_rejected')))} gated out)",
+             f"  false locks: {n_false}/{accepted} fixes (Wilson {CONFIDENCE:.0%} {f_lo:.2%} – {f_hi:.2%}); "
+             f"cases with one: {cases_false}/{len(nav)} (Wilson {c_lo:.1%} – {c_hi:.1%}), "
+             f"{int(np.nansum(column(nav, 'map_nav_false_locks_used')))} used by the filter"]
+    figures = [
+        ("nav error at 50 m (map frame)", column(nav, "map_nav_nav_err_map_frame_50m_xy_m_0"),
+         column(nav, "map_nav_nav_err_map_frame_50m_xy_m_1")),
+        ("miss vs map target", column(nav, "touchdown_x_m") - column(nav, "map_nav_target_xy_L_m_0"),
+         column(nav, "touchdown_y_m") - column(nav, "map_nav_target_xy_L_m_1")),
+        ("absolute miss", column(nav, "touchdown_x_m"), column(nav, "touchdown_y_m")),
+    ]
+    for label, dx, dy in figures:
+        three, worst, k = _three_sigma(dx, dy)
+        lines.append(f"  {label:<30} 3σ per axis {_fmt(three, '.2f', 'm'):>9}, max {_fmt(worst, '.2f', 'm'):>9}"
+                     f" ({k} cases)")
+    return lines
 
 
 # =================================================================== figure

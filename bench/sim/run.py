@@ -455,6 +455,7 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
     return RunResult(summary=summary, telemetry=telemetry, terrain=terrain)
 
 
+MAP_NAV_ERR_ALTITUDE_M = 50.0  # [m] truth height of the summary's navigation error (the goal table's)
 MAP_FALSE_LOCK_NIS = 25.0  # a fix the matcher accepted whose error is beyond 5 of its own sigmas (2-D NIS)
 
 
@@ -491,6 +492,7 @@ def _map_nav_summary(fsw: FlightSoftware, map_truth: Any, truth_log: list[tuple[
         "fix_nis_mean": float(np.mean(nis)) if nis else None,
         "false_locks": false_locks, "false_locks_used": used_false,
         "miss_vs_map_target_m": None, "nav_err_map_frame_touchdown_m": None,
+        "nav_err_map_frame_50m_m": None, "nav_err_map_frame_50m_xy_m": None,
     }
     if touchdown is not None:
         out["miss_vs_map_target_m"] = float(math.hypot(touchdown["x_m"] - map_truth.target_xy_L_m[0],
@@ -501,6 +503,13 @@ def _map_nav_summary(fsw: FlightSoftware, map_truth: Any, truth_log: list[tuple[
         k = int(np.flatnonzero(flying)[-1]) if flying.any() else 0
         # The telemetry's navigation errors are already against the truth in the map frame.
         out["nav_err_map_frame_touchdown_m"] = float(np.hypot(tel["nav_err_r_x_m"][k], tel["nav_err_r_y_m"][k]))
+        # At 50 m (the goal table's height; the last map fixes): the first flying tick at or below it,
+        # the rule of the consistency altitudes; none when the case starts below it.
+        below = np.flatnonzero(flying & (tel["r_z_m"] <= MAP_NAV_ERR_ALTITUDE_M))
+        if below.size and below[0] > 0:
+            e50 = [float(tel["nav_err_r_x_m"][below[0]]), float(tel["nav_err_r_y_m"][below[0]])]
+            out["nav_err_map_frame_50m_xy_m"] = e50
+            out["nav_err_map_frame_50m_m"] = float(np.hypot(*e50))
     return out
 
 

@@ -348,3 +348,42 @@ def test_campaign_table_peak_memory():
             for i, m in enumerate([500.0, 520.0, None])]
     assert "peak memory per worker: max 520 MB, mean 510 MB" in campaign_table(rows)
     assert "peak memory" not in campaign_table([{"case": 0, "outcome": "landed", "landed": True}])
+
+
+def test_map_nav_lines_against_hand_computed_figures():
+    from bench.report.mc_report import map_nav_lines
+
+    rng = np.random.default_rng(5)
+    rows = []
+    for i in range(40):
+        e50 = rng.normal(0.0, 0.3, 2)
+        tx, ty = rng.normal(0.0, 2.0, 2)
+        rows.append({"case": i, "outcome": "landed", "landed": True, "map_nav_attempts": 30, "map_nav_updates": 27,
+                     "map_nav_fixes_accepted_by_matcher": 28, "map_nav_gate_rejected": 1,
+                     "map_nav_false_locks": 2 if i == 7 else 0, "map_nav_false_locks_used": 1 if i == 7 else 0,
+                     "map_nav_nav_err_map_frame_50m_xy_m_0": e50[0], "map_nav_nav_err_map_frame_50m_xy_m_1": e50[1],
+                     "map_nav_target_xy_L_m_0": tx, "map_nav_target_xy_L_m_1": ty,
+                     "touchdown_x_m": tx + rng.normal(0.0, 0.5), "touchdown_y_m": ty + rng.normal(0.0, 0.5)})
+    rows.append({"case": 40, "outcome": "landed", "landed": True})  # a case flown without map navigation
+    text = "\n".join(map_nav_lines(rows))
+    assert "map navigation over 40 cases: 1080 fixes used of 1200 attempts (1120 accepted by the matcher, 40 gated out)" in text
+    assert "false locks: 2/1120 fixes" in text and "cases with one: 1/40" in text and "1 used by the filter" in text
+
+    def three_sigma_and_max(dx, dy):
+        sq = [v * v for v in dx] + [v * v for v in dy]
+        return 3.0 * math.sqrt(sum(sq) / len(sq)), max(math.hypot(a, b) for a, b in zip(dx, dy))
+
+    nav = rows[:40]
+    checks = {
+        "nav error at 50 m (map frame)": ([r["map_nav_nav_err_map_frame_50m_xy_m_0"] for r in nav],
+                                          [r["map_nav_nav_err_map_frame_50m_xy_m_1"] for r in nav]),
+        "miss vs map target": ([r["touchdown_x_m"] - r["map_nav_target_xy_L_m_0"] for r in nav],
+                               [r["touchdown_y_m"] - r["map_nav_target_xy_L_m_1"] for r in nav]),
+        "absolute miss": ([r["touchdown_x_m"] for r in nav], [r["touchdown_y_m"] for r in nav]),
+    }
+    for label, (dx, dy) in checks.items():
+        three, worst = three_sigma_and_max(dx, dy)
+        line = next(ln for ln in text.splitlines() if label in ln)
+        flat = " ".join(line.split())
+        assert f"3σ per axis {three:.2f} m, max {worst:.2f} m (40 cases)" in flat, line
+    assert map_nav_lines([{"case": 0, "outcome": "landed"}]) == []

@@ -460,17 +460,20 @@ def ssd_maps(windows: np.ndarray, templates: np.ndarray) -> np.ndarray:
     placements.flags.writeable = False
     diff = np.empty((n_t, ny, nx, wy, wx), np.float32)
     np.subtract(placements, templates.reshape(n_t, 1, 1, wy, wx), out=diff)
-    flat = diff.reshape(n_t * ny * nx, wy * wx)
-    return np.einsum("ij,ij->i", flat, flat).reshape(n_t, ny, nx)
+    flat = diff.reshape(n_t * ny * nx, 1, wy * wx)
+    # Row-wise sums of squares as a stack of 1 x 1 matrix products: matmul's
+    # dispatch costs about a third of einsum's at these sizes.
+    return np.matmul(flat, flat.reshape(n_t * ny * nx, wy * wx, 1)).reshape(n_t, ny, nx)
 
 
 def centred_energy(templates: np.ndarray) -> np.ndarray:
     """``sum((T - mean T) ** 2)`` of each template, (T, Wy, Wx) -> (T,) float64
     [DN^2] (the scale of :attr:`MatchResult.rel_ssd`)."""
-    flat = templates.reshape(templates.shape[0], -1)
-    s1 = flat.sum(axis=1, dtype=np.float64)
-    s2 = np.einsum("ij,ij->i", flat, flat, dtype=np.float64)
-    return np.maximum(s2 - s1 * s1 / flat.shape[1], 0.0)
+    n_t = templates.shape[0]
+    flat = templates.reshape(n_t, 1, -1).astype(np.float64)
+    s1 = flat.sum(axis=2).reshape(n_t)
+    s2 = np.matmul(flat, flat.reshape(n_t, -1, 1)).reshape(n_t)
+    return np.maximum(s2 - s1 * s1 / flat.shape[2], 0.0)
 
 
 def parabola_vertex(lo: float, mid: float, hi: float) -> float:

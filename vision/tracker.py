@@ -104,6 +104,53 @@ def _match_region(
     return bx + x0, by + y0, ssd, at_edge, fx, fy
 
 
+def _map_minimum(vals: list[float], n_side: int, x0: int, y0: int) -> tuple[int, int, float, bool, float, float]:
+    """:func:`vision.fixation.match_one`'s verdict on an SSD map already
+    computed: ``vals`` is the (n_side x n_side) map in raster order (plain
+    floats), its placement (0, 0) at top-left corner (x0, y0). The first
+    minimum in raster order, ``at_edge`` on the map's border, and the
+    parabola through the minimum and its neighbours on each axis
+    (:func:`vision.fixation.parabola_vertex`, inlined).
+
+    Returns:
+        (bx, by, ssd, at_edge, fx, fy) as match_one.
+    """
+    mid = min(vals)
+    k = vals.index(mid)
+    my, mx = divmod(k, n_side)
+    last = n_side - 1
+    fx = fy = 0.0
+    if 0 < mx < last:
+        lo, hi = vals[k - 1], vals[k + 1]
+        curv = lo - 2.0 * mid + hi
+        if curv > 0.0:
+            fx = min(max(0.5 * (lo - hi) / curv, -0.5), 0.5)
+    if 0 < my < last:
+        lo, hi = vals[k - n_side], vals[k + n_side]
+        curv = lo - 2.0 * mid + hi
+        if curv > 0.0:
+            fy = min(max(0.5 * (lo - hi) / curv, -0.5), 0.5)
+    at_edge = mx == 0 or my == 0 or mx == last or my == last
+    return x0 + mx, y0 + my, (mid if mid > 0.0 else 0.0), at_edge, fx, fy
+
+
+def _match_near(
+    img: np.ndarray, tpl: np.ndarray, cx: int, cy: int, radius: int, xmax: int, ymax: int
+) -> tuple[int, int, float, bool, float, float]:
+    """:func:`_match_region` for a narrow search: where the search window is
+    inside the frame, the SSD map comes from :func:`vision.fixation.ssd_maps`
+    (exact sums, a few microseconds) instead of ``cv2.matchTemplate`` (whose
+    fixed cost per call is several times that); near the frame edge it is
+    :func:`_match_region`, which clips the window."""
+    wy, wx = tpl.shape
+    if radius <= cx <= xmax - radius and radius <= cy <= ymax - radius:
+        x0, y0 = cx - radius, cy - radius
+        win = img[y0 : cy + radius + wy, x0 : cx + radius + wx].astype(np.float32)
+        vals = ssd_maps(win[None], tpl[None]).reshape(-1).tolist()
+        return _map_minimum(vals, 2 * radius + 1, x0, y0)
+    return _match_region(img, tpl, cx, cy, radius, xmax, ymax)
+
+
 def _median_rows(a: np.ndarray) -> np.ndarray:
     """Column-wise median of a small (n >= 1, k) array (``np.median`` costs ~10x
     more on arrays this small)."""
@@ -388,6 +435,7 @@ class Tracker:
         self._flow = np.zeros((0, 2), np.float64)  # last displacement of each track (new: its template's) [px]
         self._tpl_of = np.zeros(0, np.int64)  # index of each track's template
         self._next_id = 0
+        self._mos_cache: tuple | None = None  # (frame, its LK mosaic, tile corners) of the last step
         self._cfg: TrackerConfig | None = None  # the configuration for this sequence's frame size
 
     def config_for(self, shape: tuple[int, ...]) -> TrackerConfig:
@@ -522,8 +570,16 @@ class Tracker:
         # Tiles side by side: OpenCV's LK computes the derivatives of its whole
         # first image, and does so about twice as fast on a wide mosaic as on
         # a tall one of the same area.
-        mos_prev = np.empty((tile, n_t * tile), prev.dtype)
+        # Frame k's tiles: a template kept through the last step has its
+        # tile in last step's frame-(k) mosaic already, at the same corner
+        # (the same pixels of the same frame), so only the others are copied.
+        cached = self._mos_cache
+        if cached is not None and cached[0] is prev and cached[1].shape == (tile, n_t * tile):
+            mos_prev, corners_prev = cached[1], cached[2]
+        else:
+            mos_prev, corners_prev = np.empty((tile, n_t * tile), prev.dtype), [None] * n_t
         mos_cur = np.empty((tile, n_t * tile), img.dtype)
+        corners_cur: list[tuple[int, int]] = []
         lo_in, hi_in = half + 1, tile - 2 - half
         rows: list[tuple] = []
         kept: list[tuple] = []
@@ -554,35 +610,15 @@ class Tracker:
             limit = max_rel * max(energies[t], TEMPLATE_ENERGY_FLOOR)
             cx, cy = x + px, y + py
             if batched[t]:
-                # As match_one on the same map: the first minimum in raster
-                # order, at_edge on the search limit, the parabola through the
-                # minimum and its neighbours on each axis (parabola_vertex).
-                vals = ssd_all[t]
-                mid = min(vals)
-                k = vals.index(mid)
-                my, mx = divmod(k, n_side)
-                bx, by = cx - near + mx, cy - near + my
-                at_edge = mx == 0 or my == 0 or mx == n_side - 1 or my == n_side - 1
-                ssd = mid if mid > 0.0 else 0.0
-                fx = fy = 0.0
-                if subpixel:
-                    if 0 < mx < n_side - 1:
-                        lo, hi = vals[k - 1], vals[k + 1]
-                        curv = lo - 2.0 * mid + hi
-                        if curv > 0.0:
-                            fx = min(max(0.5 * (lo - hi) / curv, -0.5), 0.5)
-                    if 0 < my < n_side - 1:
-                        lo, hi = vals[k - n_side], vals[k + n_side]
-                        curv = lo - 2.0 * mid + hi
-                        if curv > 0.0:
-                            fy = min(max(0.5 * (lo - hi) / curv, -0.5), 0.5)
+                # As match_one on the same map (_map_minimum).
+                bx, by, ssd, at_edge, fx, fy = _map_minimum(ssd_all[t], n_side, cx - near, cy - near)
             else:
                 bx, by, ssd, at_edge, fx, fy = _match_region(img, tpls[t], cx, cy, near, xmax, ymax)
             if near < wide and (at_edge or ssd > limit):
                 tpl = tpls[t]
                 if at_edge:
                     # The minimum may lie just beyond the narrow window: search once more around it.
-                    bx, by, ssd, at_edge, fx, fy = _match_region(img, tpl, bx, by, near, xmax, ymax)
+                    bx, by, ssd, at_edge, fx, fy = _match_near(img, tpl, bx, by, near, xmax, ymax)
                 if at_edge or ssd > limit:
                     bx, by, ssd, at_edge, fx, fy = _match_region(img, tpl, cx, cy, wide, xmax, ymax)
             if not subpixel:
@@ -593,8 +629,10 @@ class Tracker:
             xp, yp = min(max(x - margin, 0), tx_max), min(max(y - margin, 0), ty_max)
             xc, yc = min(max(bx - margin, 0), tx_max), min(max(by - margin, 0), ty_max)
             c0 = t * tile
-            mos_prev[:, c0 : c0 + tile] = prev[yp : yp + tile, xp : xp + tile]
+            if corners_prev[t] != (xp, yp):
+                mos_prev[:, c0 : c0 + tile] = prev[yp : yp + tile, xp : xp + tile]
             mos_cur[:, c0 : c0 + tile] = img[yc : yc + tile, xc : xc + tile]
+            corners_cur.append((xc, yc))
             # Per template, in mosaic coordinates: the offsets that take a
             # point's frame position (and its last displacement, with the
             # 'track' seed) to its LK start in each solve, the offset back to
@@ -653,7 +691,11 @@ class Tracker:
                                   window=cfg.lk_window, max_iter=cfg.lk_max_iter, eps=cfg.lk_eps_px,
                                   min_eig=cfg.lk_min_eig, back_window=back_window)
             q_mos, ok = fb.xy, fb.fb_error <= cfg.fb_max_px
-        ok &= ((q_mos >= g[:, 8:10]) & (q_mos <= g[:, 10:12])).all(axis=1)
+        inside = (q_mos >= g[:, 8:10]) & (q_mos <= g[:, 10:12])
+        ok &= inside[:, 0] & inside[:, 1]
+        # The frame-(k+1) mosaic is next step's frame-k mosaic for the
+        # templates kept (same corners); LK never writes into its inputs.
+        self._mos_cache = (img, mos_cur, corners_cur)
         idx = np.flatnonzero(ok)
         old_xy = xy[idx]
         self._xy = q_mos[idx] + g[idx, 6:8]

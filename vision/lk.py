@@ -369,8 +369,9 @@ def forward_backward_opencv_ok(
     fwd, st1, _ = cv2.calcOpticalFlowPyrLK(prev_image, image, p0, pts[1].copy(), **kw_fwd)
     fwd = fwd.reshape(-1, 2)
     bwd, st2, _ = cv2.calcOpticalFlowPyrLK(image, prev_image, fwd, fwd + pts[2], **kw_back)
-    d = bwd.reshape(-1, 2) - p0
-    ok = np.einsum("ij,ij->i", d, d, dtype=np.float64) <= fb_max_px * fb_max_px
+    d = (bwd.reshape(-1, 2) - p0).astype(np.float64)
+    dx, dy = d[:, 0], d[:, 1]
+    ok = dx * dx + dy * dy <= fb_max_px * fb_max_px
     ok &= (st1 & st2).reshape(-1).view(bool)
     return fwd, ok
 

@@ -87,7 +87,7 @@ def lk_tile_margin(template_size: int, lk_window: int) -> int:
     """Rows/columns [px] an LK tile adds on each side of its template: the
     drift slack, half the LK window and the guard. A tile is
     ``template_size + 2 * margin`` px square."""
-    return int(np.ceil(FP_BOX_SLACK_FRAC * template_size)) + lk_window // 2 + TILE_GUARD_PX
+    return math.ceil(FP_BOX_SLACK_FRAC * template_size) + lk_window // 2 + TILE_GUARD_PX
 
 
 def _match_region(
@@ -243,6 +243,12 @@ class TrackerConfig(BaseModel):
         1, ge=1, le=128,
         description="first, narrow search half-width around the constant-velocity prediction [px]; a template "
         "whose minimum lands on its edge or fails max_rel_ssd is searched again over search_radius_px",
+    )
+    search_follow_steps: int = Field(
+        4, ge=1, le=32,
+        description="times the narrow search moves to a minimum on its window's edge and searches around it "
+        "again before falling back to search_radius_px (each move is one narrow SSD map; the wide search "
+        "costs about ten) [-]",
     )
     max_rel_ssd: float = Field(
         0.5, gt=0.0, description="template lost if min SSD / template centred energy exceeds this [-] (~2: unrelated)"
@@ -523,9 +529,10 @@ class Tracker:
         template's narrow window at once, :func:`vision.fixation.match_one`
         for the re-searches) first searches
         ``search_radius_near_px`` around the prediction (the template's last
-        displacement, rounded), once more around a minimum that lies on that
-        window's edge, and falls back to ``search_radius_px`` when the minimum
-        is still on the edge or does not match well enough. A
+        displacement, rounded), again around a minimum that lies on that
+        window's edge (up to ``search_follow_steps`` times: a descent on the SSD
+        surface in narrow windows), and falls back to ``search_radius_px`` when
+        the minimum is still on the edge or does not match well enough. A
         parabola through the SSD minimum and its neighbours refines the
         displacement to sub-pixel (``subpixel_match``). A template is lost when
         its minimum is on the search edge, its SSD exceeds ``max_rel_ssd`` of
@@ -552,13 +559,14 @@ class Tracker:
         e = cfg.edge_margin_px
         wide = cfg.search_radius_px
         near = min(cfg.search_radius_near_px, wide)
+        follow = cfg.search_follow_steps
         xmax, ymax = width - size, height - size
         xok_hi, yok_hi = width - e - size, height - e - size
         max_rel = cfg.max_rel_ssd
         subpixel = cfg.subpixel_match
         track_seed = cfg.lk_seed == "track"
         half = cfg.lk_window // 2
-        slack = int(np.ceil(FP_BOX_SLACK_FRAC * size))
+        slack = math.ceil(FP_BOX_SLACK_FRAC * size)
         margin = lk_tile_margin(size, cfg.lk_window)
         tile = size + 2 * margin
         # Tiles are shifted to stay inside the frame. Invariant: templates are
@@ -616,9 +624,12 @@ class Tracker:
                 bx, by, ssd, at_edge, fx, fy = _match_region(img, tpls[t], cx, cy, near, xmax, ymax)
             if near < wide and (at_edge or ssd > limit):
                 tpl = tpls[t]
-                if at_edge:
-                    # The minimum may lie just beyond the narrow window: search once more around it.
+                # The minimum may lie just beyond the narrow window: search
+                # around it again, up to search_follow_steps times.
+                for _ in range(follow if at_edge else 0):
                     bx, by, ssd, at_edge, fx, fy = _match_near(img, tpl, bx, by, near, xmax, ymax)
+                    if not at_edge:
+                        break
                 if at_edge or ssd > limit:
                     bx, by, ssd, at_edge, fx, fy = _match_region(img, tpl, cx, cy, wide, xmax, ymax)
             if not subpixel:
@@ -703,15 +714,19 @@ class Tracker:
         self._ids = self._ids[idx]
         self._age = self._age[idx] + 1
         self._tpl_of = self._tpl_of[idx]
+        # (t, bx, by, sx, sy) of the kept templates; integers and their
+        # sub-pixel displacements are exact in float64.
+        kept_arr = np.array(kept, dtype=np.float64).reshape(-1, 5)
         if len(kept) < n_t:
             # Re-index tracks onto the surviving templates.
             keep = np.zeros(n_t, bool)
-            keep[[k[0] for k in kept]] = True
+            keep[kept_arr[:, 0].astype(np.int64)] = True
             self._tpl_of = (np.cumsum(keep) - 1)[self._tpl_of]
             self._tpl_expect = self._tpl_expect[keep]
-        self._tpl_xy = np.array([k[1:3] for k in kept], dtype=np.int64).reshape(-1, 2)
-        self._tpl_sub = np.array([k[3:5] for k in kept], dtype=np.float64).reshape(-1, 2)
-        self._tpl_pred = np.array([(round(k[3]), round(k[4])) for k in kept], dtype=np.int64).reshape(-1, 2)
+        self._tpl_xy = kept_arr[:, 1:3].astype(np.int64)
+        self._tpl_sub = kept_arr[:, 3:5].copy()
+        # The next prediction: the displacement rounded half to even, as round().
+        self._tpl_pred = np.rint(self._tpl_sub).astype(np.int64)
         return old_xy
 
     def fixation_areas(self, img: np.ndarray, n: int) -> FixationAreas:

@@ -451,6 +451,11 @@ class Tracker:
         if self._cfg is None or self._prev is None:
             cfg = self._cfg = self.config.for_side(int(min(shape[:2])))
             back_window = cfg.lk_window if cfg.fb_window is None else min(cfg.fb_window, cfg.lk_window)
+            # New sub-images keep their centres template_separation_frac x side
+            # from the others (Chebyshev: that / sqrt 2), so points inside two
+            # of them are at least that minus template_size apart.
+            gap = cfg.template_separation_frac * min(shape[:2]) / math.sqrt(2.0) - cfg.template_size
+            self._merge_top_up = gap >= cfg.min_track_separation_px
             self._lk_kwargs = seeded_lk_kwargs(
                 cfg.lk_window, cfg.lk_max_iter, cfg.lk_eps_px, cfg.lk_min_eig, back_window,
                 back_max_iter=cfg.fb_max_iter, back_eps=cfg.fb_eps_px,
@@ -511,11 +516,20 @@ class Tracker:
         expected = int(self._tpl_expect.sum())
         low = expected == 0 or self._ids.size < cfg.redetect_below_frac * expected
         missing = cfg.n_templates - self._tpl_xy.shape[0]
-        if missing > 0 and (missing >= cfg.refill_min_missing or low):
-            self._add_templates(img)
+        # Templates holding fewer tracks than after their last detection. A
+        # refill below changes neither their indices nor their counts.
+        top_up = None
         if low:
             counts = np.bincount(self._tpl_of, minlength=self._tpl_xy.shape[0])
-            self._detect(img, np.flatnonzero(counts < self._tpl_expect))
+            top_up = np.flatnonzero(counts < self._tpl_expect)
+        if missing > 0 and (missing >= cfg.refill_min_missing or low):
+            # Where new and old sub-images cannot hold points closer than
+            # min_track_separation_px (_merge_top_up), their detections run in
+            # one pass: the same points, ids and order as two passes.
+            if self._add_templates(img, top_up if self._merge_top_up else None) and self._merge_top_up:
+                top_up = None
+        if top_up is not None:
+            self._detect(img, top_up)
         n_new = self._ids.size - n_before
         if n_new:
             prev_xy = np.concatenate([prev_xy, np.full((n_new, 2), np.nan)])
@@ -745,17 +759,19 @@ class Tracker:
             occupied_xy=self._tpl_xy + 0.5 * (cfg.template_size - 1),
         )
 
-    def _add_templates(self, img: np.ndarray) -> None:
+    def _add_templates(self, img: np.ndarray, top_up: np.ndarray | None = None) -> bool:
         """Select replacement templates on the current frame (§2.3) and detect
-        features in them."""
+        features in them; with ``top_up`` (indices of existing templates) top
+        those up in the same detection pass, after the new ones. Returns
+        whether templates were added (and so ``top_up`` detected)."""
         cfg = self._cfg
         size = cfg.template_size
         height, width = img.shape
         if height < size + 2 * cfg.border_px or width < size + 2 * cfg.border_px:
-            return  # the frame is too small to hold a template away from the border
+            return False  # the frame is too small to hold a template away from the border
         new = self.fixation_areas(img, cfg.n_templates - self._tpl_xy.shape[0]).top_left
         if new.shape[0] == 0:
-            return
+            return False
         # New areas most likely move with the rest of the image.
         guess = _median_rows(self._tpl_sub) if self._tpl_sub.shape[0] else np.zeros(2)
         first = self._tpl_xy.shape[0]
@@ -764,7 +780,8 @@ class Tracker:
         self._tpl_sub = np.concatenate([self._tpl_sub, np.tile(guess, (n_new, 1))])
         self._tpl_pred = np.concatenate([self._tpl_pred, np.tile(np.rint(guess).astype(np.int64), (n_new, 1))])
         self._tpl_expect = np.concatenate([self._tpl_expect, np.full(new.shape[0], cfg.max_features_per_template)])
-        self._detect(img, np.arange(first, self._tpl_xy.shape[0]))
+        which = np.arange(first, self._tpl_xy.shape[0])
+        self._detect(img, which if top_up is None else np.concatenate([which, top_up]))
         # A new area without a single feature point is of no use: free its slot.
         counts = np.bincount(self._tpl_of, minlength=self._tpl_xy.shape[0])
         empty = np.zeros(self._tpl_xy.shape[0], bool)
@@ -778,6 +795,7 @@ class Tracker:
                 self._tpl_pred[keep],
                 self._tpl_expect[keep],
             )
+        return True
 
     def _detect(self, img: np.ndarray, which: np.ndarray) -> None:
         """Top up the templates ``which`` with feature points (§3)."""
@@ -797,15 +815,16 @@ class Tracker:
             strategy=cfg.fp_search,
             rng=self._rng,
         )
-        xy, tpl = feats.xy, which[feats.region]
+        # Features arrive grouped by sub-image in the order of ``which``,
+        # strongest first within each.
+        xy, region = feats.xy, feats.region
         if xy.shape[0] and self._xy.shape[0] and cfg.min_track_separation_px > 0:
             d2 = (xy[:, 0, None] - self._xy[:, 0]) ** 2 + (xy[:, 1, None] - self._xy[:, 1]) ** 2
             far = d2.min(axis=1) >= cfg.min_track_separation_px**2
-            xy, tpl = xy[far], tpl[far]
-        # Respect the per-template cap: features arrive strongest first per template.
-        order = np.argsort(tpl, kind="stable")
-        xy, tpl = xy[order], tpl[order]
-        rank = np.arange(tpl.size) - np.searchsorted(tpl, tpl, side="left")
+            xy, region = xy[far], region[far]
+        tpl = which[region]
+        # Respect the per-template cap (rank within its group).
+        rank = np.arange(region.size) - np.searchsorted(region, region, side="left")
         room = cfg.max_features_per_template - counts[tpl]
         sel = rank < room
         xy, tpl = xy[sel], tpl[sel]

@@ -16,6 +16,9 @@ template must be (re)placed; stage 5 runs once per frame.
 
 from __future__ import annotations
 
+import functools
+import math
+
 from dataclasses import dataclass
 
 import cv2
@@ -121,6 +124,20 @@ def variance_map(image: np.ndarray, wx: int, wy: int) -> np.ndarray:
     return var
 
 
+@functools.lru_cache(maxsize=16)
+def _separation_disc(min_sep: float, sx: int, sy: int) -> tuple[int, int, np.ndarray]:
+    """The grid offsets (rows, columns of sy x sx px) closer than ``min_sep``
+    px to the centre, as a read-only (2 n_r + 1, 2 n_c + 1) mask, with n_r and
+    n_c: the same for every refill of a sequence, so built once."""
+    min_sep2 = min_sep * min_sep
+    n_r, n_c = -(-math.ceil(min_sep) // sy), -(-math.ceil(min_sep) // sx)
+    dr = np.arange(-n_r, n_r + 1, dtype=np.float64)[:, None] * sy
+    dc = np.arange(-n_c, n_c + 1, dtype=np.float64)[None, :] * sx
+    disc = dr * dr + dc * dc < min_sep2
+    disc.flags.writeable = False
+    return n_r, n_c, disc
+
+
 def select_templates(
     variance: np.ndarray,
     n: int,
@@ -195,10 +212,7 @@ def select_templates(
     # Candidates lie on a grid of sx x sy px, so the candidates within the
     # separation of a chosen one are a fixed disc of grid offsets around it
     # (the same distances as between the centres: sums of exact squares).
-    n_r, n_c = -(-int(np.ceil(min_sep)) // sy), -(-int(np.ceil(min_sep)) // sx)
-    dr = np.arange(-n_r, n_r + 1, dtype=np.float64)[:, None] * sy
-    dc = np.arange(-n_c, n_c + 1, dtype=np.float64)[None, :] * sx
-    disc = dr * dr + dc * dc < min_sep2
+    n_r, n_c, disc = _separation_disc(min_sep, sx, sy)
     rows, cols = score.shape
     chosen: list[tuple[int, int]] = []
     # Greedy in decreasing variance (np.argmax: first in raster order on ties):

@@ -777,8 +777,8 @@ class Tracker:
         first = self._tpl_xy.shape[0]
         n_new = new.shape[0]
         self._tpl_xy = np.concatenate([self._tpl_xy, new])
-        self._tpl_sub = np.concatenate([self._tpl_sub, np.tile(guess, (n_new, 1))])
-        self._tpl_pred = np.concatenate([self._tpl_pred, np.tile(np.rint(guess).astype(np.int64), (n_new, 1))])
+        self._tpl_sub = np.concatenate([self._tpl_sub, np.broadcast_to(guess, (n_new, 2))])
+        self._tpl_pred = np.concatenate([self._tpl_pred, np.broadcast_to(np.rint(guess).astype(np.int64), (n_new, 2))])
         self._tpl_expect = np.concatenate([self._tpl_expect, np.full(new.shape[0], cfg.max_features_per_template)])
         which = np.arange(first, self._tpl_xy.shape[0])
         self._detect(img, which if top_up is None else np.concatenate([which, top_up]))

@@ -341,3 +341,23 @@ def test_merging_is_off_when_sub_images_can_hold_close_points():
     t = Tracker()
     t.config_for(img.shape)
     assert t._merge_top_up
+
+
+@pytest.mark.parametrize(("n_t", "wy", "wx", "ry", "rx"), [(7, 30, 30, 1, 1), (3, 12, 17, 2, 3), (1, 5, 5, 1, 2)])
+def test_ssd_maps_rows_equal_ssd_maps_and_an_explicit_loop(n_t, wy, wx, ry, rx):
+    from vision.fixation import ssd_maps_rows
+
+    rng = np.random.default_rng(31)
+    windows = rng.integers(0, 256, (n_t, wy + 2 * ry, wx + 2 * rx)).astype(np.float32)
+    templates = rng.integers(0, 256, (n_t, wy, wx)).astype(np.float32)
+    row = wx + 2 * rx
+    win_rows = np.full((n_t, (wy + 2 * ry) * row + 2 * rx), 77.0, np.float32)  # finite padding
+    win_rows[:, : (wy + 2 * ry) * row] = windows.reshape(n_t, -1)
+    tpl_rows = np.zeros((n_t, wy, row), np.float32)
+    tpl_rows[:, :, :wx] = templates
+    got = ssd_maps_rows(win_rows, tpl_rows.reshape(n_t, -1), wy, wx, ry, rx)
+    np.testing.assert_array_equal(got, ssd_maps(windows, templates))
+    for t in range(n_t):
+        np.testing.assert_array_equal(got[t], _ssd_map_reference(windows[t], templates[t]))
+    # Zero padding leaves the template's centred energy as it is.
+    np.testing.assert_array_equal(centred_energy(tpl_rows, wy * wx), centred_energy(templates))

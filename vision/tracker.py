@@ -66,6 +66,7 @@ from vision.fixation import (
     fixation_areas,
     match_one,
     ssd_maps,
+    ssd_maps_rows,
 )
 from vision.lk import forward_backward, forward_backward_opencv_ok, forward_opencv_fast, seeded_lk_kwargs
 from vision.tracks import Tracks, check_image
@@ -611,8 +612,13 @@ class Tracker:
         # A template whose window would leave the frame is searched alone
         # (match_one clips the window to the frame).
         side = size + 2 * near
-        windows = np.empty((n_t, side, side), np.float32)
-        tpls = np.empty((n_t, size, size), np.float32)
+        # ssd_maps_rows' layout: window rows back to back (plus 2 near
+        # padding elements), template rows padded with zeros to the window's
+        # width; tpls is the (T, size, size) view of the templates.
+        win_rows = np.zeros((n_t, side * side + 2 * near), np.float32)
+        windows = win_rows[:, : side * side].reshape(n_t, side, side)
+        tpl_rows = np.zeros((n_t, size * side), np.float32)
+        tpls = tpl_rows.reshape(n_t, size, side)[:, :, :size]
         batched: list[bool] = []
         # Plain Python ints and floats in the loops: NumPy scalar handling would
         # cost more than the small array operations themselves.
@@ -626,8 +632,8 @@ class Tracker:
                 windows[t] = 0.0  # searched alone below; no uninitialised values in ssd_maps
             batched.append(inside)
         n_side = 2 * near + 1
-        ssd_all = ssd_maps(windows, tpls).reshape(n_t, n_side * n_side).tolist()
-        energies = centred_energy(tpls).tolist()
+        ssd_all = ssd_maps_rows(win_rows, tpl_rows, size, size, near, near).reshape(n_t, n_side * n_side).tolist()
+        energies = centred_energy(tpl_rows, size * size).tolist()
         for t, ((x, y), (px, py), (sx0, sy0)) in enumerate(zip(tpl_xy, tpl_pred, self._tpl_sub.tolist())):
             limit = max_rel * max(energies[t], TEMPLATE_ENERGY_FLOOR)
             cx, cy = x + px, y + py

@@ -184,7 +184,9 @@ class TrackerConfig(BaseModel):
       left; the forward-backward check's backward solve uses 9 px
       (``fb_window``), which rejects the same mis-tracks at half the cost;
     * block matching searches +-1 px around the constant-velocity prediction
-      (following its minimum once), then +-12 px; the displacement is refined
+      (following a minimum on its edge up to ``search_follow_steps`` = 4 times:
+      one narrow SSD map each, against about ten for the wide search), then
+      +-12 px; the displacement is refined
       to sub-pixel, and LK starts from each track's own last displacement
       plus the change of its template's displacement, so it has ~0.1 px to
       find;
@@ -398,11 +400,12 @@ class Tracker:
     State: the previous frame, the templates and the live tracks.
     Rate: camera frame rate (one call per frame, frames in time order).
     Cost (2-core x86, single OpenCV thread, ``landbench track-eval``, each
-    tracker interleaved with the OpenCV baseline in one process): about 1.0x
-    the baseline's time at 256^2 and 0.8x at 512^2 (README, "A cheaper
-    implementation at 256^2"). Shares at 256^2: LK 36 %, the Python and small
-    NumPy operations of the per-frame step 23 %, block matching 18 %, refills
-    and re-detection 15 %.
+    tracker interleaved with the OpenCV baseline in one process): about 0.8x
+    the baseline's time at 256^2 and 0.7x at 512^2 on the rendered descent,
+    0.95x and 0.9x on the held-out one (README, "The 256^2 time at the
+    baseline's 0.8x"). Shares at 256^2: LK about 37 %, refills and
+    re-detection about 16 %, block matching about 15 %, the rest the Python
+    and small NumPy operations of the per-frame step.
 
     Args:
         config: A :class:`TrackerConfig` (defaults when None).

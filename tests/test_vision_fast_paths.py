@@ -137,3 +137,227 @@ def test_inner_structure_tensor_equals_gradients_then_structure_tensor(window):
     b = sum(u * v for ru, rv in zip(gx, gy) for u, v in zip(ru, rv))
     c = sum(v * v for row in gy for v in row)
     assert (got[0][t, yy - m, xx - m], got[1][t, yy - m, xx - m], got[2][t, yy - m, xx - m]) == (a, b, c)
+
+
+# ------------------------------------------------------------------ issue 11, item 4 (h11d): the 256^2 time
+def test_lk_without_the_residual_output_gives_the_same_points_and_status():
+    from vision.lk import _seeded_lk_kwargs
+
+    rng = np.random.default_rng(21)
+    base = cv2.GaussianBlur(rng.random((70, 260)).astype(np.float32) * 255, (0, 0), 1.4)
+    prev = np.clip(base, 0, 255).astype(np.uint8)
+    cur = cv2.warpAffine(prev, np.float32([[1, 0, -0.6], [0, 1, 0.35]]), (260, 70), flags=cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REFLECT)
+    cur[:, 180:] = rng.integers(0, 256, (70, 80))
+    prev[:, :50] = 128  # flat: OpenCV's eigenvalue gate fails there
+    p0 = np.column_stack([rng.uniform(10, 250, 150), rng.uniform(10, 60, 150)]).astype(np.float32)
+    init = (p0 + np.float32([-0.6, 0.35]) + rng.normal(0.0, 0.2, p0.shape)).astype(np.float32)
+    for window in (13, 9):
+        with_res = _seeded_lk_kwargs(window, 20, 0.03, 1e-2, residual=True)
+        without = _seeded_lk_kwargs(window, 20, 0.03, 1e-2, residual=False)
+        assert without["flags"] == with_res["flags"] | cv2.OPTFLOW_LK_GET_MIN_EIGENVALS
+        a_xy, a_st, a_err = cv2.calcOpticalFlowPyrLK(prev, cur, p0, init.copy(), **with_res)
+        b_xy, b_st, b_eig = cv2.calcOpticalFlowPyrLK(prev, cur, p0, init.copy(), **without)
+        np.testing.assert_array_equal(b_xy, a_xy)
+        np.testing.assert_array_equal(b_st, a_st)
+        assert 0 < a_st.sum() < a_st.size
+        # The third output is now the window's min-eigenvalue, not the residual.
+        assert not np.array_equal(a_err, b_eig)
+
+
+def _ssd_map_reference(window, tpl):
+    ny, nx = window.shape[0] - tpl.shape[0] + 1, window.shape[1] - tpl.shape[1] + 1
+    out = np.empty((ny, nx))
+    for j in range(ny):
+        for i in range(nx):
+            d = window[j : j + tpl.shape[0], i : i + tpl.shape[1]].astype(np.float64) - tpl
+            out[j, i] = (d * d).sum()
+    return out
+
+
+def test_map_minimum_is_the_first_minimum_in_raster_order_with_its_parabola():
+    from vision.fixation import parabola_vertex
+    from vision.tracker import _map_minimum
+
+    rng = np.random.default_rng(4)
+    for trial in range(40):
+        n_side = int(rng.choice([3, 5]))
+        vals = rng.integers(0, 6, n_side * n_side).astype(float)  # small integers: ties occur
+        if trial % 4 == 0:
+            vals[:] = 3.0  # a flat map: the first placement
+        bx, by, ssd, at_edge, fx, fy = _map_minimum(vals.tolist(), n_side, 10, 20)
+        grid = vals.reshape(n_side, n_side)
+        k = int(np.argmin(vals))  # argmin: first in raster order
+        my, mx = divmod(k, n_side)
+        assert (bx, by, ssd) == (10 + mx, 20 + my, grid[my, mx])
+        assert at_edge == (mx in (0, n_side - 1) or my in (0, n_side - 1))
+        ref_fx = parabola_vertex(grid[my, mx - 1], grid[my, mx], grid[my, mx + 1]) if 0 < mx < n_side - 1 else 0.0
+        ref_fy = parabola_vertex(grid[my - 1, mx], grid[my, mx], grid[my + 1, mx]) if 0 < my < n_side - 1 else 0.0
+        assert (fx, fy) == (ref_fx, ref_fy)
+
+
+def test_match_near_equals_match_region_and_an_explicit_ssd():
+    from vision.tracker import _match_near, _match_region
+
+    rng = np.random.default_rng(9)
+    frame = cv2.GaussianBlur(rng.random((90, 110)).astype(np.float32) * 255, (0, 0), 1.2).round().astype(np.uint8)
+    tpl = frame[30:60, 40:70].astype(np.float32)
+    xmax, ymax = 110 - 30, 90 - 30
+    # Inside the frame (the exact SSD map), and at its edges (match_region clips there).
+    for cx, cy in ((41, 29), (39, 31), (40, 30), (0, 5), (xmax, ymax), (3, 59)):
+        got = _match_near(frame, tpl, cx, cy, 1, xmax, ymax)
+        ref = _match_region(frame, tpl, cx, cy, 1, xmax, ymax)
+        assert got[:2] == ref[:2] and got[3] == ref[3]
+        assert got[2] == pytest.approx(ref[2], rel=1e-4, abs=1.0)
+        assert got[4:] == pytest.approx(ref[4:], abs=1e-3)
+        if 1 <= cx <= xmax - 1 and 1 <= cy <= ymax - 1:
+            exact = _ssd_map_reference(frame[cy - 1 : cy + 31, cx - 1 : cx + 31], tpl)
+            my, mx = np.unravel_index(np.argmin(exact), exact.shape)
+            assert (got[0], got[1], got[2]) == (cx - 1 + mx, cy - 1 + my, exact[my, mx])
+
+
+def _shifted_frames(shift_xy, n=3, size=160, seed=3):
+    """Frames of one random texture, each shifted by ``shift_xy`` px from the last."""
+    rng = np.random.default_rng(seed)
+    big = cv2.GaussianBlur(rng.random((size + 40, size + 40)).astype(np.float32) * 255, (0, 0), 1.5)
+    big = np.clip(big, 0, 255).astype(np.uint8)
+    dx, dy = shift_xy
+    return [big[20 - k * dy : 20 - k * dy + size, 20 - k * dx : 20 - k * dx + size].copy() for k in range(n)]
+
+
+def test_following_the_narrow_minimum_finds_what_the_wide_search_finds(monkeypatch):
+    import vision.tracker as vt
+    from vision import Tracker, TrackerConfig
+
+    frames = _shifted_frames((3, -2))  # 3 px from the prediction (0): beyond one narrow follow
+    wide_calls = []
+    region = vt._match_region
+
+    def counting(img, tpl, cx, cy, radius, xmax, ymax):
+        if radius > 1:
+            wide_calls.append(radius)
+        return region(img, tpl, cx, cy, radius, xmax, ymax)
+
+    monkeypatch.setattr(vt, "_match_region", counting)
+    out = {}
+    for follow in (1, 4):
+        wide_calls.clear()
+        tr = Tracker(TrackerConfig(search_follow_steps=follow))
+        tr.step(frames[0])
+        n_tpl = tr.templates.shape[0]
+        out[follow] = (tr.step(frames[1]), tr.templates, len(wide_calls))
+        assert tr.templates.shape[0] == n_tpl  # every template found
+    (t1, tpl1, wide1), (t4, tpl4, wide4) = out[1], out[4]
+    assert wide1 >= 1 and wide4 == 0  # the descent replaced the wide searches
+    np.testing.assert_array_equal(tpl4, tpl1)
+    np.testing.assert_array_equal(t4.ids, t1.ids)
+    np.testing.assert_allclose(t4.xy, t1.xy, atol=1e-6)
+    np.testing.assert_allclose(t4.xy - t4.prev_xy, np.broadcast_to([3.0, -2.0], t4.xy.shape), atol=0.05)
+
+
+class _NoReuseTracker:
+    """A Tracker that forgets its last LK mosaic before every step."""
+
+    def __init__(self, tracker):
+        self.t = tracker
+
+    def step(self, img):
+        self.t._mos_cache = None
+        return self.t.step(img)
+
+
+def _run(stepper, frames):
+    return [stepper.step(f) for f in frames]
+
+
+def _assert_same_tracks(a, b):
+    assert len(a) == len(b)
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x.ids, y.ids)
+        np.testing.assert_array_equal(x.xy, y.xy)
+        np.testing.assert_array_equal(x.prev_xy, y.prev_xy)
+        np.testing.assert_array_equal(x.age, y.age)
+
+
+def test_reusing_last_steps_mosaic_gives_the_same_tracks(monkeypatch):
+    import vision.tracker as vt
+    from bench.evaluation.tracking_eval import synthetic_descent
+    from vision import Tracker
+
+    frames = synthetic_descent(size=256, n_frames=20, altitude_m=(120.0, 40.0)).frames
+    reused = []
+    fb = vt.forward_backward_opencv_ok
+
+    def spy(prev_image, image, *args):
+        reused.append(any(prev_image is c[1] for c in cache_seen))
+        cache_seen.append((None, image))
+        return fb(prev_image, image, *args)
+
+    cache_seen: list = []
+    monkeypatch.setattr(vt, "forward_backward_opencv_ok", spy)
+    with_reuse = _run(Tracker(), frames)
+    assert sum(reused) >= 5  # most frames' frame-k mosaic was last step's frame-(k+1) one
+    cache_seen.clear()
+    reused.clear()
+    without = _run(_NoReuseTracker(Tracker()), frames)
+    assert not any(reused)
+    _assert_same_tracks(with_reuse, without)
+
+
+def test_one_detection_pass_for_refill_and_top_up_equals_two(monkeypatch):
+    import vision.tracker as vt
+    from bench.evaluation.tracking_eval import synthetic_descent
+    from vision import Tracker
+
+    frames = synthetic_descent(size=256, n_frames=30, altitude_m=(120.0, 40.0)).frames
+    merged_calls = []
+    add = vt.Tracker._add_templates
+
+    def spy(self, img, top_up=None):
+        if top_up is not None and top_up.size:
+            merged_calls.append(top_up.size)
+        return add(self, img, top_up)
+
+    monkeypatch.setattr(vt.Tracker, "_add_templates", spy)
+    one = _run(Tracker(), frames)
+    assert merged_calls  # the sequence has frames that refill and top up together
+    two_t = Tracker()
+    two = [two_t.step(frames[0])]
+    assert two_t._merge_top_up  # the default geometry allows it ...
+    two_t._merge_top_up = False  # ... and this tracker runs two passes instead
+    merged_calls.clear()
+    two += _run(two_t, frames[1:])
+    assert not merged_calls
+    _assert_same_tracks(one, two)
+
+
+def test_merging_is_off_when_sub_images_can_hold_close_points():
+    from vision import Tracker, TrackerConfig
+
+    img = np.zeros((256, 256), np.uint8)
+    t = Tracker(TrackerConfig(template_separation_frac=0.1))  # 25.6 px apart: boxes of 30 px may touch
+    t.config_for(img.shape)
+    assert not t._merge_top_up
+    t = Tracker()
+    t.config_for(img.shape)
+    assert t._merge_top_up
+
+
+@pytest.mark.parametrize(("n_t", "wy", "wx", "ry", "rx"), [(7, 30, 30, 1, 1), (3, 12, 17, 2, 3), (1, 5, 5, 1, 2)])
+def test_ssd_maps_rows_equal_ssd_maps_and_an_explicit_loop(n_t, wy, wx, ry, rx):
+    from vision.fixation import ssd_maps_rows
+
+    rng = np.random.default_rng(31)
+    windows = rng.integers(0, 256, (n_t, wy + 2 * ry, wx + 2 * rx)).astype(np.float32)
+    templates = rng.integers(0, 256, (n_t, wy, wx)).astype(np.float32)
+    row = wx + 2 * rx
+    win_rows = np.full((n_t, (wy + 2 * ry) * row + 2 * rx), 77.0, np.float32)  # finite padding
+    win_rows[:, : (wy + 2 * ry) * row] = windows.reshape(n_t, -1)
+    tpl_rows = np.zeros((n_t, wy, row), np.float32)
+    tpl_rows[:, :, :wx] = templates
+    got = ssd_maps_rows(win_rows, tpl_rows.reshape(n_t, -1), wy, wx, ry, rx)
+    np.testing.assert_array_equal(got, ssd_maps(windows, templates))
+    for t in range(n_t):
+        np.testing.assert_array_equal(got[t], _ssd_map_reference(windows[t], templates[t]))
+    # Zero padding leaves the template's centred energy as it is.
+    np.testing.assert_array_equal(centred_energy(tpl_rows, wy * wx), centred_energy(templates))

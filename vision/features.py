@@ -24,6 +24,8 @@ processed in one vectorised pass. Rate: run when features are (re)detected.
 
 from __future__ import annotations
 
+import functools
+
 from dataclasses import dataclass
 from typing import Literal
 
@@ -248,27 +250,47 @@ def _inner_structure_tensor(
     sub-images (T, h + 2m, w + 2m), cropped to the inner (T, h, w): the same
     values in fewer array operations (the detector's hot path at refills).
 
-    The stack is filtered as one tall image: central differences with
-    ``cv2.Sobel(ksize=1, scale=0.5)`` and the three products boxed in one
-    ``cv2.boxFilter`` call. Inner pixels (``m = window // 2 + 1`` from every
-    edge) use only their own sub-image's differences, never the outermost
-    row or column, so seams and borders do not reach them. On 8-bit data
-    every sum is an exact multiple of 1/4 well inside float32's integers, so
-    the result equals the two-stage one exactly.
+    Only what the inner sums read is computed: the central differences on
+    the (h + 2r) x (w + 2r) block around the inner pixels (r = window // 2,
+    m = r + 1, so they never use the outermost row or column), their three
+    products in one array, and the W1 x W1 sums as W1 shifted additions
+    along the rows, then W1 along the columns. On 8-bit data every value is
+    an exact multiple of 1/16 well inside float32's integers, so the sums do
+    not depend on their order and equal the two-stage result exactly.
     """
-    n_t, rows, cols = stack.shape
-    flat = stack.reshape(n_t * rows, cols)
-    ix = cv2.Sobel(flat, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
-    iy = cv2.Sobel(flat, cv2.CV_32F, 0, 1, ksize=1, scale=0.5)
-    prods = np.empty((3, n_t * rows, cols), np.float32)
+    r = window // 2
+    lo = m - r
+    n_r, n_c = h + 2 * r, w + 2 * r
+    ix = stack[:, lo : lo + n_r, lo + 1 : lo + n_c + 1] - stack[:, lo : lo + n_r, lo - 1 : lo + n_c - 1]
+    iy = stack[:, lo + 1 : lo + n_r + 1, lo : lo + n_c] - stack[:, lo - 1 : lo + n_r - 1, lo : lo + n_c]
+    ix *= 0.5
+    iy *= 0.5
+    prods = np.empty((3,) + ix.shape, np.float32)
     np.multiply(ix, ix, out=prods[0])
     np.multiply(ix, iy, out=prods[1])
     np.multiply(iy, iy, out=prods[2])
-    boxed = cv2.boxFilter(
-        prods.reshape(3 * n_t * rows, cols), cv2.CV_32F, (window, window), normalize=False,
-        borderType=cv2.BORDER_CONSTANT,
-    ).reshape(3, n_t, rows, cols)[:, :, m : m + h, m : m + w]
+    rows = prods[..., 0:w].copy()
+    for k in range(1, window):
+        rows += prods[..., k : k + w]
+    boxed = rows[..., 0:h, :].copy()
+    for k in range(1, window):
+        boxed += rows[..., k : k + h, :]
     return boxed[0], boxed[1], boxed[2]
+
+
+@functools.lru_cache(maxsize=8)
+def _nms_kernels(r: int) -> tuple[np.ndarray, np.ndarray]:
+    """The (2r + 1)^2 dilation kernels of :func:`_nms_top_k`, anchored at the
+    centre: the whole neighbourhood, and the neighbours before the centre in
+    raster order (the rows above, the columns to its left in its row). Read-only."""
+    side = 2 * r + 1
+    full = np.ones((side, side), np.uint8)
+    earlier = np.zeros((side, side), np.uint8)
+    earlier[:r, :] = 1
+    earlier[r, :r] = 1
+    full.flags.writeable = False
+    earlier.flags.writeable = False
+    return full, earlier
 
 
 def _nms_top_k(
@@ -283,9 +305,12 @@ def _nms_top_k(
     the columns to its left in its row). So exactly one pixel of a plateau of
     equal maxima survives, and no two kept points are within r of each other.
     """
-    lam = np.zeros(keep.shape, np.float32)
-    # The square root is taken only at pixels that passed eq. (3.4).
-    lam[keep] = min_eigenvalue(a[keep], b[keep], c[keep])
+    # lambda_1 at the pixels that passed eq. (3.4), zero elsewhere. On the
+    # tracker's sub-images nearly every pixel passes, so computing it
+    # everywhere and masking costs less than gathering and scattering the
+    # passed ones (the same element-wise values either way).
+    lam = min_eigenvalue(a, b, c)
+    lam[~keep] = 0.0
     if nms_radius > 0:
         n_t, h, w = keep.shape
         r = nms_radius
@@ -295,15 +320,13 @@ def _nms_top_k(
         padded = np.zeros((n_t, h + 2 * r, w + 2 * r), np.float32)
         padded[:, r : r + h, r : r + w] = lam
         flat = padded.reshape(n_t * (h + 2 * r), w + 2 * r)
-        earlier = np.zeros((side, side), np.uint8)  # anchor at the centre
-        earlier[:r, :] = 1
-        earlier[r, :r] = 1
+        full, earlier = _nms_kernels(r)
 
         def neighbourhood_max(kernel: np.ndarray) -> np.ndarray:
             out = cv2.dilate(flat, kernel)
             return out.reshape(n_t, h + 2 * r, w + 2 * r)[:, r : r + h, r : r + w]
 
-        keep = keep & (lam >= neighbourhood_max(np.ones((side, side), np.uint8))) & (lam > neighbourhood_max(earlier))
+        keep = keep & (lam >= neighbourhood_max(full)) & (lam > neighbourhood_max(earlier))
     t_idx, r_idx, c_idx = np.nonzero(keep)
     score = lam[t_idx, r_idx, c_idx].astype(np.float64)
     # Sort by (sub-image, -score) and keep the first max_features of each group.

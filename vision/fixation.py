@@ -16,6 +16,9 @@ template must be (re)placed; stage 5 runs once per frame.
 
 from __future__ import annotations
 
+import functools
+import math
+
 from dataclasses import dataclass
 
 import cv2
@@ -121,6 +124,20 @@ def variance_map(image: np.ndarray, wx: int, wy: int) -> np.ndarray:
     return var
 
 
+@functools.lru_cache(maxsize=16)
+def _separation_disc(min_sep: float, sx: int, sy: int) -> tuple[int, int, np.ndarray]:
+    """The grid offsets (rows, columns of sy x sx px) closer than ``min_sep``
+    px to the centre, as a read-only (2 n_r + 1, 2 n_c + 1) mask, with n_r and
+    n_c: the same for every refill of a sequence, so built once."""
+    min_sep2 = min_sep * min_sep
+    n_r, n_c = -(-math.ceil(min_sep) // sy), -(-math.ceil(min_sep) // sx)
+    dr = np.arange(-n_r, n_r + 1, dtype=np.float64)[:, None] * sy
+    dc = np.arange(-n_c, n_c + 1, dtype=np.float64)[None, :] * sx
+    disc = dr * dr + dc * dc < min_sep2
+    disc.flags.writeable = False
+    return n_r, n_c, disc
+
+
 def select_templates(
     variance: np.ndarray,
     n: int,
@@ -195,10 +212,7 @@ def select_templates(
     # Candidates lie on a grid of sx x sy px, so the candidates within the
     # separation of a chosen one are a fixed disc of grid offsets around it
     # (the same distances as between the centres: sums of exact squares).
-    n_r, n_c = -(-int(np.ceil(min_sep)) // sy), -(-int(np.ceil(min_sep)) // sx)
-    dr = np.arange(-n_r, n_r + 1, dtype=np.float64)[:, None] * sy
-    dc = np.arange(-n_c, n_c + 1, dtype=np.float64)[None, :] * sx
-    disc = dr * dr + dc * dc < min_sep2
+    n_r, n_c, disc = _separation_disc(min_sep, sx, sy)
     rows, cols = score.shape
     chosen: list[tuple[int, int]] = []
     # Greedy in decreasing variance (np.argmax: first in raster order on ties):
@@ -460,17 +474,72 @@ def ssd_maps(windows: np.ndarray, templates: np.ndarray) -> np.ndarray:
     placements.flags.writeable = False
     diff = np.empty((n_t, ny, nx, wy, wx), np.float32)
     np.subtract(placements, templates.reshape(n_t, 1, 1, wy, wx), out=diff)
-    flat = diff.reshape(n_t * ny * nx, wy * wx)
-    return np.einsum("ij,ij->i", flat, flat).reshape(n_t, ny, nx)
+    flat = diff.reshape(n_t * ny * nx, 1, wy * wx)
+    # Row-wise sums of squares as a stack of 1 x 1 matrix products: matmul's
+    # dispatch costs about a third of einsum's at these sizes.
+    return np.matmul(flat, flat.reshape(n_t * ny * nx, wy * wx, 1)).reshape(n_t, ny, nx)
 
 
-def centred_energy(templates: np.ndarray) -> np.ndarray:
+def centred_energy(templates: np.ndarray, n_pixels: int | None = None) -> np.ndarray:
     """``sum((T - mean T) ** 2)`` of each template, (T, Wy, Wx) -> (T,) float64
-    [DN^2] (the scale of :attr:`MatchResult.rel_ssd`)."""
-    flat = templates.reshape(templates.shape[0], -1)
-    s1 = flat.sum(axis=1, dtype=np.float64)
-    s2 = np.einsum("ij,ij->i", flat, flat, dtype=np.float64)
-    return np.maximum(s2 - s1 * s1 / flat.shape[1], 0.0)
+    [DN^2] (the scale of :attr:`MatchResult.rel_ssd`).
+
+    ``n_pixels``: the template's pixel count when ``templates`` carries zero
+    padding (:func:`ssd_maps_rows`' layout: zeros add nothing to the sums);
+    None: every element is a pixel."""
+    n_t = templates.shape[0]
+    flat = templates.reshape(n_t, 1, -1).astype(np.float64)
+    s1 = flat.sum(axis=2).reshape(n_t)
+    s2 = np.matmul(flat, flat.reshape(n_t, -1, 1)).reshape(n_t)
+    return np.maximum(s2 - s1 * s1 / (flat.shape[2] if n_pixels is None else n_pixels), 0.0)
+
+
+@functools.lru_cache(maxsize=8)
+def _row_mask(wy: int, wx: int, row: int) -> np.ndarray:
+    """(wy * row,) float32, 1 on the first wx elements of each row of ``row``. Read-only."""
+    mask = np.zeros((wy, row), np.float32)
+    mask[:, :wx] = 1.0
+    mask = mask.reshape(-1)
+    mask.flags.writeable = False
+    return mask
+
+
+def ssd_maps_rows(windows: np.ndarray, templates: np.ndarray, wy: int, wx: int, ry: int, rx: int) -> np.ndarray:
+    """:func:`ssd_maps` with the windows and templates laid out so that every
+    placement is one contiguous run of memory (the tracker's hot path: the
+    subtraction then runs over long rows instead of Wx-element pieces).
+
+    Layout (row = Wx + 2 rx, the window's width):
+
+    * ``windows``: (T, (Wy + 2 ry) row + 2 rx) float32, each window's rows
+      one after the other, then 2 rx finite padding elements (read by the
+      last placements' masked tail);
+    * ``templates``: (T, Wy row) float32, each template row followed by 2 rx
+      zeros.
+
+    Placement (j, i) of template t is then ``windows[t, j row + i : j row + i
+    + Wy row]``, its element k lining up with template element k; elements
+    in a template's padding columns pair with pixels outside the placement
+    and are masked out of the sum (the squared differences times a 0/1 mask,
+    summed by one matrix-vector product). Every sum of squared integer
+    differences below 2^24 is exact in float32, whatever its order, so the
+    values equal :func:`ssd_maps`' there (tested).
+
+    Returns:
+        (T, 2 ry + 1, 2 rx + 1) float32 [DN^2].
+    """
+    n_t = windows.shape[0]
+    row = wx + 2 * rx
+    length = wy * row
+    ny, nx = 2 * ry + 1, 2 * rx + 1
+    assert windows.shape[1] >= (wy + 2 * ry) * row + 2 * rx and templates.shape == (n_t, length)
+    assert windows.dtype == np.float32 and windows.strides[1] == 4
+    s0, s1 = windows.strides
+    placements = np.ndarray((n_t, ny, nx, length), np.float32, windows, 0, (s0, row * s1, s1, s1))
+    placements.flags.writeable = False
+    diff = placements - templates.reshape(n_t, 1, 1, length)
+    np.square(diff, out=diff)
+    return np.matmul(diff.reshape(n_t * ny * nx, length), _row_mask(wy, wx, row)).reshape(n_t, ny, nx)
 
 
 def parabola_vertex(lo: float, mid: float, hi: float) -> float:

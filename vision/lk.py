@@ -258,13 +258,24 @@ def lucas_kanade_opencv(
     return LKResult(xy=pos, status=st.reshape(-1).astype(bool) & on_image, iterations=np.full(n_pts, -1, np.int64))
 
 
-def _seeded_lk_kwargs(window: int, max_iter: int, eps: float, min_eig: float) -> dict:
-    """``calcOpticalFlowPyrLK`` keywords of the lean paths: one level, seeded, OpenCV's eigenvalue gate."""
+def _seeded_lk_kwargs(window: int, max_iter: int, eps: float, min_eig: float, residual: bool = True) -> dict:
+    """``calcOpticalFlowPyrLK`` keywords of the lean paths: one level, seeded, OpenCV's eigenvalue gate.
+
+    With ``residual`` False the caller discards OpenCV's third output, so it
+    asks for the window's min-eigenvalue there (``OPTFLOW_LK_GET_MIN_EIGENVALS``),
+    which OpenCV has computed anyway, instead of the mean absolute difference
+    of the aligned windows, which costs one more interpolation pass over every
+    point's window after the solve. The tracked points and the status are the
+    same either way (the flag only chooses what goes into the third output);
+    at the tracker's 13 px window it takes about a fifth off the
+    forward-backward LK time.
+    """
+    flags = cv2.OPTFLOW_USE_INITIAL_FLOW if residual else cv2.OPTFLOW_USE_INITIAL_FLOW | cv2.OPTFLOW_LK_GET_MIN_EIGENVALS
     return dict(
         winSize=(window, window),
         maxLevel=0,
         criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, int(max_iter), float(eps)),
-        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        flags=flags,
         minEigThreshold=float(min_eig) * OPENCV_MIN_EIG_SCALE,
     )
 
@@ -297,7 +308,7 @@ def forward_backward_opencv_fast(
         (xy_k1 (P, 2) float64 [px], fb_error (P,) float64 [px], inf where a
         solve failed).
     """
-    kw = _seeded_lk_kwargs(window, max_iter, eps, min_eig)
+    kw = _seeded_lk_kwargs(window, max_iter, eps, min_eig, residual=False)
     p0 = xy.astype(np.float32).reshape(-1, 1, 2)
     fwd, st1, _ = cv2.calcOpticalFlowPyrLK(prev_image, image, p0, init_xy.astype(np.float32).reshape(-1, 1, 2), **kw)
     bwd_init = fwd + back_offset.astype(np.float32).reshape(-1, 1, 2)
@@ -322,12 +333,13 @@ def seeded_lk_kwargs(
     forward and backward solves (built once per sequence by the tracker); the
     backward solve's window, iteration cap and convergence threshold default
     to the forward one's."""
-    fwd = _seeded_lk_kwargs(window, max_iter, eps, min_eig)
+    fwd = _seeded_lk_kwargs(window, max_iter, eps, min_eig, residual=False)
     back = _seeded_lk_kwargs(
         window if back_window is None else back_window,
         max_iter if back_max_iter is None else back_max_iter,
         eps if back_eps is None else back_eps,
         min_eig,
+        residual=False,
     )
     return fwd, back
 
@@ -357,8 +369,9 @@ def forward_backward_opencv_ok(
     fwd, st1, _ = cv2.calcOpticalFlowPyrLK(prev_image, image, p0, pts[1].copy(), **kw_fwd)
     fwd = fwd.reshape(-1, 2)
     bwd, st2, _ = cv2.calcOpticalFlowPyrLK(image, prev_image, fwd, fwd + pts[2], **kw_back)
-    d = bwd.reshape(-1, 2) - p0
-    ok = np.einsum("ij,ij->i", d, d, dtype=np.float64) <= fb_max_px * fb_max_px
+    d = (bwd.reshape(-1, 2) - p0).astype(np.float64)
+    dx, dy = d[:, 0], d[:, 1]
+    ok = dx * dx + dy * dy <= fb_max_px * fb_max_px
     ok &= (st1 & st2).reshape(-1).view(bool)
     return fwd, ok
 

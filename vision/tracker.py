@@ -66,6 +66,7 @@ from vision.fixation import (
     fixation_areas,
     match_one,
     ssd_maps,
+    ssd_maps_rows,
 )
 from vision.lk import forward_backward, forward_backward_opencv_ok, forward_opencv_fast, seeded_lk_kwargs
 from vision.tracks import Tracks, check_image
@@ -87,7 +88,7 @@ def lk_tile_margin(template_size: int, lk_window: int) -> int:
     """Rows/columns [px] an LK tile adds on each side of its template: the
     drift slack, half the LK window and the guard. A tile is
     ``template_size + 2 * margin`` px square."""
-    return int(np.ceil(FP_BOX_SLACK_FRAC * template_size)) + lk_window // 2 + TILE_GUARD_PX
+    return math.ceil(FP_BOX_SLACK_FRAC * template_size) + lk_window // 2 + TILE_GUARD_PX
 
 
 def _match_region(
@@ -102,6 +103,53 @@ def _match_region(
     region = img[y0 : y1 + wy, x0 : x1 + wx].astype(np.float32)
     bx, by, ssd, at_edge, fx, fy = match_one(region, tpl, cx - x0, cy - y0, radius, x1 - x0, y1 - y0)
     return bx + x0, by + y0, ssd, at_edge, fx, fy
+
+
+def _map_minimum(vals: list[float], n_side: int, x0: int, y0: int) -> tuple[int, int, float, bool, float, float]:
+    """:func:`vision.fixation.match_one`'s verdict on an SSD map already
+    computed: ``vals`` is the (n_side x n_side) map in raster order (plain
+    floats), its placement (0, 0) at top-left corner (x0, y0). The first
+    minimum in raster order, ``at_edge`` on the map's border, and the
+    parabola through the minimum and its neighbours on each axis
+    (:func:`vision.fixation.parabola_vertex`, inlined).
+
+    Returns:
+        (bx, by, ssd, at_edge, fx, fy) as match_one.
+    """
+    mid = min(vals)
+    k = vals.index(mid)
+    my, mx = divmod(k, n_side)
+    last = n_side - 1
+    fx = fy = 0.0
+    if 0 < mx < last:
+        lo, hi = vals[k - 1], vals[k + 1]
+        curv = lo - 2.0 * mid + hi
+        if curv > 0.0:
+            fx = min(max(0.5 * (lo - hi) / curv, -0.5), 0.5)
+    if 0 < my < last:
+        lo, hi = vals[k - n_side], vals[k + n_side]
+        curv = lo - 2.0 * mid + hi
+        if curv > 0.0:
+            fy = min(max(0.5 * (lo - hi) / curv, -0.5), 0.5)
+    at_edge = mx == 0 or my == 0 or mx == last or my == last
+    return x0 + mx, y0 + my, (mid if mid > 0.0 else 0.0), at_edge, fx, fy
+
+
+def _match_near(
+    img: np.ndarray, tpl: np.ndarray, cx: int, cy: int, radius: int, xmax: int, ymax: int
+) -> tuple[int, int, float, bool, float, float]:
+    """:func:`_match_region` for a narrow search: where the search window is
+    inside the frame, the SSD map comes from :func:`vision.fixation.ssd_maps`
+    (exact sums, a few microseconds) instead of ``cv2.matchTemplate`` (whose
+    fixed cost per call is several times that); near the frame edge it is
+    :func:`_match_region`, which clips the window."""
+    wy, wx = tpl.shape
+    if radius <= cx <= xmax - radius and radius <= cy <= ymax - radius:
+        x0, y0 = cx - radius, cy - radius
+        win = img[y0 : cy + radius + wy, x0 : cx + radius + wx].astype(np.float32)
+        vals = ssd_maps(win[None], tpl[None]).reshape(-1).tolist()
+        return _map_minimum(vals, 2 * radius + 1, x0, y0)
+    return _match_region(img, tpl, cx, cy, radius, xmax, ymax)
 
 
 def _median_rows(a: np.ndarray) -> np.ndarray:
@@ -136,7 +184,9 @@ class TrackerConfig(BaseModel):
       left; the forward-backward check's backward solve uses 9 px
       (``fb_window``), which rejects the same mis-tracks at half the cost;
     * block matching searches +-1 px around the constant-velocity prediction
-      (following its minimum once), then +-12 px; the displacement is refined
+      (following a minimum on its edge up to ``search_follow_steps`` = 4 times:
+      one narrow SSD map each, against about ten for the wide search), then
+      +-12 px; the displacement is refined
       to sub-pixel, and LK starts from each track's own last displacement
       plus the change of its template's displacement, so it has ~0.1 px to
       find;
@@ -196,6 +246,12 @@ class TrackerConfig(BaseModel):
         1, ge=1, le=128,
         description="first, narrow search half-width around the constant-velocity prediction [px]; a template "
         "whose minimum lands on its edge or fails max_rel_ssd is searched again over search_radius_px",
+    )
+    search_follow_steps: int = Field(
+        4, ge=1, le=32,
+        description="times the narrow search moves to a minimum on its window's edge and searches around it "
+        "again before falling back to search_radius_px (each move is one narrow SSD map; the wide search "
+        "costs about ten) [-]",
     )
     max_rel_ssd: float = Field(
         0.5, gt=0.0, description="template lost if min SSD / template centred energy exceeds this [-] (~2: unrelated)"
@@ -344,11 +400,12 @@ class Tracker:
     State: the previous frame, the templates and the live tracks.
     Rate: camera frame rate (one call per frame, frames in time order).
     Cost (2-core x86, single OpenCV thread, ``landbench track-eval``, each
-    tracker interleaved with the OpenCV baseline in one process): about 1.0x
-    the baseline's time at 256^2 and 0.8x at 512^2 (README, "A cheaper
-    implementation at 256^2"). Shares at 256^2: LK 36 %, the Python and small
-    NumPy operations of the per-frame step 23 %, block matching 18 %, refills
-    and re-detection 15 %.
+    tracker interleaved with the OpenCV baseline in one process): about 0.8x
+    the baseline's time at 256^2 and 0.7x at 512^2 on the rendered descent,
+    0.95x and 0.9x on the held-out one (README, "The 256^2 time at the
+    baseline's 0.8x"). Shares at 256^2: LK about 37 %, refills and
+    re-detection about 16 %, block matching about 15 %, the rest the Python
+    and small NumPy operations of the per-frame step.
 
     Args:
         config: A :class:`TrackerConfig` (defaults when None).
@@ -388,6 +445,7 @@ class Tracker:
         self._flow = np.zeros((0, 2), np.float64)  # last displacement of each track (new: its template's) [px]
         self._tpl_of = np.zeros(0, np.int64)  # index of each track's template
         self._next_id = 0
+        self._mos_cache: tuple | None = None  # (frame, its LK mosaic, tile corners) of the last step
         self._cfg: TrackerConfig | None = None  # the configuration for this sequence's frame size
 
     def config_for(self, shape: tuple[int, ...]) -> TrackerConfig:
@@ -397,6 +455,11 @@ class Tracker:
         if self._cfg is None or self._prev is None:
             cfg = self._cfg = self.config.for_side(int(min(shape[:2])))
             back_window = cfg.lk_window if cfg.fb_window is None else min(cfg.fb_window, cfg.lk_window)
+            # New sub-images keep their centres template_separation_frac x side
+            # from the others (Chebyshev: that / sqrt 2), so points inside two
+            # of them are at least that minus template_size apart.
+            gap = cfg.template_separation_frac * min(shape[:2]) / math.sqrt(2.0) - cfg.template_size
+            self._merge_top_up = gap >= cfg.min_track_separation_px
             self._lk_kwargs = seeded_lk_kwargs(
                 cfg.lk_window, cfg.lk_max_iter, cfg.lk_eps_px, cfg.lk_min_eig, back_window,
                 back_max_iter=cfg.fb_max_iter, back_eps=cfg.fb_eps_px,
@@ -457,11 +520,20 @@ class Tracker:
         expected = int(self._tpl_expect.sum())
         low = expected == 0 or self._ids.size < cfg.redetect_below_frac * expected
         missing = cfg.n_templates - self._tpl_xy.shape[0]
-        if missing > 0 and (missing >= cfg.refill_min_missing or low):
-            self._add_templates(img)
+        # Templates holding fewer tracks than after their last detection. A
+        # refill below changes neither their indices nor their counts.
+        top_up = None
         if low:
             counts = np.bincount(self._tpl_of, minlength=self._tpl_xy.shape[0])
-            self._detect(img, np.flatnonzero(counts < self._tpl_expect))
+            top_up = np.flatnonzero(counts < self._tpl_expect)
+        if missing > 0 and (missing >= cfg.refill_min_missing or low):
+            # Where new and old sub-images cannot hold points closer than
+            # min_track_separation_px (_merge_top_up), their detections run in
+            # one pass: the same points, ids and order as two passes.
+            if self._add_templates(img, top_up if self._merge_top_up else None) and self._merge_top_up:
+                top_up = None
+        if top_up is not None:
+            self._detect(img, top_up)
         n_new = self._ids.size - n_before
         if n_new:
             prev_xy = np.concatenate([prev_xy, np.full((n_new, 2), np.nan)])
@@ -475,9 +547,10 @@ class Tracker:
         template's narrow window at once, :func:`vision.fixation.match_one`
         for the re-searches) first searches
         ``search_radius_near_px`` around the prediction (the template's last
-        displacement, rounded), once more around a minimum that lies on that
-        window's edge, and falls back to ``search_radius_px`` when the minimum
-        is still on the edge or does not match well enough. A
+        displacement, rounded), again around a minimum that lies on that
+        window's edge (up to ``search_follow_steps`` times: a descent on the SSD
+        surface in narrow windows), and falls back to ``search_radius_px`` when
+        the minimum is still on the edge or does not match well enough. A
         parabola through the SSD minimum and its neighbours refines the
         displacement to sub-pixel (``subpixel_match``). A template is lost when
         its minimum is on the search edge, its SSD exceeds ``max_rel_ssd`` of
@@ -504,13 +577,14 @@ class Tracker:
         e = cfg.edge_margin_px
         wide = cfg.search_radius_px
         near = min(cfg.search_radius_near_px, wide)
+        follow = cfg.search_follow_steps
         xmax, ymax = width - size, height - size
         xok_hi, yok_hi = width - e - size, height - e - size
         max_rel = cfg.max_rel_ssd
         subpixel = cfg.subpixel_match
         track_seed = cfg.lk_seed == "track"
         half = cfg.lk_window // 2
-        slack = int(np.ceil(FP_BOX_SLACK_FRAC * size))
+        slack = math.ceil(FP_BOX_SLACK_FRAC * size)
         margin = lk_tile_margin(size, cfg.lk_window)
         tile = size + 2 * margin
         # Tiles are shifted to stay inside the frame. Invariant: templates are
@@ -522,8 +596,16 @@ class Tracker:
         # Tiles side by side: OpenCV's LK computes the derivatives of its whole
         # first image, and does so about twice as fast on a wide mosaic as on
         # a tall one of the same area.
-        mos_prev = np.empty((tile, n_t * tile), prev.dtype)
+        # Frame k's tiles: a template kept through the last step has its
+        # tile in last step's frame-(k) mosaic already, at the same corner
+        # (the same pixels of the same frame), so only the others are copied.
+        cached = self._mos_cache
+        if cached is not None and cached[0] is prev and cached[1].shape == (tile, n_t * tile):
+            mos_prev, corners_prev = cached[1], cached[2]
+        else:
+            mos_prev, corners_prev = np.empty((tile, n_t * tile), prev.dtype), [None] * n_t
         mos_cur = np.empty((tile, n_t * tile), img.dtype)
+        corners_cur: list[tuple[int, int]] = []
         lo_in, hi_in = half + 1, tile - 2 - half
         rows: list[tuple] = []
         kept: list[tuple] = []
@@ -533,8 +615,13 @@ class Tracker:
         # A template whose window would leave the frame is searched alone
         # (match_one clips the window to the frame).
         side = size + 2 * near
-        windows = np.empty((n_t, side, side), np.float32)
-        tpls = np.empty((n_t, size, size), np.float32)
+        # ssd_maps_rows' layout: window rows back to back (plus 2 near
+        # padding elements), template rows padded with zeros to the window's
+        # width; tpls is the (T, size, size) view of the templates.
+        win_rows = np.zeros((n_t, side * side + 2 * near), np.float32)
+        windows = win_rows[:, : side * side].reshape(n_t, side, side)
+        tpl_rows = np.zeros((n_t, size * side), np.float32)
+        tpls = tpl_rows.reshape(n_t, size, side)[:, :, :size]
         batched: list[bool] = []
         # Plain Python ints and floats in the loops: NumPy scalar handling would
         # cost more than the small array operations themselves.
@@ -548,41 +635,24 @@ class Tracker:
                 windows[t] = 0.0  # searched alone below; no uninitialised values in ssd_maps
             batched.append(inside)
         n_side = 2 * near + 1
-        ssd_all = ssd_maps(windows, tpls).reshape(n_t, n_side * n_side).tolist()
-        energies = centred_energy(tpls).tolist()
+        ssd_all = ssd_maps_rows(win_rows, tpl_rows, size, size, near, near).reshape(n_t, n_side * n_side).tolist()
+        energies = centred_energy(tpl_rows, size * size).tolist()
         for t, ((x, y), (px, py), (sx0, sy0)) in enumerate(zip(tpl_xy, tpl_pred, self._tpl_sub.tolist())):
             limit = max_rel * max(energies[t], TEMPLATE_ENERGY_FLOOR)
             cx, cy = x + px, y + py
             if batched[t]:
-                # As match_one on the same map: the first minimum in raster
-                # order, at_edge on the search limit, the parabola through the
-                # minimum and its neighbours on each axis (parabola_vertex).
-                vals = ssd_all[t]
-                mid = min(vals)
-                k = vals.index(mid)
-                my, mx = divmod(k, n_side)
-                bx, by = cx - near + mx, cy - near + my
-                at_edge = mx == 0 or my == 0 or mx == n_side - 1 or my == n_side - 1
-                ssd = mid if mid > 0.0 else 0.0
-                fx = fy = 0.0
-                if subpixel:
-                    if 0 < mx < n_side - 1:
-                        lo, hi = vals[k - 1], vals[k + 1]
-                        curv = lo - 2.0 * mid + hi
-                        if curv > 0.0:
-                            fx = min(max(0.5 * (lo - hi) / curv, -0.5), 0.5)
-                    if 0 < my < n_side - 1:
-                        lo, hi = vals[k - n_side], vals[k + n_side]
-                        curv = lo - 2.0 * mid + hi
-                        if curv > 0.0:
-                            fy = min(max(0.5 * (lo - hi) / curv, -0.5), 0.5)
+                # As match_one on the same map (_map_minimum).
+                bx, by, ssd, at_edge, fx, fy = _map_minimum(ssd_all[t], n_side, cx - near, cy - near)
             else:
                 bx, by, ssd, at_edge, fx, fy = _match_region(img, tpls[t], cx, cy, near, xmax, ymax)
             if near < wide and (at_edge or ssd > limit):
                 tpl = tpls[t]
-                if at_edge:
-                    # The minimum may lie just beyond the narrow window: search once more around it.
-                    bx, by, ssd, at_edge, fx, fy = _match_region(img, tpl, bx, by, near, xmax, ymax)
+                # The minimum may lie just beyond the narrow window: search
+                # around it again, up to search_follow_steps times.
+                for _ in range(follow if at_edge else 0):
+                    bx, by, ssd, at_edge, fx, fy = _match_near(img, tpl, bx, by, near, xmax, ymax)
+                    if not at_edge:
+                        break
                 if at_edge or ssd > limit:
                     bx, by, ssd, at_edge, fx, fy = _match_region(img, tpl, cx, cy, wide, xmax, ymax)
             if not subpixel:
@@ -593,8 +663,10 @@ class Tracker:
             xp, yp = min(max(x - margin, 0), tx_max), min(max(y - margin, 0), ty_max)
             xc, yc = min(max(bx - margin, 0), tx_max), min(max(by - margin, 0), ty_max)
             c0 = t * tile
-            mos_prev[:, c0 : c0 + tile] = prev[yp : yp + tile, xp : xp + tile]
+            if corners_prev[t] != (xp, yp):
+                mos_prev[:, c0 : c0 + tile] = prev[yp : yp + tile, xp : xp + tile]
             mos_cur[:, c0 : c0 + tile] = img[yc : yc + tile, xc : xc + tile]
+            corners_cur.append((xc, yc))
             # Per template, in mosaic coordinates: the offsets that take a
             # point's frame position (and its last displacement, with the
             # 'track' seed) to its LK start in each solve, the offset back to
@@ -653,7 +725,11 @@ class Tracker:
                                   window=cfg.lk_window, max_iter=cfg.lk_max_iter, eps=cfg.lk_eps_px,
                                   min_eig=cfg.lk_min_eig, back_window=back_window)
             q_mos, ok = fb.xy, fb.fb_error <= cfg.fb_max_px
-        ok &= ((q_mos >= g[:, 8:10]) & (q_mos <= g[:, 10:12])).all(axis=1)
+        inside = (q_mos >= g[:, 8:10]) & (q_mos <= g[:, 10:12])
+        ok &= inside[:, 0] & inside[:, 1]
+        # The frame-(k+1) mosaic is next step's frame-k mosaic for the
+        # templates kept (same corners); LK never writes into its inputs.
+        self._mos_cache = (img, mos_cur, corners_cur)
         idx = np.flatnonzero(ok)
         old_xy = xy[idx]
         self._xy = q_mos[idx] + g[idx, 6:8]
@@ -661,15 +737,19 @@ class Tracker:
         self._ids = self._ids[idx]
         self._age = self._age[idx] + 1
         self._tpl_of = self._tpl_of[idx]
+        # (t, bx, by, sx, sy) of the kept templates; integers and their
+        # sub-pixel displacements are exact in float64.
+        kept_arr = np.array(kept, dtype=np.float64).reshape(-1, 5)
         if len(kept) < n_t:
             # Re-index tracks onto the surviving templates.
             keep = np.zeros(n_t, bool)
-            keep[[k[0] for k in kept]] = True
+            keep[kept_arr[:, 0].astype(np.int64)] = True
             self._tpl_of = (np.cumsum(keep) - 1)[self._tpl_of]
             self._tpl_expect = self._tpl_expect[keep]
-        self._tpl_xy = np.array([k[1:3] for k in kept], dtype=np.int64).reshape(-1, 2)
-        self._tpl_sub = np.array([k[3:5] for k in kept], dtype=np.float64).reshape(-1, 2)
-        self._tpl_pred = np.array([(round(k[3]), round(k[4])) for k in kept], dtype=np.int64).reshape(-1, 2)
+        self._tpl_xy = kept_arr[:, 1:3].astype(np.int64)
+        self._tpl_sub = kept_arr[:, 3:5].copy()
+        # The next prediction: the displacement rounded half to even, as round().
+        self._tpl_pred = np.rint(self._tpl_sub).astype(np.int64)
         return old_xy
 
     def fixation_areas(self, img: np.ndarray, n: int) -> FixationAreas:
@@ -688,26 +768,29 @@ class Tracker:
             occupied_xy=self._tpl_xy + 0.5 * (cfg.template_size - 1),
         )
 
-    def _add_templates(self, img: np.ndarray) -> None:
+    def _add_templates(self, img: np.ndarray, top_up: np.ndarray | None = None) -> bool:
         """Select replacement templates on the current frame (§2.3) and detect
-        features in them."""
+        features in them; with ``top_up`` (indices of existing templates) top
+        those up in the same detection pass, after the new ones. Returns
+        whether templates were added (and so ``top_up`` detected)."""
         cfg = self._cfg
         size = cfg.template_size
         height, width = img.shape
         if height < size + 2 * cfg.border_px or width < size + 2 * cfg.border_px:
-            return  # the frame is too small to hold a template away from the border
+            return False  # the frame is too small to hold a template away from the border
         new = self.fixation_areas(img, cfg.n_templates - self._tpl_xy.shape[0]).top_left
         if new.shape[0] == 0:
-            return
+            return False
         # New areas most likely move with the rest of the image.
         guess = _median_rows(self._tpl_sub) if self._tpl_sub.shape[0] else np.zeros(2)
         first = self._tpl_xy.shape[0]
         n_new = new.shape[0]
         self._tpl_xy = np.concatenate([self._tpl_xy, new])
-        self._tpl_sub = np.concatenate([self._tpl_sub, np.tile(guess, (n_new, 1))])
-        self._tpl_pred = np.concatenate([self._tpl_pred, np.tile(np.rint(guess).astype(np.int64), (n_new, 1))])
+        self._tpl_sub = np.concatenate([self._tpl_sub, np.broadcast_to(guess, (n_new, 2))])
+        self._tpl_pred = np.concatenate([self._tpl_pred, np.broadcast_to(np.rint(guess).astype(np.int64), (n_new, 2))])
         self._tpl_expect = np.concatenate([self._tpl_expect, np.full(new.shape[0], cfg.max_features_per_template)])
-        self._detect(img, np.arange(first, self._tpl_xy.shape[0]))
+        which = np.arange(first, self._tpl_xy.shape[0])
+        self._detect(img, which if top_up is None else np.concatenate([which, top_up]))
         # A new area without a single feature point is of no use: free its slot.
         counts = np.bincount(self._tpl_of, minlength=self._tpl_xy.shape[0])
         empty = np.zeros(self._tpl_xy.shape[0], bool)
@@ -721,6 +804,7 @@ class Tracker:
                 self._tpl_pred[keep],
                 self._tpl_expect[keep],
             )
+        return True
 
     def _detect(self, img: np.ndarray, which: np.ndarray) -> None:
         """Top up the templates ``which`` with feature points (§3)."""
@@ -740,15 +824,16 @@ class Tracker:
             strategy=cfg.fp_search,
             rng=self._rng,
         )
-        xy, tpl = feats.xy, which[feats.region]
+        # Features arrive grouped by sub-image in the order of ``which``,
+        # strongest first within each.
+        xy, region = feats.xy, feats.region
         if xy.shape[0] and self._xy.shape[0] and cfg.min_track_separation_px > 0:
             d2 = (xy[:, 0, None] - self._xy[:, 0]) ** 2 + (xy[:, 1, None] - self._xy[:, 1]) ** 2
             far = d2.min(axis=1) >= cfg.min_track_separation_px**2
-            xy, tpl = xy[far], tpl[far]
-        # Respect the per-template cap: features arrive strongest first per template.
-        order = np.argsort(tpl, kind="stable")
-        xy, tpl = xy[order], tpl[order]
-        rank = np.arange(tpl.size) - np.searchsorted(tpl, tpl, side="left")
+            xy, region = xy[far], region[far]
+        tpl = which[region]
+        # Respect the per-template cap (rank within its group).
+        rank = np.arange(region.size) - np.searchsorted(region, region, side="left")
         room = cfg.max_features_per_template - counts[tpl]
         sel = rank < room
         xy, tpl = xy[sel], tpl[sel]

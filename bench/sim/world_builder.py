@@ -41,8 +41,8 @@ def generate_scenario_terrain(scenario: Scenario) -> Terrain:
 # default 4096^2 tile takes seconds). Terrains loaded from a DEM file are not
 # cached: the file may change between runs. In a long process the least recently used
 # terrains are dropped once the cached arrays pass TERRAIN_CACHE_MAX_BYTES
-# (the default 4096^2 tile with its patch is about 21 MB). A campaign worker flies
-# many cases in turn and keeps only the last terrain (``limit_terrain_cache``).
+# (the default 4096^2 tile with its patch is about 21 MB). A campaign worker, which
+# flies many cases in turn, clears it before each case.
 TERRAIN_CACHE_MAX_BYTES = 160 * 2**20
 _terrain_cache: OrderedDict[tuple, Terrain] = OrderedDict()
 _terrain_cache_lock = threading.Lock()
@@ -98,13 +98,6 @@ def _build_terrain(scenario: Scenario) -> Terrain:
         while len(_terrain_cache) > 1 and sum(map(_terrain_bytes, _terrain_cache.values())) > TERRAIN_CACHE_MAX_BYTES:
             _terrain_cache.popitem(last=False)
     return terrain
-
-
-def limit_terrain_cache(entries: int) -> None:
-    """Keep at most ``entries`` of the most recently used terrains in this process (a campaign worker keeps 1)."""
-    with _terrain_cache_lock:
-        while len(_terrain_cache) > max(0, int(entries)):
-            _terrain_cache.popitem(last=False)
 
 
 def clear_terrain_cache() -> None:

@@ -177,7 +177,8 @@ def cmd_mc(args: argparse.Namespace) -> int:
     args.runs = runs
     rows = mc.run_campaign(base, args.runs, directory, seed, workers=args.workers, resume=bool(args.resume),
                            dry_run=args.dry_run, retention=args.retention, case_timeout_s=args.case_timeout,
-                           progress=True, backend=args.backend, address=args.address)
+                           progress=True, backend=args.backend, address=args.address,
+                           cases_per_worker=args.cases_per_worker)
     if args.dry_run:
         print(f"dry run: {args.runs} dispersed scenarios in {directory / mc.CASES}/NNNNN/scenario.toml")
         return 0
@@ -369,6 +370,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--retention", default="summary", choices=("summary", "failed", "all"),
                    help="whose telemetry and video are kept")
     p.add_argument("--case-timeout", type=float, default=None, metavar="S", help="per-case wall-clock limit [s]")
+    p.add_argument("--cases-per-worker", type=int, default=None, metavar="N",
+                   help="cases a worker process flies before a fresh one replaces it (default 20; 1: a fresh "
+                        "process per case); the rows do not depend on it")
     p.set_defaults(func=cmd_mc)
 
     p = sub.add_parser(

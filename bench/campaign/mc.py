@@ -6,13 +6,17 @@ from that seed's own stream, so a case depends only on (base, campaign seed,
 i): never on the number of workers, the order of execution or a resume.
 
 Execution, after NASA Trick's Monte Carlo master, on either backend:
-    * ``local`` (default): one spawned process per case, at most ``workers``
-      at a time; ``ray``: one Ray task per case on a Ray cluster (given by
-      ``--address`` or ``RAY_ADDRESS``, else a local Ray instance started
-      here), each in a fresh worker process (``max_calls=1``). A worker
-      receives only plain data (the scenario as a dict, the campaign seed,
-      the case index) and builds its own MuJoCo model and renderer: no
-      MuJoCo or GL object is ever pickled;
+    * ``local`` (default): at most ``workers`` spawned worker processes, each
+      flying cases one after another (``cases_per_worker`` at most, then a
+      fresh process takes its place); ``ray``: one Ray task per case on a Ray
+      cluster (given by ``--address`` or ``RAY_ADDRESS``, else a local Ray
+      instance started here), a Ray worker process running at most
+      ``cases_per_worker`` of them (``max_calls``). A worker receives only
+      plain data (the scenario as a dict, the campaign seed, the case index)
+      and builds each case's MuJoCo model and renderer anew, freeing them
+      after the case: no MuJoCo or GL object is ever pickled or shared
+      between cases, and nothing a case computes depends on the cases its
+      worker flew before (tested: rows equal a fresh process's, in any order);
     * a case that exceeds ``case_timeout_s`` is killed and recorded as failed;
       a case that raises is recorded with its error; a worker that dies
       without a result is retried once;
@@ -34,6 +38,7 @@ from __future__ import annotations
 import contextlib
 import json
 import multiprocessing as mp
+import multiprocessing.connection as mp_connection
 import os
 import time
 from collections.abc import Callable, Iterator
@@ -54,9 +59,15 @@ RETENTIONS = ("summary", "failed", "all")
 BACKENDS = ("local", "ray")
 POLL_S = 0.05  # how often the master checks its workers
 MAX_ATTEMPTS = 2  # a dead worker's case is retried once
+# A worker process flies at most this many cases, then a fresh one takes its place (as
+# multiprocessing's maxtasksperchild): it pays the imports once for many cases, and
+# whatever memory the allocator keeps between cases cannot grow without bound. 1 gives
+# every case a fresh process.
+CASES_PER_WORKER = 20
 # Row entries that measure the machine, not the landing: they differ between
 # two runs of the same case, so comparisons (workers, backends, replay) skip them.
-RUN_DEPENDENT_KEYS = ("wall_time_s", "setup_time_s", "realtime_factor", "case_wall_time_s", "case_peak_rss_mb")
+RUN_DEPENDENT_KEYS = ("wall_time_s", "setup_time_s", "realtime_factor", "case_wall_time_s", "case_peak_rss_mb",
+                      "case_worker_pid")
 
 
 def case_scenario(base: Scenario, campaign_seed: int, n_cases: int, index: int) -> tuple[Scenario, dict[str, Any]]:
@@ -131,11 +142,80 @@ def _limit_threads(threads: int) -> None:
     cv2.setNumThreads(threads)
 
 
+def _reset_peak_rss() -> bool:
+    """Start this process's peak-memory count afresh (Linux: the high-water mark drops to the current RSS).
+
+    A worker flies many cases, so each case's ``case_peak_rss_mb`` is the
+    worker's peak *during that case* (what it held from earlier cases
+    included): the same quantity a fresh process per case measured.
+    Returns False where the kernel offers no reset (then the figure is the
+    worker's peak so far).
+    """
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
 def _peak_rss_mb() -> float:
-    """This process's peak resident memory [MB] (Linux reports ru_maxrss in KiB)."""
+    """This process's peak resident memory [MB] since :func:`_reset_peak_rss` (else since it started)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0  # kB
+    except (OSError, ValueError, IndexError):
+        pass
     import resource
 
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux reports KiB
+
+
+# glibc's malloc raises its mmap threshold each time a large block is freed (up to
+# 32 MB), after which medium arrays come from the heap and are not given back: a
+# worker's resident memory then creeps up case by case. A fixed threshold keeps
+# every block over 1 MB in its own mapping, returned to the system when freed.
+_M_MMAP_THRESHOLD = -3  # mallopt's parameter number (malloc.h)
+MMAP_THRESHOLD_BYTES = 1 << 20
+_malloc_tuned = False
+
+
+def _release_memory() -> None:
+    """Give freed heap memory back to the system (glibc; elsewhere nothing is done)."""
+    global _malloc_tuned
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        if not _malloc_tuned:
+            libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)
+            _malloc_tuned = True
+        libc.malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
+def _between_cases() -> None:
+    """What a worker does before each case: nothing carried from the cases before, memory handed back.
+
+    A case's result depends only on its scenario: every random stream is
+    spawned from its seed, and the World, its renderer and GL context are
+    built for the case and freed after it. The only state a process keeps
+    between runs is the terrain cache, whose terrains are immutable and
+    bit-identical to a fresh generation; a worker drops it here (the next
+    case loads its terrain from the disk cache, about 0.1 s), so that it holds
+    no tile it may not need. Garbage from the last case is collected and the
+    freed heap returned to the system now, not during the next case.
+    """
+    import gc
+
+    from bench.sim.world_builder import clear_terrain_cache
+
+    clear_terrain_cache()
+    gc.collect()
+    _release_memory()
 
 
 def _case_row(base_data: dict, campaign_seed: int, n_cases: int, index: int, case_dir: Path,
@@ -143,10 +223,13 @@ def _case_row(base_data: dict, campaign_seed: int, n_cases: int, index: int, cas
     """Fly one case in this process and return its row.
 
     Telemetry, plots and video go to ``case_dir/NNNNN/`` and are kept per
-    ``retention``. Called inside a fresh worker process (either backend), so
-    ``case_peak_rss_mb`` is the worker's peak memory for this one case.
+    ``retention``. Called inside a worker process (either backend), which may
+    have flown other cases before; ``case_peak_rss_mb`` is the worker's peak
+    memory during this case.
     """
     _limit_threads(threads)
+    _between_cases()
+    _reset_peak_rss()
     t0 = time.perf_counter()
     row: dict[str, Any] = {"case": index}
     try:
@@ -178,6 +261,7 @@ def _case_row(base_data: dict, campaign_seed: int, n_cases: int, index: int, cas
         row.update({"outcome": "error", "landed": False, "error": f"{type(exc).__name__}: {exc}"})
     row["case_wall_time_s"] = time.perf_counter() - t0
     row["case_peak_rss_mb"] = _peak_rss_mb()
+    row["case_worker_pid"] = os.getpid()  # which worker flew it (a worker flies several cases in turn)
     return json_safe(row)
 
 
@@ -185,15 +269,31 @@ def _write_row(cases_dir: Path, row: dict[str, Any]) -> None:
     atomic_write_text(cases_dir / f"{row['case']:05d}.json", json.dumps(json_safe(row)) + "\n")
 
 
-def _case_worker(base_data: dict, campaign_seed: int, n_cases: int, index: int, case_dir: str,
-                 retention: str, threads: int) -> None:
-    """Local backend, child process: fly one case and write its row itself.
+def _case_worker(conn: Any, base_data: dict, campaign_seed: int, n_cases: int, case_dir: str,
+                 retention: str, threads: int, max_cases: int) -> None:
+    """Local backend, a worker process: fly the cases the master sends, one at a time.
 
-    The child writes the row (not the master), so a case that finished is
-    kept even if the master is killed the next instant.
+    Receives case indices on ``conn`` (None: stop), and after each case writes
+    its row itself (not the master, so a case that finished is kept even if
+    the master is killed the next instant), then sends the index back. Stops
+    after ``max_cases`` cases, or when the master is gone.
     """
+    _limit_threads(threads)
+    import bench.sim.run  # noqa: F401 - the imports every case needs, paid while the master hands out cases
+
     cases_dir = Path(case_dir)
-    _write_row(cases_dir, _case_row(base_data, campaign_seed, n_cases, index, cases_dir, retention, threads))
+    for _ in range(max_cases):
+        try:
+            index = conn.recv()
+        except (EOFError, OSError):  # the master is gone
+            return
+        if index is None:
+            return
+        _write_row(cases_dir, _case_row(base_data, campaign_seed, n_cases, index, cases_dir, retention, threads))
+        try:
+            conn.send(index)
+        except (BrokenPipeError, OSError):
+            return
 
 
 def _ray_case(base_data: dict, campaign_seed: int, n_cases: int, index: int,
@@ -225,7 +325,7 @@ def _failed_row(index: int, seed: int, error: str, wall_s: float) -> dict[str, A
 def run_campaign(base: Scenario, runs: int, out: Path, campaign_seed: int, workers: int | None = 1,
                  resume: bool = False, dry_run: bool = False, retention: str = "summary",
                  case_timeout_s: float | None = None, progress: bool = True, backend: str = "local",
-                 address: str | None = None) -> list[dict[str, Any]]:
+                 address: str | None = None, cases_per_worker: int | None = None) -> list[dict[str, Any]]:
     """Run (or resume, or dry-run) a campaign; returns the rows in case order.
 
     Args:
@@ -243,6 +343,9 @@ def run_campaign(base: Scenario, runs: int, out: Path, campaign_seed: int, worke
         backend: ``local`` (worker processes) or ``ray`` (a Ray cluster).
         address: Ray cluster address; None: ``RAY_ADDRESS`` if set, else a
             local Ray instance started (and stopped) here.
+        cases_per_worker: Cases a worker process flies before a fresh one
+            takes its place; None: :data:`CASES_PER_WORKER`; 1: a fresh
+            process per case. The rows do not depend on it.
     """
     if runs < 1:
         raise ValueError(f"--runs {runs}: must be >= 1")
@@ -256,6 +359,10 @@ def run_campaign(base: Scenario, runs: int, out: Path, campaign_seed: int, worke
         raise ValueError(f"--address {address!r} is for the ray backend; add --backend ray")
     if case_timeout_s is not None and not case_timeout_s > 0:
         raise ValueError(f"--case-timeout {case_timeout_s}: must be > 0 [s]")
+    if cases_per_worker is None:
+        cases_per_worker = CASES_PER_WORKER
+    if cases_per_worker < 1:
+        raise ValueError(f"--cases-per-worker {cases_per_worker}: must be >= 1 (1: a fresh process per case)")
     cases_dir = out / CASES
     meta = {"campaign_seed": campaign_seed, "runs": runs, "retention": retention}
     meta_path = out / CAMPAIGN
@@ -291,9 +398,9 @@ def run_campaign(base: Scenario, runs: int, out: Path, campaign_seed: int, worke
         if todo:
             done = bar.update if bar is not None else (lambda n: None)
             if backend == "local":
-                _run_local(job, todo, workers or 1, done)
+                _run_local(job, todo, workers or 1, done, cases_per_worker)
             else:
-                _run_ray(job, todo, workers, address, done)
+                _run_ray(job, todo, workers, address, done, cases_per_worker)
     finally:
         if bar is not None:
             bar.close()
@@ -320,53 +427,116 @@ class _Job:
                            elapsed_s)
 
 
-def _run_local(job: _Job, todo: list[int], workers: int, done: Callable[[int], Any]) -> None:
-    """Local backend: one spawned process per case, at most ``workers`` at a time."""
-    ctx = mp.get_context("spawn")  # a fresh interpreter per case: no inherited GL state
+@dataclass
+class _Worker:
+    """The master's view of one local worker process."""
+
+    proc: Any
+    conn: Any
+    served: int = 0  # cases it has finished
+    case: int | None = None  # the case it is flying now
+    t_start: float = 0.0  # when that case was handed to it
+    attempt: int = 0
+
+
+def _run_local(job: _Job, todo: list[int], workers: int, done: Callable[[int], Any],
+               cases_per_worker: int = CASES_PER_WORKER) -> None:
+    """Local backend: at most ``workers`` worker processes, each flying up to ``cases_per_worker`` cases in turn.
+
+    A case is handed to an idle worker (a new one is spawned when none is
+    idle and fewer than ``workers`` exist); its timeout runs from that
+    moment. A worker that overruns is killed and the case recorded as timed
+    out; a worker that dies without the case's row is replaced and the case
+    retried once on a fresh process, then recorded as failed.
+    """
+    ctx = mp.get_context("spawn")  # a fresh interpreter per worker: no inherited GL or MuJoCo state
     threads = threads_per_worker(workers)
-    running: dict[int, tuple[Any, float, int]] = {}
+    pool: list[_Worker] = []
     attempts: dict[int, int] = {}
     queue = list(todo)
-    while queue or running:
-        while queue and len(running) < workers:
-            i = queue.pop(0)
-            attempts[i] = attempts.get(i, 0) + 1
-            p = ctx.Process(target=_case_worker, args=(job.base_data, job.campaign_seed, job.runs, i,
-                                                       str(job.cases_dir), job.retention, threads))
-            with _thread_env(threads):
-                p.start()
-            running[i] = (p, time.perf_counter(), attempts[i])
-        time.sleep(POLL_S)
-        for i, (p, t_start, attempt) in list(running.items()):
-            elapsed = time.perf_counter() - t_start
-            if p.is_alive():
-                if job.case_timeout_s is not None and elapsed > job.case_timeout_s:
-                    p.kill()
-                    p.join()
-                    _write_row(job.cases_dir, job.timeout_row(i, elapsed))
-                    del running[i]
+
+    def spawn() -> _Worker:
+        conn, child = ctx.Pipe()
+        p = ctx.Process(target=_case_worker, args=(child, job.base_data, job.campaign_seed, job.runs,
+                                                   str(job.cases_dir), job.retention, threads, cases_per_worker))
+        with _thread_env(threads):
+            p.start()
+        child.close()
+        return _Worker(p, conn)
+
+    def assign(w: _Worker) -> None:
+        i = queue.pop(0)
+        attempts[i] = attempts.get(i, 0) + 1
+        w.case, w.t_start, w.attempt = i, time.perf_counter(), attempts[i]
+        w.conn.send(i)
+
+    def retire(w: _Worker, kill: bool = False) -> None:
+        pool.remove(w)
+        if kill and w.proc.is_alive():
+            w.proc.kill()
+        w.proc.join(timeout=None if kill else 10)
+        if w.proc.is_alive():  # it did not stop when asked
+            w.proc.kill()
+            w.proc.join()
+        w.conn.close()
+
+    try:
+        while queue or any(w.case is not None for w in pool):
+            for w in pool:
+                if w.case is None and queue:
+                    assign(w)
+            while queue and len(pool) < workers:
+                w = spawn()
+                pool.append(w)
+                assign(w)
+            busy = [w for w in pool if w.case is not None]
+            mp_connection.wait([w.conn for w in busy] + [w.proc.sentinel for w in busy], timeout=POLL_S)
+            for w in busy:
+                i, elapsed = w.case, time.perf_counter() - w.t_start
+                finished = False
+                try:
+                    finished = w.conn.poll() and w.conn.recv() == i
+                except (EOFError, OSError):
+                    finished = False
+                if finished:
+                    w.case = None
+                    w.served += 1
                     done(1)
-                continue
-            p.join()
-            del running[i]
-            if (job.cases_dir / f"{i:05d}.json").exists():
-                done(1)
-            elif attempt < MAX_ATTEMPTS:
-                queue.insert(0, i)  # the worker died without a result: retry once
-            else:
-                _write_row(job.cases_dir, _failed_row(i, job.seeds[i], f"worker died (exit code {p.exitcode}) twice",
-                                                      elapsed))
-                done(1)
+                    if w.served >= cases_per_worker:  # it stops by itself: a fresh one takes its place
+                        retire(w)
+                    continue
+                if w.proc.is_alive():
+                    if job.case_timeout_s is not None and elapsed > job.case_timeout_s:
+                        retire(w, kill=True)
+                        _write_row(job.cases_dir, job.timeout_row(i, elapsed))
+                        done(1)
+                    continue
+                retire(w)  # it died without handing the case back
+                if (job.cases_dir / f"{i:05d}.json").exists():  # after writing the row
+                    done(1)
+                elif w.attempt < MAX_ATTEMPTS:
+                    queue.insert(0, i)  # retry once, on a fresh process
+                else:
+                    _write_row(job.cases_dir, _failed_row(i, job.seeds[i], f"worker died (exit code "
+                                                          f"{w.proc.exitcode}) twice", elapsed))
+                    done(1)
+    finally:
+        for w in list(pool):  # idle workers stop when told; one still flying (an error in the master) is killed
+            if w.case is None:
+                with contextlib.suppress(OSError):
+                    w.conn.send(None)
+            retire(w, kill=w.case is not None)
 
 
 def _run_ray(job: _Job, todo: list[int], workers: int | None, address: str | None,
-             done: Callable[[int], Any]) -> None:
-    """Ray backend: one Ray task per case, each in a fresh worker process.
+             done: Callable[[int], Any], cases_per_worker: int = CASES_PER_WORKER) -> None:
+    """Ray backend: one Ray task per case; a Ray worker process runs at most ``cases_per_worker`` of them.
 
-    ``max_calls=1`` gives every case a new process, as the local backend
-    does (no GL context or memory growth carried between cases), and
-    ``max_retries=1`` lets Ray rerun a case once if its worker dies. The
-    driver writes the rows, so the campaign folder lives on the driver only.
+    ``max_calls=cases_per_worker`` recycles a worker as the local backend
+    does (each case builds and frees its own model, renderer and GL context;
+    see :func:`_between_cases`), and ``max_retries=1`` lets Ray rerun a case
+    once if its worker dies. The driver writes the rows, so the campaign
+    folder lives on the driver only.
     """
     try:
         import ray
@@ -390,7 +560,7 @@ def _run_ray(job: _Job, todo: list[int], workers: int | None, address: str | Non
         started_here = True
     try:
         capacity = workers or max(1, int(ray.cluster_resources().get("CPU", 1)))
-        task = ray.remote(num_cpus=1, max_calls=1, max_retries=MAX_ATTEMPTS - 1)(_ray_case)
+        task = ray.remote(num_cpus=1, max_calls=cases_per_worker, max_retries=MAX_ATTEMPTS - 1)(_ray_case)
         queue = list(todo)
         in_flight: dict[Any, tuple[int, float]] = {}
         while queue or in_flight:

@@ -39,10 +39,10 @@ def generate_scenario_terrain(scenario: Scenario) -> Terrain:
 # direction), and a Terrain is immutable (frozen, read-only arrays), so runs
 # in one process that fly over the same terrain share one generation (the
 # default 4096^2 tile takes seconds). Terrains loaded from a DEM file are not
-# cached: the file may change between runs. A campaign worker flies one case,
-# so the cache costs it nothing; in a long process the least recently used
+# cached: the file may change between runs. In a long process the least recently used
 # terrains are dropped once the cached arrays pass TERRAIN_CACHE_MAX_BYTES
-# (the default 4096^2 tile with its patch is about 21 MB).
+# (the default 4096^2 tile with its patch is about 21 MB). A campaign worker, which
+# flies many cases in turn, clears it before each case.
 TERRAIN_CACHE_MAX_BYTES = 160 * 2**20
 _terrain_cache: OrderedDict[tuple, Terrain] = OrderedDict()
 _terrain_cache_lock = threading.Lock()

@@ -140,7 +140,7 @@ def test_nees_profile_equals_an_explicit_loop_over_the_grid():
     flying = t < 75.0
     nees = {block: rng.chisquare(dof, t.size) for block, dof in NEES_BLOCKS.items()}
     nees["v_h"][100] = np.nan
-    got = nees_profile(t, z, flying, nees)
+    got = nees_profile(z, flying, nees)
     for block in NEES_BLOCKS:
         assert len(got[block]) == len(NEES_PROFILE_ALTITUDES_M)
         for j, h in enumerate(NEES_PROFILE_ALTITUDES_M):

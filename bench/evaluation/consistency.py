@@ -181,7 +181,7 @@ def run_consistency(tel: Mapping[str, np.ndarray], touchdown: Mapping[str, Any] 
         ok = below.size > 0 and below[0] > 0  # a case that starts below the altitude has no value there
         out["nees_at"][str(alt)] = nees_row(int(below[0])) if ok else None
     out["nees_at"][TOUCHDOWN] = nees_row(int(idx_flying[-1])) if touchdown is not None and idx_flying.size else None
-    out["nees_profile"] = nees_profile(t, z, flying, {b: np.asarray(tel[f"nees_{b}"], float) for b in NEES_BLOCKS})
+    out["nees_profile"] = nees_profile(z, flying, {b: np.asarray(tel[f"nees_{b}"], float) for b in NEES_BLOCKS})
 
     for sensor, dof in NIS_SENSORS.items():
         recs = [r for r in log if r.kind == sensor and math.isfinite(r.nis)]
@@ -199,12 +199,10 @@ def run_consistency(tel: Mapping[str, np.ndarray], touchdown: Mapping[str, Any] 
     return out
 
 
-def nees_profile(t_s: np.ndarray, z_m: np.ndarray, flying: np.ndarray,
-                 nees: Mapping[str, np.ndarray]) -> dict[str, list[float | None]]:
+def nees_profile(z_m: np.ndarray, flying: np.ndarray, nees: Mapping[str, np.ndarray]) -> dict[str, list[float | None]]:
     """Each block's NEES at every altitude of :data:`NEES_PROFILE_ALTITUDES_M`.
 
     Args:
-        t_s: Telemetry times [s], (N,) (only their count is used).
         z_m: Truth height of the body origin above the target's ground [m], (N,).
         flying: Ticks before touchdown, (N,) bool.
         nees: Block name -> NEES per tick, (N,).
@@ -217,7 +215,7 @@ def nees_profile(t_s: np.ndarray, z_m: np.ndarray, flying: np.ndarray,
     idx_flying = np.flatnonzero(flying)
     grid = np.asarray(NEES_PROFILE_ALTITUDES_M, float)
     k = np.full(grid.size, -1)
-    if idx_flying.size and len(t_s):
+    if idx_flying.size:
         # First flying tick at or below each altitude: the running minimum of the height is
         # monotone, so a search on it finds the first tick whose height is <= h.
         zf = np.minimum.accumulate(z_m[idx_flying])

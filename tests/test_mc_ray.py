@@ -108,6 +108,7 @@ def test_ray_cases_equal_local_cases_row_for_row(tmp_path, ray_address, capsys):
     assert all(r["case_peak_rss_mb"] > 0 for r in ray_rows)
 
 
+@pytest.mark.slow  # 15-22 s, the suite's slowest; the local backend's retry is in the fast suite (test_mc_recovery)
 def test_ray_retries_a_killed_worker_once_then_records_the_case(tmp_path, ray_address, monkeypatch):
     monkeypatch.setenv("RAY_ADDRESS", ray_address)  # no --address: the environment names the cluster
     base = load_scenario(None, QUICK)

@@ -176,10 +176,8 @@ def run_consistency(tel: Mapping[str, np.ndarray], touchdown: Mapping[str, Any] 
     def nees_row(k: int) -> dict[str, float]:
         return {block: float(tel[f"nees_{block}"][k]) for block in NEES_BLOCKS}
 
-    for alt in NEES_ALTITUDES_M:
-        below = idx_flying[z[idx_flying] <= alt]
-        ok = below.size > 0 and below[0] > 0  # a case that starts below the altitude has no value there
-        out["nees_at"][str(alt)] = nees_row(int(below[0])) if ok else None
+    for alt, k in zip(NEES_ALTITUDES_M, ticks_at_altitudes(z, flying, NEES_ALTITUDES_M)):
+        out["nees_at"][str(alt)] = nees_row(int(k)) if k >= 0 else None
     out["nees_at"][TOUCHDOWN] = nees_row(int(idx_flying[-1])) if touchdown is not None and idx_flying.size else None
     out["nees_profile"] = nees_profile(z, flying, {b: np.asarray(tel[f"nees_{b}"], float) for b in NEES_BLOCKS})
 
@@ -199,6 +197,32 @@ def run_consistency(tel: Mapping[str, np.ndarray], touchdown: Mapping[str, Any] 
     return out
 
 
+def ticks_at_altitudes(z_m: np.ndarray, flying: np.ndarray, altitudes_m: Sequence[float]) -> np.ndarray:
+    """The first flying tick at or below each altitude, -1 where there is none.
+
+    Args:
+        z_m: Truth height of the body origin above the target's ground [m], (N,).
+        flying: Ticks before touchdown, (N,) bool.
+        altitudes_m: The altitudes [m].
+
+    Returns:
+        (len(altitudes_m),) tick indices; -1 where the case never gets that low in
+        flight, or starts below it (its first tick is already there: no value).
+    """
+    idx_flying = np.flatnonzero(flying)
+    grid = np.asarray(altitudes_m, float)
+    k = np.full(grid.size, -1)
+    if idx_flying.size:
+        # The running minimum of the height is monotone, so a search on it finds the first
+        # tick whose height is <= h.
+        zf = np.minimum.accumulate(np.asarray(z_m, float)[idx_flying])
+        pos = np.searchsorted(-zf, -grid, side="left")
+        ok = pos < idx_flying.size
+        k[ok] = idx_flying[pos[ok]]
+        k[k == 0] = -1
+    return k
+
+
 def nees_profile(z_m: np.ndarray, flying: np.ndarray, nees: Mapping[str, np.ndarray]) -> dict[str, list[float | None]]:
     """Each block's NEES at every altitude of :data:`NEES_PROFILE_ALTITUDES_M`.
 
@@ -208,21 +232,11 @@ def nees_profile(z_m: np.ndarray, flying: np.ndarray, nees: Mapping[str, np.ndar
         nees: Block name -> NEES per tick, (N,).
 
     Returns:
-        Block -> one value per grid altitude: the NEES at the first flying tick at
-        or below it, None where the case starts below it, never reaches it in
-        flight, or the value is not finite. Same rule as the fixed altitudes.
+        Block -> one value per grid altitude: the NEES at :func:`ticks_at_altitudes`'s
+        tick, None where there is none or the value is not finite (the fixed
+        altitudes' rule).
     """
-    idx_flying = np.flatnonzero(flying)
-    grid = np.asarray(NEES_PROFILE_ALTITUDES_M, float)
-    k = np.full(grid.size, -1)
-    if idx_flying.size:
-        # First flying tick at or below each altitude: the running minimum of the height is
-        # monotone, so a search on it finds the first tick whose height is <= h.
-        zf = np.minimum.accumulate(z_m[idx_flying])
-        pos = np.searchsorted(-zf, -grid, side="left")
-        ok = pos < idx_flying.size
-        k[ok] = idx_flying[pos[ok]]
-        k[k == 0] = -1  # a case that starts below the altitude has no value there
+    k = ticks_at_altitudes(z_m, flying, NEES_PROFILE_ALTITUDES_M)
     out: dict[str, list[float | None]] = {}
     for block in NEES_BLOCKS:
         v = nees[block]
@@ -345,7 +359,7 @@ def campaign_nees_steps(rows: Sequence[Mapping[str, Any]], prob: float = BAND_PR
         finite = np.isfinite(vals)
         n = finite.sum(axis=0)
         with np.errstate(invalid="ignore"):
-            anees = np.where(n > 0, np.nansum(np.where(finite, vals, 0.0), axis=0) / np.maximum(n, 1), math.nan)
+            anees = np.where(n > 0, np.where(finite, vals, 0.0).sum(axis=0) / np.maximum(n, 1), math.nan)
         band = [chi2_band(int(k), dof, prob) for k in n]
         counted = n >= max(1, math.ceil(0.5 * n_cases))
         lo = np.array([b[0] if b else math.nan for b in band])

@@ -64,7 +64,7 @@ from typing import Any, Protocol
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bench.evaluation.consistency import NEES_BLOCKS, block_nees_many, run_consistency
+from bench.evaluation.consistency import NEES_BLOCKS, block_nees_many, run_consistency, ticks_at_altitudes
 from bench.scenario import NS_PER_S, Scenario
 from bench.scenario.seeding import component_rng
 from bench.sim.flight_build import build_flight_software, handover_estimate, onboard_knowledge, restart_flight_software
@@ -505,9 +505,9 @@ def _map_nav_summary(fsw: FlightSoftware, map_truth: Any, truth_log: list[tuple[
         out["nav_err_map_frame_touchdown_m"] = float(np.hypot(tel["nav_err_r_x_m"][k], tel["nav_err_r_y_m"][k]))
         # At 50 m (the goal table's height; the last map fixes): the first flying tick at or below it,
         # the rule of the consistency altitudes; none when the case starts below it.
-        below = np.flatnonzero(flying & (tel["r_z_m"] <= MAP_NAV_ERR_ALTITUDE_M))
-        if below.size and below[0] > 0:
-            e50 = [float(tel["nav_err_r_x_m"][below[0]]), float(tel["nav_err_r_y_m"][below[0]])]
+        (k50,) = ticks_at_altitudes(tel["r_z_m"], flying, [MAP_NAV_ERR_ALTITUDE_M])
+        if k50 >= 0:
+            e50 = [float(tel["nav_err_r_x_m"][k50]), float(tel["nav_err_r_y_m"][k50])]
             out["nav_err_map_frame_50m_xy_m"] = e50
             out["nav_err_map_frame_50m_m"] = float(np.hypot(*e50))
     return out

@@ -60,25 +60,35 @@ def test_kill_and_resume_loses_and_duplicates_nothing(tmp_path):
     assert _strip(rows) == _strip(fresh)
 
 
+def _stat_ppid_cmdline(d: Path) -> tuple[int, bytes]:
+    return int((d / "stat").read_text().rsplit(")", 1)[1].split()[1]), (d / "cmdline").read_bytes()
+
+
 def _kill_next_worker(seen: set[int], timeout_s: float = 120.0) -> None:
-    """SIGKILL the next case worker this process spawns (one not in ``seen``)."""
-    me = str(os.getpid())
+    """SIGKILL the next case worker this process starts (one not in ``seen``).
+
+    A worker is forked by this process's fork server (a child of ours whose command line names
+    it), or, where there is none, spawned by this process directly.
+    """
+    me = os.getpid()
     deadline = time.time() + timeout_s
     while time.time() < deadline:
+        procs = {}
         for d in Path("/proc").iterdir():
-            if not d.name.isdigit() or int(d.name) in seen:
-                continue
-            try:
-                ppid = (d / "stat").read_text().rsplit(")", 1)[1].split()[1]
-                is_worker = b"spawn_main" in (d / "cmdline").read_bytes()
-            except (OSError, IndexError):
-                continue
-            if ppid == me and is_worker:
-                os.kill(int(d.name), signal.SIGKILL)
-                seen.add(int(d.name))
+            if d.name.isdigit():
+                try:
+                    procs[int(d.name)] = _stat_ppid_cmdline(d)
+                except (OSError, IndexError, ValueError):
+                    continue
+        servers = {pid for pid, (ppid, cmd) in procs.items() if ppid == me and b"forkserver" in cmd}
+        for pid, (ppid, cmd) in procs.items():
+            is_worker = ppid in servers or (ppid == me and b"spawn_main" in cmd)
+            if is_worker and pid not in seen:
+                os.kill(pid, signal.SIGKILL)
+                seen.add(pid)
                 return
         time.sleep(0.02)
-    raise AssertionError("no case worker was spawned")
+    raise AssertionError("no case worker was started")
 
 
 def test_a_dead_worker_is_retried_once_then_recorded(tmp_path):

@@ -14,6 +14,8 @@ from vision.tracker import Tracker
 from vision.tracks import Tracks
 
 SEEDS = range(1, 6)
+# A short segment from 150 m down (6 s simulated): the vision loop, fast enough for every `make test`.
+SEGMENT = ["initial.r_BL_L_m=[20.0, -10.0, 150.0]", "initial.v_BL_L_mps=[1.0, -1.0, -6.0]", "sim.t_max_ns=6_000_000_000"]
 
 
 def _meets_criteria(s: dict) -> None:
@@ -108,24 +110,59 @@ def _rejections_in_burst(tel) -> tuple[int, int]:
     return in_burst, int(rejected[-1]) - in_burst
 
 
-def test_gating_rejects_wrong_and_missing_vision_and_the_run_still_lands(monkeypatch, default_nav_run):
+GATING_WINDOW = "sim.t_max_ns=25_000_000_000"  # past the burst (15-16 s) and the blank frames (20-20.3 s)
+
+
+def _gating_checks(result, clean_tel) -> None:
+    """The gate caught (nearly) every false measurement, and the same window of the clean run rejects nothing."""
+    in_burst, outside = _rejections_in_burst(result.telemetry)
+    burst = len(_FaultyTracker.BURST)
+    assert in_burst >= burst - 2, (in_burst, outside)
+    # The clean run over the same span: the rejections are the burst's.
+    span = clean_tel["t_s"] <= result.telemetry["t_s"][-1]
+    clean_in_burst, clean_outside = _rejections_in_burst({k: clean_tel[k][span] for k in ("t_s", "vision_rejected")})
+    assert clean_in_burst == 0 and outside <= clean_outside + 2, (clean_in_burst, clean_outside, outside)
+
+
+def test_gating_rejects_wrong_and_missing_vision(monkeypatch, default_nav_run):
+    # The first 25 s of the default descent (the fault window); the whole landing is the slow test below.
     monkeypatch.setattr(flight_build, "Tracker", _FaultyTracker)  # the flight software builds its tracker there
+    result = run(load_scenario(None, [GATING_WINDOW]))
+    assert result.summary["outcome"] == "timeout"  # cut at the window's end, still flying
+    _gating_checks(result, default_nav_run.telemetry)
+    # After the burst and the blank frames the estimate is as good as the clean run's at the same tick.
+    tel, clean = result.telemetry, default_nav_run.telemetry
+    k = tel["t_s"].size - 1
+    assert clean["t_s"][k] == tel["t_s"][k]
+    err = lambda t: float(np.hypot(t["nav_err_v_x_mps"][k], t["nav_err_v_y_mps"][k]))  # noqa: E731
+    assert err(tel) <= err(clean) + 0.05, (err(tel), err(clean))
+
+
+@pytest.mark.slow
+def test_gating_rejects_wrong_and_missing_vision_and_the_run_still_lands(monkeypatch, default_nav_run):
+    monkeypatch.setattr(flight_build, "Tracker", _FaultyTracker)
     result = run(load_scenario())
     s = result.summary
     _meets_criteria(s)
     assert s["nav"]["vel_err_touchdown_mps"] <= 0.2
-    in_burst, outside = _rejections_in_burst(result.telemetry)
-    burst = len(_FaultyTracker.BURST)
-    assert in_burst >= burst - 2, (in_burst, outside)  # the gate caught (nearly) every false measurement
-    # The same window of the fault-free run rejects nothing: the rejections are the burst's.
-    clean_in_burst, clean_outside = _rejections_in_burst(default_nav_run.telemetry)
-    assert clean_in_burst == 0 and outside <= clean_outside + 2, (clean_in_burst, clean_outside, outside)
+    _gating_checks(result, default_nav_run.telemetry)
 
 
+@pytest.mark.slow  # a whole default landing; the fast suite checks truth tracks on a segment (below)
 def test_truth_tracks_separate_vision_error_from_filter_error():
     s = run(load_scenario(None, ['tracks="truth"', "camera.enabled=false"])).summary
     _meets_criteria(s)
     assert s["nav"]["vel_err_touchdown_mps"] <= 0.2 and s["vision"]["tracks_median"] >= 60
+
+
+def test_truth_tracks_feed_the_filter_on_a_segment():
+    # From 150 m with truth tracks and no rendering: the tracks reach the filter, which keeps the velocity.
+    r = run(load_scenario(None, ['tracks="truth"', "camera.enabled=false", *SEGMENT]))
+    s, tel = r.summary, r.telemetry
+    assert s["vision"]["tracks_median"] >= 60 and s["vision"]["measurements"] >= 50, s["vision"]
+    assert s["vision"]["rejected_frac"] <= 0.05, s["vision"]
+    # The horizontal velocity stays known to a few cm/s with exact tracks.
+    assert float(np.hypot(tel["nav_err_v_x_mps"][-1], tel["nav_err_v_y_mps"][-1])) <= 0.05
 
 
 def test_modes_are_validated():
@@ -140,8 +177,7 @@ def test_modes_are_validated():
 def test_vision_in_the_loop_segment_is_bit_identical_when_run_twice():
     # A short segment from 150 m down with camera, tracker and filter: the full vision loop,
     # fast enough for every `make test`. Same scenario, same machine: the same telemetry, bit for bit.
-    sc = load_scenario(None, ["initial.r_BL_L_m=[20.0, -10.0, 150.0]", "initial.v_BL_L_mps=[1.0, -1.0, -6.0]",
-                              "sim.t_max_ns=6_000_000_000"])
+    sc = load_scenario(None, SEGMENT)
     a, b = run(sc), run(sc)
     assert a.summary["vision"]["measurements"] >= 50  # vision was in the loop
     assert a.telemetry.keys() == b.telemetry.keys()

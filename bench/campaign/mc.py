@@ -6,9 +6,12 @@ from that seed's own stream, so a case depends only on (base, campaign seed,
 i): never on the number of workers, the order of execution or a resume.
 
 Execution, after NASA Trick's Monte Carlo master, on either backend:
-    * ``local`` (default): at most ``workers`` spawned worker processes, each
+    * ``local`` (default): at most ``workers`` worker processes, each
       flying cases one after another (``cases_per_worker`` at most, then a
-      fresh process takes its place); ``ray``: one Ray task per case on a Ray
+      fresh process takes its place). Workers are forked from a fork server
+      that has imported what a case needs and nothing more (no GL context, no
+      MuJoCo model: see :func:`_worker_context`), so a new worker costs a fork,
+      not a second of imports; ``ray``: one Ray task per case on a Ray
       cluster (given by ``--address`` or ``RAY_ADDRESS``, else a local Ray
       instance started here), a Ray worker process running at most
       ``cases_per_worker`` of them (``max_calls``). A worker receives only
@@ -270,16 +273,20 @@ def _write_row(cases_dir: Path, row: dict[str, Any]) -> None:
 
 
 def _case_worker(conn: Any, base_data: dict, campaign_seed: int, n_cases: int, case_dir: str,
-                 retention: str, threads: int, max_cases: int) -> None:
+                 retention: str, threads: int, max_cases: int, lp_threads: str | None = None) -> None:
     """Local backend, a worker process: fly the cases the master sends, one at a time.
 
     Receives case indices on ``conn`` (None: stop), and after each case writes
     its row itself (not the master, so a case that finished is kept even if
     the master is killed the next instant), then sends the index back. Stops
-    after ``max_cases`` cases, or when the master is gone.
+    after ``max_cases`` cases, or when the master is gone. ``lp_threads``: the
+    llvmpipe thread count this campaign's worker uses (a forked worker inherits the
+    fork server's environment, not the master's of the moment).
     """
+    if lp_threads is not None:
+        os.environ["LP_NUM_THREADS"] = lp_threads  # read when the case's GL context starts
     _limit_threads(threads)
-    import bench.sim.run  # noqa: F401 - the imports every case needs, paid while the master hands out cases
+    import bench.sim.run  # noqa: F401 - the imports every case needs (already there in a forked worker)
 
     cases_dir = Path(case_dir)
     for _ in range(max_cases):
@@ -439,6 +446,35 @@ class _Worker:
     attempt: int = 0
 
 
+# What a fork server imports before it forks any worker: every module a case needs, and nothing
+# that opens a GL display or builds a MuJoCo model (the GL backend is chosen in the master and
+# handed over in the environment, so importing mujoco there probes nothing).
+WORKER_PRELOAD = ["bench.sim.run"]
+
+
+def _worker_context() -> Any:
+    """The multiprocessing context local workers start from.
+
+    A fork server (where the platform has one): a process started fresh, which
+    imports :data:`WORKER_PRELOAD` once and then forks a worker on request. A
+    worker thus starts in milliseconds with its imports done, yet inherits no
+    GL context, MuJoCo model or random state: the server never flies, renders
+    or draws. The GL backend (``MUJOCO_GL``) is chosen here, in the master, and
+    passed down in the environment, so that the server's ``import mujoco``
+    does not initialise an EGL display that its forks would share. Its BLAS
+    and OpenMP thread pools are sized once, from the environment of the first
+    campaign that starts it. Elsewhere: ``spawn``, a fresh interpreter per worker.
+    """
+    if "forkserver" not in mp.get_all_start_methods():
+        return mp.get_context("spawn")
+    from models.gl import ensure_gl_backend
+
+    ensure_gl_backend()
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(WORKER_PRELOAD)
+    return ctx
+
+
 def _run_local(job: _Job, todo: list[int], workers: int, done: Callable[[int], Any],
                cases_per_worker: int = CASES_PER_WORKER) -> None:
     """Local backend: at most ``workers`` worker processes, each flying up to ``cases_per_worker`` cases in turn.
@@ -449,8 +485,9 @@ def _run_local(job: _Job, todo: list[int], workers: int, done: Callable[[int], A
     out; a worker that dies without the case's row is replaced and the case
     retried once on a fresh process, then recorded as failed.
     """
-    ctx = mp.get_context("spawn")  # a fresh interpreter per worker: no inherited GL or MuJoCo state
+    ctx = _worker_context()
     threads = threads_per_worker(workers)
+    lp_threads = os.environ.get("LP_NUM_THREADS", str(threads))  # the user's own wins
     pool: list[_Worker] = []
     attempts: dict[int, int] = {}
     queue = list(todo)
@@ -458,7 +495,8 @@ def _run_local(job: _Job, todo: list[int], workers: int, done: Callable[[int], A
     def spawn() -> _Worker:
         conn, child = ctx.Pipe()
         p = ctx.Process(target=_case_worker, args=(child, job.base_data, job.campaign_seed, job.runs,
-                                                   str(job.cases_dir), job.retention, threads, cases_per_worker))
+                                                   str(job.cases_dir), job.retention, threads, cases_per_worker,
+                                                   lp_threads))
         with _thread_env(threads):
             p.start()
         child.close()

@@ -18,6 +18,7 @@ from bench.report.mc_report import (
     wilson_interval,
     write_campaign_report,
 )
+from bench.report.io import save_figure
 from models.terrain import Terrain
 
 CRITERIA = {"v_vertical_max_mps": 1.0, "v_horizontal_max_mps": 0.5, "tilt_max_deg": 10.0, "settle_s": 5.0}
@@ -242,9 +243,10 @@ def test_report_degenerate_inputs(tmp_path, case, terrain):
         "two_points": [_row(i, "landed", True, vv=0.5, x=float(i), y=0.0, t=1.0) for i in range(2)],
     }[case]
     for ter in (terrain, None):
-        path = write_campaign_report(rows, CRITERIA, tmp_path / f"{case}.png", terrain=ter)
-        assert cv2.imread(str(path)).shape[:2] == (1150, 1400)  # 14 x 11.5 in at 100 dpi
+        # What write_campaign_report does (figure, then the atomic PNG), with the figure kept to inspect.
         fig = campaign_figure(rows, CRITERIA, ter)
+        path = save_figure(fig, tmp_path / f"{case}.png", dpi=FIGURE_DPI)
+        assert cv2.imread(str(path)).shape[:2] == (1150, 1400)  # 14 x 11.5 in at 100 dpi
         axd = _axes(fig)
         assert not [p for p in axd["map"].patches if p.get_gid() == "error_ellipse"]  # < 3 points
         assert len(axd["map"].images) == (1 if ter is not None else 0)

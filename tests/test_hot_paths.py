@@ -263,3 +263,117 @@ def test_divergence_names_the_step_it_happened_in(flat_terrain):
     world.data.qvel[0] = 1e12  # beyond MuJoCo's mjMAXVAL: diverges in the next step
     with pytest.raises(PhysicsDivergedError, match=r"t = 0\.016 s.*physics_dt_ns"):
         world.step(5, 3000.0, np.zeros(3))
+
+
+# --------------------------------------------------------------------------- flight software, per control tick
+def test_gnc_numeric_helpers_match_numpy():
+    from gnc.numeric import clip_float, cross3, max_abs3, norm
+
+    rng = np.random.default_rng(8)
+    vecs = list(rng.normal(0.0, 1.0, (3000, 3)) * 10.0 ** rng.uniform(-8, 8, (3000, 3)))
+    vecs += [np.array(v) for v in ([0.0, -0.0, 0.0], [np.nan, 1.0, 2.0], [np.inf, -1.0, 0.0], [1e-300, 1e300, -2.0])]
+    for a, b in zip(vecs, vecs[1:] + vecs[:1]):
+        assert _same(cross3(*a.tolist(), *b.tolist()), np.cross(a, b))
+        assert _same(norm(a), np.linalg.norm(a))
+        assert _same(max_abs3(*a.tolist()), np.max(np.abs(a)))
+        for lo, hi in ((-1.0, 1.0), (-200.0, 200.0), (-0.0, 0.0)):
+            assert _same([clip_float(v, lo, hi) for v in a.tolist()], np.clip(a, lo, hi))
+    q = rng.normal(0.0, 1.0, (500, 4))
+    for v in q:
+        assert _same(norm(v), np.linalg.norm(v))
+
+
+def _ref_attitude_command_LB(z_cmd_L, yaw_rad):
+    from gnc.control import _EZ
+    from gnc.quat import quat_from_matrix
+
+    z = np.asarray(z_cmd_L, float)
+    z = z / np.linalg.norm(z)
+    h = np.array([np.cos(yaw_rad), np.sin(yaw_rad), 0.0])
+    x = h - (h @ z) / z[2] * _EZ
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return quat_from_matrix(np.column_stack([x, y, z]))
+
+
+def _ref_attitude_torque_B(q_LB, omega_B, q_LB_cmd, inertia_B_kgm2, cfg, torque_max_Nm):
+    from gnc.quat import quat_error
+
+    q_e = quat_error(q_LB_cmd, q_LB)
+    e = 2.0 * np.copysign(1.0, q_e[0]) * q_e[1:]
+    wn, zeta = cfg.attitude_bandwidth_radps, cfg.attitude_damping_ratio
+    omega_ref = -(wn / (2.0 * zeta)) * e
+    slew_max = np.deg2rad(cfg.slew_rate_max_degps)
+    ref_norm = float(np.linalg.norm(omega_ref))
+    if ref_norm > slew_max:
+        omega_ref *= slew_max / ref_norm
+    omega = np.asarray(omega_B, float)
+    inertia = np.asarray(inertia_B_kgm2, float)
+    tau = inertia * (2.0 * zeta * wn) * (omega_ref - omega) + np.cross(omega, inertia * omega)
+    peak = float(np.max(np.abs(tau)))
+    if peak > torque_max_Nm:
+        tau *= torque_max_Nm / peak
+    return np.clip(tau, -torque_max_Nm, torque_max_Nm)
+
+
+def _ref_thrust_vector_command(a_cmd_L, g_L, mass_kg, altitude_m, vehicle, tilt, z_B_L=None):
+    from gnc.control import _EZ, _F_Z_MIN_MPS2
+
+    f = np.asarray(a_cmd_L, float) - g_L
+    if not f[2] > _F_Z_MIN_MPS2:
+        return float(vehicle.thrust_min_N), _EZ.copy()
+    scale = float(np.max(np.abs(f)))
+    u = f / scale
+    tan_max = np.tan(tilt.tilt_max_rad(altitude_m))
+    uh_norm = float(np.hypot(u[0], u[1]))
+    if uh_norm > tan_max * u[2]:
+        u[:2] *= tan_max * u[2] / uh_norm
+    u_norm = float(np.linalg.norm(u))
+    along = u_norm if z_B_L is None else max(float(u @ z_B_L), 0.0)
+    thrust = float(np.clip(mass_kg * scale * along / vehicle.thrust_scale, vehicle.thrust_min_N, vehicle.thrust_max_N))
+    return thrust, u / u_norm
+
+
+def _ref_unit_quaternion(q):
+    q = np.asarray(q, float)
+    if q.shape != (4,) or not np.all(np.isfinite(q)):
+        return None
+    scale = float(np.max(np.abs(q)))
+    if scale == 0.0:
+        return None
+    q = q / scale
+    return q / np.linalg.norm(q)
+
+
+def _random_unit_quaternions(rng, n):
+    q = rng.normal(0.0, 1.0, (n, 4))
+    q[: n // 3, 1:] *= 0.02  # near upright, as in flight
+    return q / np.linalg.norm(q, axis=1)[:, None]
+
+
+def test_control_stages_match_the_array_reference():
+    from gnc import control
+    from gnc.control import ControlConfig, VehicleParams
+
+    rng = np.random.default_rng(9)
+    vehicle = VehicleParams(thrust_scale=1.013)
+    for cfg in (ControlConfig(), ControlConfig(slew_rate_max_degps=3.0, attitude_bandwidth_radps=6.0)):
+        g_L = cfg.g_L()
+        for q, q_cmd in zip(_random_unit_quaternions(rng, 1500), _random_unit_quaternions(rng, 1500)):
+            omega = rng.normal(0.0, 0.05, 3) * rng.choice([0.0, 1.0, 30.0])
+            inertia = np.array([781.25, 781.25, 1000.0]) + rng.uniform(0.0, 60.0)
+            for torque_max in (200.0, 5.0):
+                assert _same(control.attitude_torque_B(q, omega, q_cmd, inertia, cfg, torque_max),
+                             _ref_attitude_torque_B(q, omega, q_cmd, inertia, cfg, torque_max))
+            a_cmd = rng.normal(0.0, 1.5, 3) * rng.choice([1.0, 1e-3, 1e3])
+            altitude = float(rng.uniform(-5.0, 3000.0))
+            z_B_L = q[1:] / np.linalg.norm(q[1:]) if q[0] > 0.5 else None
+            got = control.thrust_vector_command(a_cmd, g_L, 1800.0, altitude, vehicle, cfg.tilt, z_B_L)
+            want = _ref_thrust_vector_command(a_cmd, g_L, 1800.0, altitude, vehicle, cfg.tilt, z_B_L)
+            assert _same(got[0], want[0]) and _same(got[1], want[1])
+            z_cmd = np.abs(rng.normal(0.0, 1.0, 3)) * [rng.choice([-1, 1]), rng.choice([-1, 1]), 1.0] + [0, 0, 0.05]
+            for yaw in (0.0, float(rng.uniform(-7.0, 7.0)), np.deg2rad(90.0)):
+                assert _same(control.attitude_command_LB(z_cmd, yaw), _ref_attitude_command_LB(z_cmd, yaw))
+            for qq in (q, q * 1e-200, q * 1e200, np.zeros(4), np.array([np.nan, 0, 0, 1]), q[:3]):
+                got, want = control._unit_quaternion(qq), _ref_unit_quaternion(qq)
+                assert (got is None and want is None) or _same(got, want)

@@ -425,8 +425,9 @@ class Controller:
             torque = np.zeros(3)
         if not np.all(np.isfinite(torque)):  # cannot happen with finite inputs; never emit NaN
             torque = np.zeros(3)
-        torque = np.clip(torque, -self.vehicle.rcs_torque_max_Nm, self.vehicle.rcs_torque_max_Nm)
-        thrust = float(np.clip(self._thrust_hold_N, self.vehicle.thrust_min_N, self.vehicle.thrust_max_N))
+        torque_max = self.vehicle.rcs_torque_max_Nm
+        torque = np.array([clip_float(t, -torque_max, torque_max) for t in torque.tolist()])
+        thrust = clip_float(float(self._thrust_hold_N), self.vehicle.thrust_min_N, self.vehicle.thrust_max_N)
         return ActuatorCommand(thrust, torque, True, t_ns, self._q_cmd_hold.copy())
 
 

@@ -33,7 +33,9 @@ def cross3(ax: float, ay: float, az: float, bx: float, by: float, bz: float) -> 
 
 
 def norm(v: np.ndarray) -> float:
-    """``float(np.linalg.norm(v))`` of a 1-D float64 array: NumPy's own ``sqrt(v.dot(v))`` without its checks."""
+    """``float(np.linalg.norm(v))`` of a float64 array: NumPy's own ``sqrt(v.ravel(order="K").dot(...))``
+    without its argument handling (the same dot product on the same memory, so the same bits)."""
+    v = v.ravel(order="K")
     return math.sqrt(v.dot(v))
 
 

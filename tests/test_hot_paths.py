@@ -377,3 +377,65 @@ def test_control_stages_match_the_array_reference():
             for qq in (q, q * 1e-200, q * 1e200, np.zeros(4), np.array([np.nan, 0, 0, 1]), q[:3]):
                 got, want = control._unit_quaternion(qq), _ref_unit_quaternion(qq)
                 assert (got is None and want is None) or _same(got, want)
+
+
+def test_controller_update_matches_the_array_reference():
+    from gnc.control import _EZ, ActuatorCommand, ControlConfig, Controller, VehicleParams
+    from gnc.guidance import GuidanceCommand
+    from gnc.messages import ContactMessage
+    from gnc.navstate import NavState
+
+    class _RefController(Controller):
+        """Controller.update as it was, on the reference stages above."""
+
+        def update(self, nav, cmd, contact=None):
+            t_ns = int(nav.t_ns)
+            if contact is not None and int(np.count_nonzero(np.asarray(contact.legs, bool))) >= self.cfg.legs_for_engine_cut:
+                self.engine_cut = True
+            if self.engine_cut:
+                return ActuatorCommand(0.0, np.zeros(3), False, t_ns, self._q_cmd_hold.copy())
+            mass = float(nav.mass_kg) if np.isfinite(nav.mass_kg) and nav.mass_kg > 0.0 else float("nan")
+            altitude = float(np.asarray(nav.r_BL_L, float)[2])
+            a_cmd = np.asarray(cmd.a_cmd_L, float)
+            z_B_L = None
+            if self.cfg.thrust_projection == "body_axis":
+                q_nav = _ref_unit_quaternion(nav.q_LB)
+                if q_nav is not None:
+                    w, x, y, z = q_nav
+                    z_B_L = np.array([2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)])
+            if cmd.valid and np.all(np.isfinite(a_cmd)) and np.isfinite(mass) and np.isfinite(altitude):
+                self._thrust_hold_N, z_cmd_L = _ref_thrust_vector_command(
+                    a_cmd, self.g_L, mass, altitude, self.vehicle, self.cfg.tilt, z_B_L)
+                self._q_cmd_hold = _ref_attitude_command_LB(z_cmd_L, self.yaw_rad)
+            q = _ref_unit_quaternion(nav.q_LB)
+            omega = np.asarray(nav.omega_B, float)
+            if q is not None and np.all(np.isfinite(omega)):
+                inertia = self.vehicle.inertia_B_kgm2(mass if np.isfinite(mass) else self.vehicle.dry_mass_kg)
+                torque = _ref_attitude_torque_B(q, omega, self._q_cmd_hold, inertia, self.cfg,
+                                                self.vehicle.rcs_torque_max_Nm)
+            else:
+                torque = np.zeros(3)
+            if not np.all(np.isfinite(torque)):
+                torque = np.zeros(3)
+            torque = np.clip(torque, -self.vehicle.rcs_torque_max_Nm, self.vehicle.rcs_torque_max_Nm)
+            thrust = float(np.clip(self._thrust_hold_N, self.vehicle.thrust_min_N, self.vehicle.thrust_max_N))
+            return ActuatorCommand(thrust, torque, True, t_ns, self._q_cmd_hold.copy())
+
+    rng = np.random.default_rng(10)
+    for cfg in (ControlConfig(), ControlConfig(thrust_projection="magnitude", yaw_hold_deg=33.0)):
+        vehicle = VehicleParams(thrust_scale=0.987)
+        new, ref = Controller(cfg, vehicle), _RefController(cfg, vehicle)
+        for k, q in enumerate(_random_unit_quaternions(rng, 1500)):
+            q = q * rng.choice([1.0, 3.0, 1e-3]) if k % 17 else np.array([np.nan, 0.0, 0.0, 1.0])
+            omega = rng.normal(0.0, 0.05, 3) if k % 23 else np.array([0.0, np.inf, 0.0])
+            mass = float(rng.choice([1800.0, 2093.5, np.nan, -1.0], p=[0.45, 0.45, 0.05, 0.05]))
+            nav = NavState(k * 20_000_000, rng.normal(0.0, 300.0, 3), rng.normal(0.0, 10.0, 3), q, omega, mass)
+            a_cmd = rng.normal(0.0, 1.0, 3) + (_EZ * rng.choice([0.0, 1.62, 3.0]))
+            cmd = GuidanceCommand(nav.t_ns, a_cmd if k % 29 else np.array([np.nan, 0.0, 0.0]), "approach", 10.0,
+                                  valid=bool(k % 31))
+            a, b = new.update(nav, cmd), ref.update(nav, cmd)
+            assert _same(a.thrust_N, b.thrust_N) and _same(a.torque_B_Nm, b.torque_B_Nm), k
+            assert _same(a.q_LB_cmd, b.q_LB_cmd) and a.engine_on == b.engine_on
+        legs = ContactMessage(0, np.array([True, False, False, False]))
+        a, b = new.update(nav, cmd, legs), ref.update(nav, cmd, legs)
+        assert not a.engine_on and _same(a.torque_B_Nm, b.torque_B_Nm) and _same(a.q_LB_cmd, b.q_LB_cmd)

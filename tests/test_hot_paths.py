@@ -439,3 +439,55 @@ def test_controller_update_matches_the_array_reference():
         legs = ContactMessage(0, np.array([True, False, False, False]))
         a, b = new.update(nav, cmd, legs), ref.update(nav, cmd, legs)
         assert not a.engine_on and _same(a.torque_B_Nm, b.torque_B_Nm) and _same(a.q_LB_cmd, b.q_LB_cmd)
+
+
+def test_guidance_scalar_paths_match_the_array_reference():
+    from gnc.control import ControlConfig, VehicleParams, guidance_limits
+    from gnc.guidance import TiltLimitConfig, cap_acceleration_L, make_guidance
+
+    rng = np.random.default_rng(12)
+    tilt = TiltLimitConfig()
+    for alt in [*rng.uniform(-50.0, 2000.0, 3000), 0.0, -0.0, tilt.taper_altitude_m, np.nan, np.inf]:
+        want = tilt.tilt_max_rad(np.asarray(alt))  # the array path on a 0-d array
+        assert _same(tilt.tilt_max_rad(float(alt)), want) and _same(tilt.tilt_max_rad(np.float64(alt)), want)
+
+    def ref_cap(a_cmd_L, g_L, mass_kg, limits, altitude_m):
+        f = np.asarray(a_cmd_L, float) - g_L
+        f_max = limits.thrust_max_N / mass_kg
+        f_min = limits.thrust_min_N / mass_kg
+        fz = float(np.clip(f[2], f_min, f_max))
+        fh = f[:2].copy()
+        fh_norm = float(np.linalg.norm(fh))
+        fh_max = min(np.tan(float(limits.tilt.tilt_max_rad(np.asarray(altitude_m)))) * fz,
+                     np.sqrt(max(f_max * f_max - fz * fz, 0.0)))
+        if fh_norm > fh_max:
+            fh *= fh_max / fh_norm
+        return np.array([fh[0], fh[1], fz]) + g_L, bool(fz != f[2] or fh_norm > fh_max)
+
+    cfg = ControlConfig()
+    limits = guidance_limits(VehicleParams(), cfg)
+    for _ in range(3000):
+        a = rng.normal(0.0, 2.0, 3) * rng.choice([0.1, 1.0, 5.0])
+        mass, alt = float(rng.uniform(1500.0, 2100.0)), float(rng.uniform(0.0, 1500.0))
+        got, want = cap_acceleration_L(a, cfg.g_L(), mass, limits, alt), ref_cap(a, cfg.g_L(), mass, limits, alt)
+        assert _same(got[0], want[0]) and got[1] == want[1]
+
+    law = make_guidance(None, limits)
+    c = law.cfg
+
+    def ref_terminal(r_L, v_L, target_L):
+        w, zeta = c.terminal_position_bandwidth_radps, c.terminal_damping_ratio
+        e_h = r_L[:2] - target_L[:2]
+        v_ref_h = -(w / (2.0 * zeta)) * e_h
+        speed = float(np.linalg.norm(v_ref_h))
+        if speed > c.terminal_speed_max_mps:
+            v_ref_h *= c.terminal_speed_max_mps / speed
+        a_h = 2.0 * zeta * w * (v_ref_h - v_L[:2])
+        hold_r = c.terminal_hold_radius_m
+        descent_frac = float(np.clip((2.0 * hold_r - np.linalg.norm(e_h)) / hold_r, 0.0, 1.0))
+        a_z = c.terminal_rate_gain_per_s * (-descent_frac * c.terminal_descent_rate_mps - v_L[2])
+        return np.array([a_h[0], a_h[1], a_z])
+
+    for _ in range(3000):
+        r, v, target = rng.normal(0.0, 5.0, 3) * rng.choice([0.1, 1.0, 10.0]), rng.normal(0.0, 1.0, 3), rng.normal(0, 2, 3)
+        assert _same(law.terminal_accel_L(r, v, target), ref_terminal(r, v, target))

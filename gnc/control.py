@@ -46,6 +46,7 @@ a non-finite attitude or rate gives zero torque.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
@@ -57,7 +58,8 @@ from gnc.config import validate_options, validated_config
 from gnc.guidance import LUNAR_GRAVITY_MPS2, GuidanceCommand, GuidanceLimits, TiltLimitConfig
 from gnc.messages import N_LEGS, ContactMessage
 from gnc.navstate import NavState
-from gnc.quat import quat_error, quat_from_matrix
+from gnc.numeric import clip_float, cross3, max_abs3, norm
+from gnc.quat import quat_error, quat_from_elements
 
 # Propellant modelled as a uniform sphere: I = SPHERE_INERTIA_FACTOR * m * r^2.
 SPHERE_INERTIA_FACTOR = 0.4
@@ -243,13 +245,13 @@ def thrust_vector_command(
     f = np.asarray(a_cmd_L, float) - g_L
     if not f[2] > _F_Z_MIN_MPS2:
         return float(vehicle.thrust_min_N), _EZ.copy()
-    scale = float(np.max(np.abs(f)))  # work on f / scale: no overflow for absurd commands
+    scale = max_abs3(*f.tolist())  # work on f / scale: no overflow for absurd commands
     u = f / scale
     tan_max = np.tan(tilt.tilt_max_rad(altitude_m))
     uh_norm = float(np.hypot(u[0], u[1]))
     if uh_norm > tan_max * u[2]:
         u[:2] *= tan_max * u[2] / uh_norm
-    u_norm = float(np.linalg.norm(u))
+    u_norm = norm(u)
     along = u_norm if z_B_L is None else max(float(u @ z_B_L), 0.0)
     thrust = float(np.clip(mass_kg * scale * along / vehicle.thrust_scale, vehicle.thrust_min_N, vehicle.thrust_max_N))
     return thrust, u / u_norm
@@ -270,13 +272,19 @@ def attitude_command_LB(z_cmd_L: np.ndarray, yaw_rad: float) -> np.ndarray:
         ``q_LB`` command, (4,) scalar-first.
     """
     z = np.asarray(z_cmd_L, float)
-    z = z / np.linalg.norm(z)
-    assert z[2] > 0.0, "thrust direction must point upward"
+    z = z / norm(z)
+    z_x, z_y, z_z = z.tolist()
+    assert z_z > 0.0, "thrust direction must point upward"
     h = np.array([np.cos(yaw_rad), np.sin(yaw_rad), 0.0])
-    x = h - (h @ z) / z[2] * _EZ  # x . z = 0 and x's horizontal part is h
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    return quat_from_matrix(np.column_stack([x, y, z]))
+    along = (h @ z) / z_z
+    h_x, h_y, _ = h.tolist()
+    # x = h - along * e_z, per axis as the array expression: x . z = 0 and x's horizontal part is h
+    x = np.array([h_x - along * 0.0, h_y - along * 0.0, 0.0 - along * 1.0])
+    x /= norm(x)
+    x_x, x_y, x_z = x.tolist()
+    y_x, y_y, y_z = cross3(z_x, z_y, z_z, x_x, x_y, x_z)
+    # The matrix of columns x, y, z.
+    return quat_from_elements(x_x, y_x, z_x, x_y, y_y, z_y, x_z, y_z, z_z)
 
 
 def attitude_torque_B(
@@ -306,21 +314,34 @@ def attitude_torque_B(
     Returns:
         Torque in B, (3,) [N m], each axis within ``+-torque_max_Nm``.
     """
-    q_e = quat_error(q_LB_cmd, q_LB)
-    e = 2.0 * np.copysign(1.0, q_e[0]) * q_e[1:]
+    # Per axis on floats, each operation as the (3,)-array expression in the comment above it.
+    e_w, e_x, e_y, e_z = quat_error(q_LB_cmd, q_LB).tolist()
+    # e = 2 sign(q_e[0]) q_e[1:]
+    e_gain = 2.0 * math.copysign(1.0, e_w)
     wn, zeta = cfg.attitude_bandwidth_radps, cfg.attitude_damping_ratio
-    omega_ref = -(wn / (2.0 * zeta)) * e
+    # omega_ref = -(wn / (2 zeta)) e   [rad/s]
+    ref_gain = -(wn / (2.0 * zeta))
+    omega_ref = np.array([ref_gain * (e_gain * e_x), ref_gain * (e_gain * e_y), ref_gain * (e_gain * e_z)])
     slew_max = np.deg2rad(cfg.slew_rate_max_degps)
-    ref_norm = float(np.linalg.norm(omega_ref))
+    ref_norm = norm(omega_ref)
     if ref_norm > slew_max:
         omega_ref *= slew_max / ref_norm
-    omega = np.asarray(omega_B, float)
-    inertia = np.asarray(inertia_B_kgm2, float)
-    tau = inertia * (2.0 * zeta * wn) * (omega_ref - omega) + np.cross(omega, inertia * omega)
-    peak = float(np.max(np.abs(tau)))
+    r_x, r_y, r_z = omega_ref.tolist()
+    w_x, w_y, w_z = np.asarray(omega_B, float).tolist()
+    i_x, i_y, i_z = np.asarray(inertia_B_kgm2, float).tolist()
+    # tau = I (2 zeta wn) (omega_ref - omega) + omega x (I omega)   [N m]
+    kd = 2.0 * zeta * wn
+    g_x, g_y, g_z = cross3(w_x, w_y, w_z, i_x * w_x, i_y * w_y, i_z * w_z)
+    t_x = i_x * kd * (r_x - w_x) + g_x
+    t_y = i_y * kd * (r_y - w_y) + g_y
+    t_z = i_z * kd * (r_z - w_z) + g_z
+    peak = max_abs3(t_x, t_y, t_z)
     if peak > torque_max_Nm:
-        tau *= torque_max_Nm / peak
-    return np.clip(tau, -torque_max_Nm, torque_max_Nm)  # the scaling may round a hair above the limit
+        shrink = torque_max_Nm / peak
+        t_x, t_y, t_z = t_x * shrink, t_y * shrink, t_z * shrink
+    # the scaling may round a hair above the limit
+    return np.array([clip_float(t_x, -torque_max_Nm, torque_max_Nm), clip_float(t_y, -torque_max_Nm, torque_max_Nm),
+                     clip_float(t_z, -torque_max_Nm, torque_max_Nm)])
 
 
 # --------------------------------------------------------------------------- the controller
@@ -384,10 +405,11 @@ class Controller:
         altitude = float(np.asarray(nav.r_BL_L, float)[2])
         a_cmd = np.asarray(cmd.a_cmd_L, float)
         z_B_L = None
+        q = _unit_quaternion(nav.q_LB)
         if self.cfg.thrust_projection == "body_axis":
-            q_nav = _unit_quaternion(nav.q_LB)
+            q_nav = q
             if q_nav is not None:
-                w, x, y, z = q_nav
+                w, x, y, z = q_nav.tolist()
                 z_B_L = np.array([2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)])
         if cmd.valid and np.all(np.isfinite(a_cmd)) and np.isfinite(mass) and np.isfinite(altitude):
             self._thrust_hold_N, z_cmd_L = thrust_vector_command(
@@ -395,7 +417,6 @@ class Controller:
             )
             self._q_cmd_hold = attitude_command_LB(z_cmd_L, self.yaw_rad)
 
-        q = _unit_quaternion(nav.q_LB)
         omega = np.asarray(nav.omega_B, float)
         if q is not None and np.all(np.isfinite(omega)):
             inertia = self.vehicle.inertia_B_kgm2(mass if np.isfinite(mass) else self.vehicle.dry_mass_kg)
@@ -404,21 +425,25 @@ class Controller:
             torque = np.zeros(3)
         if not np.all(np.isfinite(torque)):  # cannot happen with finite inputs; never emit NaN
             torque = np.zeros(3)
-        torque = np.clip(torque, -self.vehicle.rcs_torque_max_Nm, self.vehicle.rcs_torque_max_Nm)
-        thrust = float(np.clip(self._thrust_hold_N, self.vehicle.thrust_min_N, self.vehicle.thrust_max_N))
+        torque_max = self.vehicle.rcs_torque_max_Nm
+        torque = np.array([clip_float(t, -torque_max, torque_max) for t in torque.tolist()])
+        thrust = clip_float(float(self._thrust_hold_N), self.vehicle.thrust_min_N, self.vehicle.thrust_max_N)
         return ActuatorCommand(thrust, torque, True, t_ns, self._q_cmd_hold.copy())
 
 
 def _unit_quaternion(q: np.ndarray) -> np.ndarray | None:
     """The normalised quaternion, (4,), or None when it is non-finite, zero or not a 4-vector."""
     q = np.asarray(q, float)
-    if q.shape != (4,) or not np.all(np.isfinite(q)):
+    if q.shape != (4,):
         return None
-    scale = float(np.max(np.abs(q)))
+    w, x, y, z = q.tolist()
+    if not (math.isfinite(w) and math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        return None
+    scale = max(abs(w), abs(x), abs(y), abs(z))
     if scale == 0.0:
         return None
     q = q / scale
-    return q / np.linalg.norm(q)
+    return q / norm(q)
 
 
 def make_controller(

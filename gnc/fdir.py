@@ -100,6 +100,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from gnc.messages import AltimeterMessage, AttitudeMessage, ImuMessage
+from gnc.numeric import clip_float
 
 NS_PER_S = 1_000_000_000
 ARCSEC = math.pi / (180.0 * 3600.0)
@@ -548,7 +549,8 @@ class HealthMonitor:
             self._torque_bad_since = None
             self._torque_eval_t = None
             return None
-        tx, ty, tz = np.clip(np.asarray(torque_cmd_B_Nm, float), -torque_max_Nm, torque_max_Nm).tolist()
+        tx, ty, tz = (clip_float(v, -torque_max_Nm, torque_max_Nm)
+                      for v in np.asarray(torque_cmd_B_Nm, float).tolist())
         cmds.append((t, tx, ty, tz, float(thrust_N)))
         t0 = t - c.torque_window_s
         while rates and rates[0][0] < t0:

@@ -92,6 +92,7 @@ tilt limit and to the thrust left over.
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -102,6 +103,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 
 from gnc.config import validate_options, validated_config
 from gnc.navstate import NavState
+from gnc.numeric import clip_float, norm
 
 NS_PER_S = 1_000_000_000
 LUNAR_GRAVITY_MPS2 = 1.62
@@ -181,6 +183,10 @@ class TiltLimitConfig(BaseModel):
         Returns:
             Limit of the same shape [rad].
         """
+        if isinstance(altitude_m, float):  # one altitude (every control tick): the same operations on floats
+            frac_1 = clip_float(altitude_m / self.taper_altitude_m, 0.0, 1.0)
+            return math.radians(self.tilt_max_touchdown_deg
+                                + (self.tilt_max_high_deg - self.tilt_max_touchdown_deg) * frac_1)
         frac = np.clip(np.asarray(altitude_m, float) / self.taper_altitude_m, 0.0, 1.0)
         deg = self.tilt_max_touchdown_deg + (self.tilt_max_high_deg - self.tilt_max_touchdown_deg) * frac
         out = np.deg2rad(deg)
@@ -441,9 +447,9 @@ def cap_acceleration_L(
     f = np.asarray(a_cmd_L, float) - g_L
     f_max = limits.thrust_max_N / mass_kg
     f_min = limits.thrust_min_N / mass_kg
-    fz = float(np.clip(f[2], f_min, f_max))
+    fz = clip_float(float(f[2]), f_min, f_max)
     fh = f[:2].copy()
-    fh_norm = float(np.linalg.norm(fh))
+    fh_norm = norm(fh)
     fh_max = min(np.tan(limits.tilt.tilt_max_rad(altitude_m)) * fz, np.sqrt(max(f_max * f_max - fz * fz, 0.0)))
     if fh_norm > fh_max:
         fh *= fh_max / fh_norm
@@ -711,12 +717,12 @@ class GuidanceLaw(ABC):
         w, zeta = cfg.terminal_position_bandwidth_radps, cfg.terminal_damping_ratio
         e_h = r_L[:2] - target_L[:2]
         v_ref_h = -(w / (2.0 * zeta)) * e_h
-        speed = float(np.linalg.norm(v_ref_h))
+        speed = norm(v_ref_h)
         if speed > cfg.terminal_speed_max_mps:
             v_ref_h *= cfg.terminal_speed_max_mps / speed
         a_h = 2.0 * zeta * w * (v_ref_h - v_L[:2])
         hold_r = cfg.terminal_hold_radius_m
-        descent_frac = float(np.clip((2.0 * hold_r - np.linalg.norm(e_h)) / hold_r, 0.0, 1.0))
+        descent_frac = clip_float((2.0 * hold_r - norm(e_h)) / hold_r, 0.0, 1.0)
         a_z = cfg.terminal_rate_gain_per_s * (-descent_frac * cfg.terminal_descent_rate_mps - v_L[2])
         return np.array([a_h[0], a_h[1], a_z])
 

@@ -7,6 +7,8 @@ one message: NumPy's fixed cost per call, not the arithmetic, dominates there.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -23,3 +25,28 @@ def median(a: np.ndarray) -> float:
         return float(np.partition(a, mid)[mid])
     part = np.partition(a, (mid - 1, mid))
     return 0.5 * (float(part[mid - 1]) + float(part[mid]))
+
+
+def cross3(ax: float, ay: float, az: float, bx: float, by: float, bz: float) -> tuple[float, float, float]:
+    """``np.cross(a, b)`` of two 3-vectors given as floats: the same products and differences, so the same bits."""
+    return ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+
+
+def norm(v: np.ndarray) -> float:
+    """``float(np.linalg.norm(v))`` of a float64 array: NumPy's own ``sqrt(v.ravel(order="K").dot(...))``
+    without its argument handling (the same dot product on the same memory, so the same bits)."""
+    v = v.ravel(order="K")
+    return math.sqrt(v.dot(v))
+
+
+def max_abs3(x: float, y: float, z: float) -> float:
+    """``float(np.max(np.abs([x, y, z])))``: NaN if any is NaN."""
+    ax, ay, az = abs(x), abs(y), abs(z)
+    if ax != ax or ay != ay or az != az:
+        return math.nan
+    return max(ax, ay, az)
+
+
+def clip_float(x: float, lo: float, hi: float) -> float:
+    """``np.clip`` of one float: ``x`` itself at a tie (signed zeros kept) and NaN passed through."""
+    return lo if x < lo else (hi if x > hi else x)

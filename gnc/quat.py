@@ -58,6 +58,12 @@ def quat_from_matrix(R: np.ndarray) -> np.ndarray:
     r00, r01, r02 = float(R[0, 0]), float(R[0, 1]), float(R[0, 2])
     r10, r11, r12 = float(R[1, 0]), float(R[1, 1]), float(R[1, 2])
     r20, r21, r22 = float(R[2, 0]), float(R[2, 1]), float(R[2, 2])
+    return quat_from_elements(r00, r01, r02, r10, r11, r12, r20, r21, r22)
+
+
+def quat_from_elements(r00: float, r01: float, r02: float, r10: float, r11: float, r12: float,
+                       r20: float, r21: float, r22: float) -> np.ndarray:
+    """:func:`quat_from_matrix` of the matrix given by its elements ``r<row><column>`` as floats, (4,)."""
     trace = r00 + r11 + r22
     decision = (r00, r11, r22, trace)
     choice = max(range(4), key=decision.__getitem__)  # first of the largest, as numpy's argmax

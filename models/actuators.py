@@ -94,20 +94,28 @@ class PropulsionModel:
         self.engine_thrust_N: float | None = None  # engine state before the thrust error; None before any command
         self._decay = math.nan  # exp(-dt / tau) of the current step size
         self._decay_dt_s = math.nan
-        self._pwm_on_s = np.zeros(3)  # on-time of the current PWM window per axis [s]
-        self._pwm_sign = np.zeros(3)
+        # PWM state per axis (x, y, z) as floats: the per-physics-step path works on scalars, not (3,) arrays.
+        self._pwm_on_s = (0.0, 0.0, 0.0)  # on-time of the current PWM window per axis [s]
+        self._pwm_sign = (0.0, 0.0, 0.0)
         self._pwm_window = -1
-        self._pwm_carry_Nms = np.zeros(3)  # impulse commanded but not yet fired, per axis [N m s]
+        self._pwm_carry_Nms = (0.0, 0.0, 0.0)  # impulse commanded but not yet fired, per axis [N m s]
         self._rcs_fault: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (gain +, gain -, stuck [N m])
+        # The same per axis as floats, ((gain +, gain -, stuck [N m]) of x, y, z), for the per-step path.
+        self._rcs_fault_xyz: tuple[tuple[float, float, float], ...] | None = None
+        # Per-step constants: the engine's exhaust velocity Isp g0 [m/s] and the RCS's [m/s].
+        self._engine_ve_mps = cfg.engine.isp_s * G0_MPS2
+        self._rcs_ve_mps = rcs.isp_s * G0_MPS2
 
     def set_rcs_fault(self, fault: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> None:
         """Hold the RCS faults active now (:meth:`models.faults.FaultInjector.rcs_fault`): per axis the factor on
         a positive and on a negative torque and the stuck-on torque as a fraction of the limit; None: none."""
         if fault is None:
             self._rcs_fault = None
+            self._rcs_fault_xyz = None
             return
         pos, neg, stuck = (np.asarray(v, float) for v in fault)
         self._rcs_fault = (pos, neg, stuck * float(self.cfg.rcs_torque_max_Nm))
+        self._rcs_fault_xyz = tuple(zip(*(v.tolist() for v in self._rcs_fault)))
 
     def _rcs_faulted(self, torque_B_Nm: np.ndarray) -> np.ndarray:
         """The delivered torque under the RCS faults (3,) [N m]."""
@@ -133,7 +141,7 @@ class PropulsionModel:
 
     def mass_flow_kgps(self, thrust_N: float) -> float:
         """Propellant mass flow at a delivered thrust [kg/s]."""
-        return thrust_N / (self.cfg.engine.isp_s * G0_MPS2)
+        return thrust_N / self._engine_ve_mps
 
     def clamp_thrust(self, thrust_cmd_N: float) -> float:
         """Thrust the engine actually produces for a command [N] (no error term)."""
@@ -205,25 +213,51 @@ class PropulsionModel:
 
     def _rcs_step(self, torque_cmd_B_Nm: np.ndarray, step_index: int, dt_ns: int) -> np.ndarray:
         """RCS torque over physics step ``step_index`` (3,) [N m]: continuous, or the PWM window's pulses."""
-        rcs, tau_max = self.cfg.rcs, float(self.cfg.rcs_torque_max_Nm)
-        torque = self.clamp_torque(torque_cmd_B_Nm)
+        tx, ty, tz = self.clamp_torque(torque_cmd_B_Nm).tolist()
+        return np.array(self._rcs_step_xyz(tx, ty, tz, step_index, dt_ns))
+
+    def _rcs_step_xyz(self, tx: float, ty: float, tz: float, step_index: int,
+                      dt_ns: int) -> tuple[float, float, float]:
+        """:meth:`_rcs_step` on floats: the saturated command's axes ``tx, ty, tz`` [N m] in, the torque out.
+
+        Per axis, the same operations in the same order as on (3,) arrays (``np.clip``, ``np.sign``,
+        ``np.abs``), so the result is bit for bit the array form's (tests/test_hot_paths.py).
+        """
+        rcs = self.cfg.rcs
         if rcs.mode == "continuous":
-            return torque
+            return tx, ty, tz
+        tau_max = float(self.cfg.rcs_torque_max_Nm)
         steps_per_window = rcs.pwm_period_ns // dt_ns
         window, k = divmod(step_index, steps_per_window)
-        period_s = rcs.pwm_period_ns / 1e9
         if window != self._pwm_window:  # a new window: the held command (plus the carry) sets each axis's pulse
             self._pwm_window = window
+            period_s = rcs.pwm_period_ns / 1e9
             mib = tau_max * rcs.min_on_ns / 1e9
-            demand = torque * period_s + self._pwm_carry_Nms
-            fired = np.clip(demand, -tau_max * period_s, tau_max * period_s)
-            fired[np.abs(fired) < mib] = 0.0
-            self._pwm_carry_Nms = np.clip(demand - fired, -mib, mib)
-            self._pwm_on_s = np.abs(fired) / tau_max
-            self._pwm_sign = np.sign(fired)
+            fired_max = tau_max * period_s
+            on_s, sign, carry = [], [], []
+            for t, c in zip((tx, ty, tz), self._pwm_carry_Nms):
+                demand = t * period_s + c
+                fired = _clip(demand, -fired_max, fired_max)
+                if abs(fired) < mib:
+                    fired = 0.0
+                carry.append(_clip(demand - fired, -mib, mib))
+                on_s.append(abs(fired) / tau_max)
+                sign.append(_sign(fired))
+            self._pwm_carry_Nms, self._pwm_on_s, self._pwm_sign = tuple(carry), tuple(on_s), tuple(sign)
         dt_s = dt_ns / 1e9
-        frac = np.clip((self._pwm_on_s - k * dt_s) / dt_s, 0.0, 1.0)
-        return self._pwm_sign * tau_max * frac
+        elapsed_s = k * dt_s
+        (on_x, on_y, on_z), (s_x, s_y, s_z) = self._pwm_on_s, self._pwm_sign
+        return (s_x * tau_max * _clip((on_x - elapsed_s) / dt_s, 0.0, 1.0),
+                s_y * tau_max * _clip((on_y - elapsed_s) / dt_s, 0.0, 1.0),
+                s_z * tau_max * _clip((on_z - elapsed_s) / dt_s, 0.0, 1.0))
+
+    def _rcs_faulted_xyz(self, tx: float, ty: float, tz: float) -> tuple[float, float, float]:
+        """:meth:`_rcs_faulted` on floats (bit for bit the same)."""
+        fault = self._rcs_fault_xyz
+        if fault is None:
+            return tx, ty, tz
+        return tuple((t * pos if t > 0.0 else t * neg) + stuck
+                     for t, (pos, neg, stuck) in zip((tx, ty, tz), fault))
 
     def physics_step(self, thrust_cmd_N: float, torque_cmd_B_Nm: np.ndarray, step_index: int,
                      dt_ns: int) -> tuple[float, np.ndarray, bool]:
@@ -239,21 +273,54 @@ class PropulsionModel:
             (delivered thrust [N], delivered torque (3,) [N m], whether the engine fired
             this step); ``self.propellant_kg`` is decreased by this step's draw.
         """
+        tx, ty, tz = self.clamp_torque(torque_cmd_B_Nm).tolist()
+        thrust, tx, ty, tz, fired = self.physics_step_xyz(thrust_cmd_N, tx, ty, tz, step_index, dt_ns)
+        return thrust, np.array([tx, ty, tz]), fired
+
+    def physics_step_xyz(self, thrust_cmd_N: float, tx: float, ty: float, tz: float, step_index: int,
+                         dt_ns: int) -> tuple[float, float, float, float, bool]:
+        """:meth:`physics_step` on floats, for the per-physics-step loop (bit for bit the same).
+
+        Args:
+            thrust_cmd_N: Commanded thrust, held [N].
+            tx, ty, tz: The commanded torque's body axes, already saturated by :meth:`clamp_torque` [N m].
+            step_index: Index of this physics step since t = 0.
+            dt_ns: Physics step [ns].
+
+        Returns:
+            (delivered thrust [N], delivered torque's x, y, z [N m], whether the engine fired).
+        """
         dt_s = dt_ns / 1e9
         rcs = self.cfg.rcs
         if self.propellant_kg <= 0.0:
             self.engine_thrust_N = 0.0
-            return 0.0, (np.zeros(3) if rcs.draws_propellant
-                         else self._rcs_faulted(self._rcs_step(torque_cmd_B_Nm, step_index, dt_ns))), False
+            if rcs.draws_propellant:
+                return 0.0, 0.0, 0.0, 0.0, False
+            return (0.0, *self._rcs_faulted_xyz(*self._rcs_step_xyz(tx, ty, tz, step_index, dt_ns)), False)
         thrust = self._engine_step(thrust_cmd_N, dt_s) * (1.0 + self.cfg.engine.thrust_error_frac)
         if self.fault_gain != 1.0:
             thrust *= self.fault_gain
-        torque = self._rcs_faulted(self._rcs_step(torque_cmd_B_Nm, step_index, dt_ns))
-        used = self.mass_flow_kgps(thrust) * dt_s
+        tx, ty, tz = self._rcs_faulted_xyz(*self._rcs_step_xyz(tx, ty, tz, step_index, dt_ns))
+        used = thrust / self._engine_ve_mps * dt_s
         if rcs.draws_propellant:
-            used += float(np.sum(np.abs(torque))) / rcs.moment_arm_m / (rcs.isp_s * G0_MPS2) * dt_s
+            used += self._rcs_draw_kg(tx, ty, tz, dt_s)
         if used >= self.propellant_kg:  # the last partial step's worth is spent too
             self.propellant_kg = 0.0
         else:
             self.propellant_kg -= used
-        return thrust, torque, thrust > 0.0
+        return thrust, tx, ty, tz, thrust > 0.0
+
+    def _rcs_draw_kg(self, tx: float, ty: float, tz: float, dt_s: float) -> float:
+        """The RCS's propellant over one step delivering torque ``(tx, ty, tz)`` [N m] for ``dt_s`` [s] [kg]."""
+        # (|x| + |y|) + |z|: the order float(np.sum(np.abs(torque))) adds three elements in.
+        return (abs(tx) + abs(ty) + abs(tz)) / self.cfg.rcs.moment_arm_m / self._rcs_ve_mps * dt_s
+
+
+def _clip(x: float, lo: float, hi: float) -> float:
+    """``np.clip`` of one float: ``x`` itself at a tie (signed zeros kept) and NaN passed through."""
+    return lo if x < lo else (hi if x > hi else x)
+
+
+def _sign(x: float) -> float:
+    """``np.sign`` of one float: +-1.0, 0.0 for either zero, NaN for NaN."""
+    return 1.0 if x > 0.0 else (-1.0 if x < 0.0 else (0.0 if x == 0.0 else x))

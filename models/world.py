@@ -215,9 +215,19 @@ class World:
         self.K = intrinsics(camera)
         self._renderer: mujoco.Renderer | None = None
         self._depth_renderer: mujoco.Renderer | None = None
+        # Per-physics-step indices and live views into MjData (allocated once; mj_resetData keeps them).
+        self._i_engine = int(self._act_engine)
+        self._i_rcs_xyz = tuple(int(i) for i in self._act_rcs)
+        self._i_acc_xyz = tuple(range(self._sens_acc.start, self._sens_acc.stop))
+        self._i_divergence = tuple(int(w) for w, _ in _DIVERGENCE_WARNINGS)
+        self._ctrl = self.data.ctrl
+        self._sensordata = self.data.sensordata
+        self._qvel = self.data.qvel
+        self._warning_number = self.data.warning.number  # MuJoCo's warning counters, (mjNWARNING,)
         self._step_count = 0
-        self._imu_sum = np.zeros(3)  # integrating accelerometer: sum of the steps' specific forces [m/s^2]
-        self._gyro_sum = np.zeros(3)  # integrating gyro: sum of the steps' integrated body rates [rad/s]
+        # Kept as three floats each, summed step by step in the same order as the (3,) arrays were.
+        self._imu_sum = [0.0, 0.0, 0.0]  # integrating accelerometer: sum of the steps' specific forces [m/s^2]
+        self._gyro_sum = [0.0, 0.0, 0.0]  # integrating gyro: sum of the steps' integrated body rates [rad/s]
         self._imu_steps = 0
         self._fault_torque_B: np.ndarray | None = None
         self._set_clip_planes()
@@ -276,8 +286,8 @@ class World:
         self.data.qvel[0:3] = v_BL_L
         self.data.qvel[3:6] = omega_B
         self._step_count = 0
-        self._imu_sum = np.zeros(3)
-        self._gyro_sum = np.zeros(3)
+        self._imu_sum = [0.0, 0.0, 0.0]
+        self._gyro_sum = [0.0, 0.0, 0.0]
         self._imu_steps = 0
         mujoco.mj_forward(self.model, self.data)
 
@@ -339,31 +349,64 @@ class World:
         return out
 
     def _step_each(self, n_steps: int, thrust_cmd_N: float, torque_cmd_B_Nm: np.ndarray) -> PropulsionOutput:
-        """The realistic actuators: thrust, torque and propellant evaluated at every physics step."""
+        """The realistic actuators: thrust, torque and propellant evaluated at every physics step.
+
+        The per-step loop works on floats (the same additions in the same order as on (3,)
+        arrays) and reads MuJoCo's warning counters once per step through a live view.
+        """
         prop = self.propulsion
+        model, data = self.model, self.data
+        ctrl, sensordata, qvel, warnings = self._ctrl, self._sensordata, self._qvel, self._warning_number
+        i_engine = self._i_engine
+        i_rcs_x, i_rcs_y, i_rcs_z = self._i_rcs_xyz
+        i_acc_x, i_acc_y, i_acc_z = self._i_acc_xyz
+        fault_torque = self._fault_torque_B is not None
+        dt_ns = self.physics_dt_ns
         had = prop.propellant_kg > 0.0
         used0 = prop.propellant_kg
+        # The command is held over the interval: saturate it once (the per-step path did so every step).
+        cmd_x, cmd_y, cmd_z = prop.clamp_torque(torque_cmd_B_Nm).tolist()
         burn_steps = 0
         thrust = 0.0
-        impulse_B = np.zeros(3)
+        impulse_x = impulse_y = impulse_z = 0.0  # sum of the steps' delivered torques [N m]
+        f_x, f_y, f_z = self._imu_sum
+        w_x, w_y, w_z = self._gyro_sum
+        warnings_before = warnings.tolist()
         for _ in range(n_steps):
-            thrust, torque, fired = prop.physics_step(thrust_cmd_N, torque_cmd_B_Nm, self._step_count, self.physics_dt_ns)
+            thrust, tau_x, tau_y, tau_z, fired = prop.physics_step_xyz(
+                thrust_cmd_N, cmd_x, cmd_y, cmd_z, self._step_count, dt_ns)
             burn_steps += fired
-            impulse_B += torque
-            self.data.ctrl[self._act_rcs] = torque
-            self.data.ctrl[self._act_engine] = thrust
-            self._apply_fault_torque(thrust > 0.0)
-            self._advance(1)
+            impulse_x += tau_x
+            impulse_y += tau_y
+            impulse_z += tau_z
+            ctrl[i_rcs_x] = tau_x
+            ctrl[i_rcs_y] = tau_y
+            ctrl[i_rcs_z] = tau_z
+            ctrl[i_engine] = thrust
+            if fault_torque:
+                self._apply_fault_torque(thrust > 0.0)
+            mujoco.mj_step(model, data)
+            self._step_count += 1
+            if warnings.tolist() != warnings_before:  # some counter moved: divergence raises, else go on
+                self._check_divergence(warnings_before)
+                warnings_before = warnings.tolist()
             # mj_step evaluated the sensors at the step's start with this step's controls: the specific
             # force that acts over the step, summed for the integrating accelerometer (imu_mean_B).
-            self._imu_sum += self.data.sensordata[self._sens_acc]
+            f_x += sensordata.item(i_acc_x)
+            f_y += sensordata.item(i_acc_y)
+            f_z += sensordata.item(i_acc_z)
             # The (semi-implicit) integrator turned the attitude with the step's new body rate (the free
             # joint's local angular velocity, the IMU site's axes): summed, the interval's delta-angle.
-            self._gyro_sum += self.data.qvel[3:6]
-            self._imu_steps += 1
+            w_x += qvel.item(3)
+            w_y += qvel.item(4)
+            w_z += qvel.item(5)
+        self._imu_sum = [f_x, f_y, f_z]
+        self._gyro_sum = [w_x, w_y, w_z]
+        self._imu_steps += n_steps
         self._set_propellant(prop.propellant_kg)
         mujoco.mj_forward(self.model, self.data)
         exhausted = had and prop.propellant_kg <= 0.0 and (thrust_cmd_N > 0.0 or burn_steps > 0)
+        impulse_B = np.array([impulse_x, impulse_y, impulse_z])
         return PropulsionOutput(thrust, impulse_B / max(n_steps, 1), burn_steps, used0 - prop.propellant_kg, exhausted)
 
     def imu_mean_B(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -379,18 +422,27 @@ class World:
         """
         if self._imu_steps == 0:
             return None
-        out = (self._imu_sum / self._imu_steps, self._gyro_sum / self._imu_steps)
-        self._imu_sum = np.zeros(3)
-        self._gyro_sum = np.zeros(3)
+        out = (np.array(self._imu_sum) / self._imu_steps, np.array(self._gyro_sum) / self._imu_steps)
+        self._imu_sum = [0.0, 0.0, 0.0]
+        self._gyro_sum = [0.0, 0.0, 0.0]
         self._imu_steps = 0
         return out
 
     def _advance(self, n: int) -> None:
-        before = [int(self.data.warning[w].number) for w, _ in _DIVERGENCE_WARNINGS]
+        before = self._warning_number.tolist()
         mujoco.mj_step(self.model, self.data, nstep=n)
         self._step_count += n
-        for (w, what), b in zip(_DIVERGENCE_WARNINGS, before):
-            if int(self.data.warning[w].number) > b:
+        self._check_divergence(before)
+
+    def _check_divergence(self, before: list[int]) -> None:
+        """Raise if a divergence counter grew since ``before`` (MuJoCo's warning counters, a list).
+
+        Raises:
+            PhysicsDivergedError: Naming the time now (the end of the step that diverged).
+        """
+        now = self._warning_number
+        for (_, what), w in zip(_DIVERGENCE_WARNINGS, self._i_divergence):
+            if int(now[w]) > before[w]:
                 raise PhysicsDivergedError(
                     f"physics diverged at t = {self.t_ns / NS_PER_S:.3f} s: MuJoCo reported {what}. "
                     f"The physics step (sim.physics_dt_ns = {self.physics_dt_ns}) is probably too large "

@@ -460,6 +460,10 @@ class World:
             misalignment: (angle_deg, azimuth_deg) of the thrust line from body +z; None: the configured one.
         """
         self.propulsion.fault_gain = float(thrust_gain)
+        if torque_B_Nm is None and self._fault_torque_B is not None:
+            # The fault has ended: the torque it left on the body ends with it (it was only ever
+            # cleared on an engine-off step, so a fault ending mid-burn kept pushing for the rest of the run).
+            self.data.xfrc_applied[self._body_lander, 3:6] = 0.0
         self._fault_torque_B = None if torque_B_Nm is None else np.asarray(torque_B_Nm, float)
         if misalignment is None:
             d = self.lander_cfg.engine.thrust_direction_B()

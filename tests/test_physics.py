@@ -145,3 +145,24 @@ def test_torque_and_thrust_clamps_match_numpy_on_random_and_special_inputs():
     for thrust in [*rng.uniform(-1e4, 2e4, 200), np.inf, 1e-9, eng.thrust_min_N, eng.thrust_max_N]:
         want = 0.0 if not thrust > 0.0 else float(np.clip(thrust, eng.thrust_min_N, eng.thrust_max_N))
         assert prop.clamp_thrust(thrust) == want
+
+
+@pytest.mark.parametrize("realism", ["ideal", "realistic"])
+def test_a_thrust_loss_torque_ends_with_its_fault_even_mid_burn(flat_terrain, realism):
+    # Hovering, the engine firing throughout: a fault torque about y for 0.2 s, then none. While it acts
+    # the body spins up at tau / I (MuJoCo's own inertia); once it has ended, the rate stays as it was.
+    world = World(flat_terrain, LanderConfig(), CameraConfig(width_px=64, height_px=64), SunConfig(), DT_NS, G_MOON,
+                  realism=realism)
+    world.reset(np.array([0.0, 0.0, 50.0]), np.zeros(3), LEVEL, np.zeros(3))
+    hover_N = world.truth().mass_kg * G_MOON
+    tau_y = 40.0
+    world.set_engine_fault(1.0, np.array([0.0, tau_y, 0.0]), None)
+    world.step(200, hover_N)  # 0.2 s
+    w_fault = world.truth().omega_B[1]
+    cfg = world.lander_cfg
+    inertia_y = cfg.body_inertia_kgm2()[1] + cfg.tank_inertia_kgm2(world.truth().propellant_kg)[1]
+    assert w_fault == pytest.approx(tau_y / inertia_y * 0.2, rel=0.05)
+    world.set_engine_fault(1.0, None, None)  # the fault ends, the engine still firing
+    world.step(500, hover_N)  # 0.5 s more
+    assert np.all(world.data.xfrc_applied[world._body_lander, 3:6] == 0.0)
+    assert world.truth().omega_B[1] == pytest.approx(w_fault, abs=0.02 * abs(w_fault))

@@ -60,8 +60,10 @@ def test_kill_and_resume_loses_and_duplicates_nothing(tmp_path):
     assert _strip(rows) == _strip(fresh)
 
 
-def _stat_ppid_cmdline(d: Path) -> tuple[int, bytes]:
-    return int((d / "stat").read_text().rsplit(")", 1)[1].split()[1]), (d / "cmdline").read_bytes()
+def _stat_ppid_cmdline(d: Path) -> tuple[int, bytes] | None:
+    """(parent pid, command line) of a live process; None for a zombie (exited, not yet reaped)."""
+    state, ppid = (d / "stat").read_text().rsplit(")", 1)[1].split()[:2]
+    return None if state == "Z" else (int(ppid), (d / "cmdline").read_bytes())
 
 
 def _kill_next_worker(seen: set[int], timeout_s: float = 120.0) -> None:
@@ -77,9 +79,11 @@ def _kill_next_worker(seen: set[int], timeout_s: float = 120.0) -> None:
         for d in Path("/proc").iterdir():
             if d.name.isdigit():
                 try:
-                    procs[int(d.name)] = _stat_ppid_cmdline(d)
+                    info = _stat_ppid_cmdline(d)
                 except (OSError, IndexError, ValueError):
                     continue
+                if info is not None:
+                    procs[int(d.name)] = info
         servers = {pid for pid, (ppid, cmd) in procs.items() if ppid == me and b"forkserver" in cmd}
         for pid, (ppid, cmd) in procs.items():
             is_worker = ppid in servers or (ppid == me and b"spawn_main" in cmd)

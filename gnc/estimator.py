@@ -867,6 +867,20 @@ class NavFilter:
         hx = (self.ekf.x[IDX_V] + self._a_L * (lag_ns / NS_PER_S))[idx]
         return self._gated_update(int(t_ns), KIND_VELOCITY, z, hx, self._H_vel[idx], R)
 
+    def inflate_horizontal_position(self, factor: float) -> None:
+        """Scale the horizontal position's sigmas by ``factor``, keeping every correlation.
+
+        The covariance's rows and columns of ``r_x`` and ``r_y`` are multiplied by
+        ``factor`` (``P <- D P D``, ``D`` diagonal), so ``P`` stays positive definite.
+        For a map acquisition that found the position only in a search window
+        ``factor`` times wider than the prior's: the prior was off by more than it knew.
+        """
+        if not factor >= 1.0:
+            raise ValueError(f"inflate_horizontal_position: factor = {factor}; allowed: >= 1")
+        d = np.ones(self.ekf.P.shape[0])
+        d[0:2] = factor
+        self.ekf.P = self.ekf.P * np.outer(d, d)
+
     def update_map_position(self, t_ns: int, z_xy_m: np.ndarray, R: np.ndarray,
                             lever_xy_m: np.ndarray) -> UpdateRecord:
         """Horizontal position update from a map fix (kind ``"map"``, chi-square gated like every update).

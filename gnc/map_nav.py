@@ -474,7 +474,23 @@ class MapNavConfig(BaseModel):
         description="1-sigma per axis of the filter's own drift between two fixes, added to the difference's "
                     "covariance in the confirmation [m]",
     )
+    acquire_widen_after: int = Field(
+        3, ge=1,
+        description="before the first lock, every this many refusals that a wider window could cure (peak not "
+                    "clear, peak on the window's edge) widen the coarse search window once more [-]",
+    )
+    acquire_widen_factor: float = Field(
+        1.5, ge=1.0, description="factor on the coarse search window at each widening before the first lock [-]"
+    )
+    acquire_max_sigmas: float = Field(
+        6.0, gt=0.0, le=10.0, description="widest coarse search window before the first lock [sigma of the prior]"
+    )
     fix: MapFixConfig = MapFixConfig()
+
+
+# Refusals a wider search window may cure: the true offset lay outside the window, so the correlation
+# surface had no clear peak inside it, or its best was on the window's edge.
+WINDOW_REFUSALS = ("coarse peak not clear of its sidelobes", "coarse peak on the search window's edge")
 
 
 @dataclass
@@ -487,6 +503,7 @@ class MapNavStats:
     updates: int = 0  # handed to the filter
     gate_rejected: int = 0
     locked: bool = False
+    search_sigmas_max: float = 0.0  # the widest coarse search window used [sigma of the prior]
     log: list = None  # type: ignore[assignment]  # (t_ns, MapFix, used: bool, gate_accepted: bool | None)
 
     def __post_init__(self) -> None:
@@ -509,6 +526,16 @@ class MapNavigator:
     filter's estimate differ by at most ``confirm_sigmas`` of the difference's sigma): one
     fix alone may be a false lock. Once locked, every fix goes to the filter's gate.
 
+    Acquisition: a hand-over error beyond the window's ``search_sigmas`` (a 3-sigma window
+    misses about one case in a hundred) would leave every fix refused and the lander flying
+    on its hand-over error to touchdown. So, before the first lock, every
+    ``acquire_widen_after`` refusals that a wider window could cure widen the
+    window by ``acquire_widen_factor``, up to ``acquire_max_sigmas``; the two-fix
+    confirmation still guards the lock. A lock found in a widened window first scales the
+    filter's horizontal position sigmas by the same factor (the prior was off by more than it
+    knew), so that the confirmed fix passes the filter's gate. After the lock the window is
+    the prior's again.
+
     Args:
         onboard_map: The map.
         cfg: Settings.
@@ -525,6 +552,15 @@ class MapNavigator:
         self.stats = MapNavStats()
         self._last_t_ns: int | None = None
         self._pending: tuple[np.ndarray, np.ndarray] | None = None  # (offset, covariance) awaiting confirmation
+        self._window_refusals = 0  # window refusals before the first lock
+
+    def _window_scale(self) -> float:
+        """The factor on the prior's search window now (1 once locked; see the class docstring)."""
+        if self.stats.locked:
+            return 1.0
+        cfg = self.cfg
+        widest = max(cfg.acquire_max_sigmas / cfg.fix.search_sigmas, 1.0)
+        return min(cfg.acquire_widen_factor ** (self._window_refusals // cfg.acquire_widen_after), widest)
 
     def wants_frame(self, t_ns: int, height_m: float) -> bool:
         """Would :meth:`on_frame` take a fix now?"""
@@ -557,11 +593,14 @@ class MapNavigator:
         sigma_xy = math.sqrt(max(float(np.linalg.eigvalsh(P[0:2, 0:2])[-1]), 0.0))
         sigma_att = nav_filter.cfg.attitude_sigma_arcsec * ARCSEC_TO_RAD
         self.stats.attempts += 1
-        fix = self.matcher.fix(frame, self.K, R_LB @ self.R_BC, r_C, sigma_xy, sigma_att)
+        scale = self._window_scale()
+        self.stats.search_sigmas_max = max(self.stats.search_sigmas_max, scale * self.cfg.fix.search_sigmas)
+        fix = self.matcher.fix(frame, self.K, R_LB @ self.R_BC, r_C, sigma_xy * scale, sigma_att)
         if not fix.ok:
             key = REFUSALS[fix.reason]
             self.stats.refused[key] = self.stats.refused.get(key, 0) + 1
             self._pending = None
+            self._window_refusals += fix.reason in WINDOW_REFUSALS  # kept until the lock: the window only grows
             self.stats.log.append((t_ns, fix, False, None))
             return fix
         if not self.stats.locked:
@@ -577,6 +616,8 @@ class MapNavigator:
                 self.stats.log.append((t_ns, fix, False, None))
                 return fix
             self.stats.locked = True
+            if scale > 1.0:  # found only in a widened window: the prior was off by more than it knew
+                nav_filter.inflate_horizontal_position(scale)
         rec = nav_filter.update_map_position(t_ns, fix.r_CM_xy_m, fix.cov_xy_m2, lever[:2])
         self.stats.updates += 1
         self.stats.gate_rejected += int(not rec.accepted)

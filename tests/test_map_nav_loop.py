@@ -107,6 +107,52 @@ def test_disagreeing_consecutive_fixes_are_not_used(onboard):
     assert not nav.on_frame(200_000_000, blank, f).ok and nav.stats.refused["peak_not_clear"] == 1
 
 
+def test_a_hand_over_error_beyond_the_search_window_is_acquired_by_widening_it(onboard):
+    # 72 m off with the filter's 20 m sigma: 3.6 sigma, outside the 3-sigma coarse window, so every fix is
+    # refused and, without widening, the lander would fly its hand-over error to touchdown.
+    rot = _attitude(10.0)
+    q, R_LB = rot.as_quat(scalar_first=True), rot.as_matrix()
+    r_B = np.array([-40.0, 5.0, float(onboard.dem_height(-40.0, 5.0)) + 90.0])
+    est = r_B + np.array([72.0, 0.0, 0.0])
+    frame = render_map_frame(onboard, K, r_B + R_LB @ LEVER_B, R_LB @ R_BC, np.random.default_rng(0))
+    runs = {}
+    for name, cfg in (("fixed", MapNavConfig(period_ns=10_000_000, acquire_widen_factor=1.0)),
+                      ("widening", MapNavConfig(period_ns=10_000_000))):
+        f = _filter(est, q)
+        nav = MapNavigator(onboard, cfg, K, R_BC, LEVER_B)
+        for k in range(8):  # 10 ms apart: within the filter's update lag of its (unpropagated) time
+            nav.on_frame(k * 10_000_000, frame, f)
+        runs[name] = (f, nav)
+    f, nav = runs["fixed"]
+    assert not nav.stats.locked and nav.stats.updates == 0 and nav.stats.search_sigmas_max == 3.0
+    assert nav.stats.refused["peak_not_clear"] + nav.stats.refused["peak_on_window_edge"] == 8
+    assert np.array_equal(f.x[:3], est)
+    f, nav = runs["widening"]
+    # Three refusals at 3 sigma, then 4.5 sigma: a fix, confirmed by the next, and the filter moves to the truth.
+    assert nav.stats.refused["peak_not_clear"] + nav.stats.refused["peak_on_window_edge"] == 3
+    assert nav.stats.search_sigmas_max == pytest.approx(4.5) and nav.stats.locked and nav.stats.updates >= 1
+    # The lock scaled the horizontal sigmas by the window's factor first, so the 3.6-sigma fix passes the gate.
+    assert nav.stats.gate_rejected == 0
+    assert np.all(np.abs(f.x[:2] - r_B[:2]) < 1.0), f.x[:2] - r_B[:2]
+
+
+def test_inflating_the_horizontal_position_scales_its_rows_and_columns():
+    f = _filter(np.array([1.0, 2.0, 300.0]), [1.0, 0.0, 0.0, 0.0])
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(f.P.shape[0], f.P.shape[0]))
+    f.ekf.P = A @ A.T + np.eye(A.shape[0])  # a full covariance: every correlation in play
+    P0, x0 = f.P, f.x
+    f.inflate_horizontal_position(1.5)
+    expected = P0.copy()
+    for i in range(P0.shape[0]):  # explicit loop: rows and columns 0 and 1 times 1.5, their crossing 2.25
+        for j in range(P0.shape[1]):
+            expected[i, j] *= (1.5 if i < 2 else 1.0) * (1.5 if j < 2 else 1.0)
+    np.testing.assert_allclose(f.P, expected, rtol=1e-15)
+    assert np.array_equal(f.x, x0) and np.all(np.linalg.eigvalsh(f.P) > 0)
+    with pytest.raises(ValueError, match="factor"):
+        f.inflate_horizontal_position(0.5)
+
+
 def test_nav_map_switch_is_off_by_default_and_checked():
     s = load_scenario(None)
     assert s.nav_map == "off"

@@ -405,12 +405,10 @@ class Controller:
         altitude = float(np.asarray(nav.r_BL_L, float)[2])
         a_cmd = np.asarray(cmd.a_cmd_L, float)
         z_B_L = None
-        q = _unit_quaternion(nav.q_LB)
-        if self.cfg.thrust_projection == "body_axis":
-            q_nav = q
-            if q_nav is not None:
-                w, x, y, z = q_nav.tolist()
-                z_B_L = np.array([2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)])
+        q = _unit_quaternion(nav.q_LB)  # normalised once: the thrust projection and the attitude loop use it
+        if self.cfg.thrust_projection == "body_axis" and q is not None:
+            w, x, y, z = q.tolist()
+            z_B_L = np.array([2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)])
         if cmd.valid and np.all(np.isfinite(a_cmd)) and np.isfinite(mass) and np.isfinite(altitude):
             self._thrust_hold_N, z_cmd_L = thrust_vector_command(
                 a_cmd, self.g_L, mass, altitude, self.vehicle, self.cfg.tilt, z_B_L

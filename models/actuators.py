@@ -99,8 +99,7 @@ class PropulsionModel:
         self._pwm_sign = (0.0, 0.0, 0.0)
         self._pwm_window = -1
         self._pwm_carry_Nms = (0.0, 0.0, 0.0)  # impulse commanded but not yet fired, per axis [N m s]
-        self._rcs_fault: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (gain +, gain -, stuck [N m])
-        # The same per axis as floats, ((gain +, gain -, stuck [N m]) of x, y, z), for the per-step path.
+        # RCS faults per axis as floats: ((gain +, gain -, stuck [N m]) of x, y, z); None: none.
         self._rcs_fault_xyz: tuple[tuple[float, float, float], ...] | None = None
         # Per-step constants: the engine's exhaust velocity Isp g0 [m/s] and the RCS's [m/s].
         self._engine_ve_mps = cfg.engine.isp_s * G0_MPS2
@@ -110,19 +109,17 @@ class PropulsionModel:
         """Hold the RCS faults active now (:meth:`models.faults.FaultInjector.rcs_fault`): per axis the factor on
         a positive and on a negative torque and the stuck-on torque as a fraction of the limit; None: none."""
         if fault is None:
-            self._rcs_fault = None
             self._rcs_fault_xyz = None
             return
         pos, neg, stuck = (np.asarray(v, float) for v in fault)
-        self._rcs_fault = (pos, neg, stuck * float(self.cfg.rcs_torque_max_Nm))
-        self._rcs_fault_xyz = tuple(zip(*(v.tolist() for v in self._rcs_fault)))
+        stuck_Nm = stuck * float(self.cfg.rcs_torque_max_Nm)
+        self._rcs_fault_xyz = tuple(zip(pos.tolist(), neg.tolist(), stuck_Nm.tolist()))
 
     def _rcs_faulted(self, torque_B_Nm: np.ndarray) -> np.ndarray:
-        """The delivered torque under the RCS faults (3,) [N m]."""
-        if self._rcs_fault is None:
+        """The delivered torque under the RCS faults (3,) [N m] (the instant path's; see :meth:`_rcs_faulted_xyz`)."""
+        if self._rcs_fault_xyz is None:
             return torque_B_Nm
-        pos, neg, stuck = self._rcs_fault
-        return np.where(torque_B_Nm > 0.0, torque_B_Nm * pos, torque_B_Nm * neg) + stuck
+        return np.array(self._rcs_faulted_xyz(*torque_B_Nm.tolist()))
 
     def delivered_thrust_N(self, thrust_cmd_N: float) -> float:
         """Thrust the engine delivers now for a command [N] (instant path: the clamped command times the error)."""
@@ -211,14 +208,11 @@ class PropulsionModel:
         self.engine_thrust_N = new
         return new
 
-    def _rcs_step(self, torque_cmd_B_Nm: np.ndarray, step_index: int, dt_ns: int) -> np.ndarray:
-        """RCS torque over physics step ``step_index`` (3,) [N m]: continuous, or the PWM window's pulses."""
-        tx, ty, tz = self.clamp_torque(torque_cmd_B_Nm).tolist()
-        return np.array(self._rcs_step_xyz(tx, ty, tz, step_index, dt_ns))
-
     def _rcs_step_xyz(self, tx: float, ty: float, tz: float, step_index: int,
                       dt_ns: int) -> tuple[float, float, float]:
-        """:meth:`_rcs_step` on floats: the saturated command's axes ``tx, ty, tz`` [N m] in, the torque out.
+        """RCS torque over physics step ``step_index`` [N m] per body axis: continuous, or the PWM window's pulses.
+
+        The saturated command's axes ``tx, ty, tz`` [N m] in, the delivered torque's out.
 
         Per axis, the same operations in the same order as on (3,) arrays (``np.clip``, ``np.sign``,
         ``np.abs``), so the result is bit for bit the array form's (tests/test_hot_paths.py).
@@ -252,7 +246,7 @@ class PropulsionModel:
                 s_z * tau_max * _clip((on_z - elapsed_s) / dt_s, 0.0, 1.0))
 
     def _rcs_faulted_xyz(self, tx: float, ty: float, tz: float) -> tuple[float, float, float]:
-        """:meth:`_rcs_faulted` on floats (bit for bit the same)."""
+        """The delivered torque under the RCS faults, per body axis [N m] (the array form's operations, bit for bit)."""
         fault = self._rcs_fault_xyz
         if fault is None:
             return tx, ty, tz

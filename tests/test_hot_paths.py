@@ -82,10 +82,16 @@ class _ArrayPropulsion(PropulsionModel):
         self._ref_sign = np.zeros(3)
         self._ref_carry = np.zeros(3)
 
+    def set_rcs_fault(self, fault):
+        super().set_rcs_fault(fault)  # the new path's floats; the reference keeps its own arrays, as before
+        self._ref_fault = None if fault is None else (
+            np.asarray(fault[0], float), np.asarray(fault[1], float),
+            np.asarray(fault[2], float) * float(self.cfg.rcs_torque_max_Nm))
+
     def _ref_rcs_faulted(self, torque_B_Nm: np.ndarray) -> np.ndarray:
-        if self._rcs_fault is None:
+        if getattr(self, "_ref_fault", None) is None:
             return torque_B_Nm
-        pos, neg, stuck = self._rcs_fault
+        pos, neg, stuck = self._ref_fault
         return np.where(torque_B_Nm > 0.0, torque_B_Nm * pos, torque_B_Nm * neg) + stuck
 
     def _ref_rcs_step(self, torque_cmd_B_Nm: np.ndarray, step_index: int, dt_ns: int) -> np.ndarray:

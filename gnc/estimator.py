@@ -42,7 +42,11 @@ Gauss-Markov process of 1-sigma ``view_ground_sigma_m`` that decorrelates over
 slope of the ground the camera tracks (a Gauss-Markov process over the travel, of 1-sigma
 :func:`view_slope_sigma` at the camera's height). The relief's 1-sigma (terrain and viewed ground) follows
 the onboard site map (:func:`relief_scale`): the landing site, cleared of craters and boulders, is about
-4x smoother than the terrain around it. L is the landing frame (origin at the target on the
+4x smoother than the terrain around it. With map fixes (``make_estimator(map_bias_sigma_m=...)``) two more
+states follow, ``b_map`` (2) [m]: the error common to consecutive map fixes (the same ground seen under slowly
+changing views), a Gauss-Markov process that :class:`gnc.map_nav.MapNavigator` steps before each fix
+(:meth:`NavFilter.step_map_bias`) and that each fix measures with the position; without it, fixes that share an
+error would be averaged as if independent. L is the landing frame (origin at the target on the
 surface, x east, y north, z up, gravity ``g_L = [0, 0, -g]``); B is the body frame.
 
 Model:
@@ -170,6 +174,9 @@ IDX_BF = slice(17, 19)  # slowly varying bias of the vision flow measurement
 IDX_G = 19  # mean height of the ground the camera tracks, relative to the target's elevation
 IDX_S = slice(20, 22)  # slope of the terrain at the altimeter footprint, (dh/dx, dh/dy) [-]
 IDX_SV = slice(22, 24)  # slope of the ground the camera tracks, (dh/dx, dh/dy) [-]
+# Only in a filter made with a map bias (``nav_map = "on"``, :func:`make_estimator`): the error common to
+# consecutive map fixes, in the map frame (2) [m], appended after the 24 states above.
+IDX_MB = slice(24, 26)
 _IDX_TERRAIN = np.array([IDX_H, *range(IDX_S.start, IDX_S.stop)])  # the terrain's height and slope, stepped together
 _IX_TERRAIN = np.ix_(_IDX_TERRAIN, _IDX_TERRAIN)
 # Vision's consider states: the vertical channel (height, vertical velocity and accelerometer bias,
@@ -428,7 +435,7 @@ class NavFilter:
     Attributes:
         cfg: The validated configuration.
         ekf: The filterpy :class:`~filterpy.kalman.ExtendedKalmanFilter` holding
-            ``x`` (24,) and ``P`` (24, 24).
+            ``x`` (n,) and ``P`` (n, n): n = 24, or 26 with the map fixes' common error (``dim_x``).
         log: One :class:`UpdateRecord` per measurement update, in call order.
         counters: Per input (``imu``, ``attitude``, ``altimeter``, ``velocity``),
             counts of used / accepted / rejected / invalid / skipped / stale messages.
@@ -440,7 +447,8 @@ class NavFilter:
                  q0_LB: Quat | None, altimeter_mount_B_m: np.ndarray, gyro_delta_angle: bool = False) -> None:
         """Use :func:`make_estimator`; this constructor does not validate its inputs."""
         self.cfg = cfg
-        ekf = ExtendedKalmanFilter(dim_x=DIM_X, dim_z=1, dim_u=3)
+        n = self.dim_x = int(x0.shape[0])  # DIM_X, or DIM_X + 2 with the map bias
+        ekf = ExtendedKalmanFilter(dim_x=n, dim_z=1, dim_u=3)
         ekf.x = x0.copy()
         ekf.P = P0.copy()
         self.ekf = ekf
@@ -477,12 +485,12 @@ class NavFilter:
 
         # Per-step matrices, rebuilt only when the IMU period changes.
         self._dt_ns = -1
-        self._F = np.eye(DIM_X)
-        self._Q = np.zeros((DIM_X, DIM_X))
+        self._F = np.eye(n)
+        self._Q = np.zeros((n, n))
         self._Q_shape = np.zeros((6, 6))
-        self._H_vel = np.zeros((3, DIM_X))
+        self._H_vel = np.zeros((3, n))
         self._H_vel[:, IDX_V] = np.eye(3)
-        self._T_terrain = np.eye(DIM_X)  # the terrain step's transition (_linear_step writes its block)
+        self._T_terrain = np.eye(n)  # the terrain step's transition (_linear_step writes its block)
 
     # ------------------------------------------------------------------ properties
     @property
@@ -575,14 +583,14 @@ class NavFilter:
         eye3 = np.eye(3)
         self._F[IDX_R, IDX_V] = dt * eye3
         self._bias_coupling = np.repeat([-0.5 * dt * dt, -dt], 3)[:, None]  # (6, 1): rows (r, v) of d/d(b_a), per R_LB
-        self.ekf.B = np.vstack([0.5 * dt * dt * eye3, dt * eye3, np.zeros((DIM_X - 6, 3))])
+        self.ekf.B = np.vstack([0.5 * dt * dt * eye3, dt * eye3, np.zeros((self.dim_x - 6, 3))])
         # Acceleration noise held over one step, per unit PSD: dv = n dt, dr = n dt^2/2, var(n) = PSD/dt.
-        shape = np.zeros((DIM_X, DIM_X))
+        shape = np.zeros((self.dim_x, self.dim_x))
         shape[IDX_R, IDX_R] = 0.25 * dt**3 * eye3
         shape[IDX_R, IDX_V] = shape[IDX_V, IDX_R] = 0.5 * dt**2 * eye3
         shape[IDX_V, IDX_V] = dt * eye3
         self._Q_shape = shape[:6, :6].copy()  # it is zero outside the position / velocity block
-        q = np.zeros((DIM_X, DIM_X))
+        q = np.zeros((self.dim_x, self.dim_x))
         q[IDX_BA, IDX_BA] = self.cfg.accel_bias_walk**2 * dt * eye3
         self._Q = q  # the step's Q; its position / velocity block is set per sample (propagate_imu)
         self._dt_ns = dt_ns
@@ -708,7 +716,7 @@ class NavFilter:
                 P0 = ekf.P
                 K = np.linalg.solve(S, H @ P0).T  # P H^T S^-1 (S and P symmetric)
                 K[consider, :] = 0.0
-                ikh = np.eye(DIM_X) - K @ H
+                ikh = np.eye(self.dim_x) - K @ H
                 ekf.x = ekf.x + K @ y
                 ekf.P = ikh @ P0 @ ikh.T + K @ R @ K.T
             P = ekf.P
@@ -797,7 +805,7 @@ class NavFilter:
             prior = (x, P)
         height = p_alt_L[2] + x[IDX_VZ] * lag_s - x[IDX_H]  # altimeter height above the ground [m]
         rho_hat = height / cos_nadir
-        H = np.zeros((1, DIM_X))
+        H = np.zeros((1, self.dim_x))
         H[0, IDX_RZ] = 1.0 / cos_nadir
         H[0, IDX_VZ] = lag_s / cos_nadir
         H[0, IDX_H] = -1.0 / cos_nadir
@@ -905,10 +913,30 @@ class NavFilter:
             return checked
         R, lag_ns = checked
         x = self.ekf.x
-        hx = x[0:2] + x[3:5] * (lag_ns / NS_PER_S) + np.asarray(lever_xy_m, dtype=float)
-        H = np.zeros((2, DIM_X))
+        lag_s = lag_ns / NS_PER_S
+        hx = x[0:2] + x[3:5] * lag_s + np.asarray(lever_xy_m, dtype=float)
+        H = np.zeros((2, self.dim_x))
         H[0, 0] = H[1, 1] = 1.0
+        if self.has_map_bias:  # z = r + v lag + lever + b_map + w
+            hx = hx + x[IDX_MB]
+            H[:, IDX_MB] = np.eye(2)
         return self._gated_update(int(t_ns), KIND_MAP, z, hx, H, R)
+
+    @property
+    def has_map_bias(self) -> bool:
+        """Whether the filter carries the map fixes' common error ``b_map`` (states ``IDX_MB``)."""
+        return self.dim_x > DIM_X
+
+    def step_map_bias(self, phi: float, sigma_m: float, scale: float = 1.0) -> None:
+        """Carry ``b_map`` to the next map fix: a first-order Gauss-Markov step, in place.
+
+        ``b <- scale phi b`` with process noise ``sigma_m^2 (1 - phi^2)`` per axis (see :func:`_decay`):
+        ``phi`` the correlation between consecutive fixes' common errors, ``sigma_m`` its stationary
+        1-sigma now [m], ``scale`` the ratio of that 1-sigma to the one it was last carried at.
+        """
+        if not self.has_map_bias:
+            raise ValueError("step_map_bias: this filter has no map bias (make_estimator(map_bias_sigma_m=...))")
+        _decay(self.ekf.x, self.ekf.P, IDX_MB, phi, sigma_m, scale)
 
     def clone_frame(self, t_ns: int) -> bool:
         """Clone the state of a camera frame at ``t_ns``: its position and its image offset.
@@ -1052,7 +1080,7 @@ class NavFilter:
         if isinstance(checked, UpdateRecord):
             return checked
         R, lag_ns = checked
-        H = np.zeros((m, DIM_X))
+        H = np.zeros((m, self.dim_x))
         H[:, IDX_R] = H_r
         H[:, IDX_V] = H_r * (lag_ns / NS_PER_S)
         H[:, IDX_C] = H_c
@@ -1119,7 +1147,7 @@ class NavFilter:
         if isinstance(checked, UpdateRecord):
             return checked
         Rm, lag_ns = checked
-        H = np.zeros((1, DIM_X))
+        H = np.zeros((1, self.dim_x))
         H[0, IDX_R] = H_r
         H[0, IDX_V] = H_r * (lag_ns / NS_PER_S)
         H[0, IDX_C] = H_c
@@ -1422,6 +1450,7 @@ def make_estimator(
     *,
     altimeter_mount_B_m: Any,
     gyro_delta_angle: bool = False,
+    map_bias_sigma_m: float | None = None,
 ) -> NavFilter:
     """Validate the config and the initial state, and build the filter.
 
@@ -1437,6 +1466,9 @@ def make_estimator(
         gyro_delta_angle: The IMU is an integrating one: each gyro sample is the delta-angle
             over its interval divided by the interval (the rotation is that mean rate held),
             not the rate at the sample time (integrated with the trapezoid of two samples).
+        map_bias_sigma_m: With map fixes (``nav_map = "on"``): the initial 1-sigma per axis [m] of their
+            common error ``b_map``, two more states (``IDX_MB``) that :meth:`NavFilter.update_map_position`
+            measures with the position; None (the default): the 24 states alone.
 
     Returns:
         The filter, with zero bias and terrain estimates and the config's initial covariance.
@@ -1461,5 +1493,10 @@ def make_estimator(
         q0 = tuple(float(v) for v in q / norm)  # type: ignore[assignment]
     mount = _vec3(altimeter_mount_B_m, "altimeter_mount_B_m")
     x0 = np.concatenate([r0, v0, np.zeros(4), r0, np.zeros(11)])
-    return NavFilter(c, x0, initial_covariance(c, float(r0[2]), r0[:2]), int(t0_ns), q0, mount,
-                     gyro_delta_angle=gyro_delta_angle)
+    P0 = initial_covariance(c, float(r0[2]), r0[:2])
+    if map_bias_sigma_m is not None:  # the map fixes' common error: two more states, zero mean, independent
+        if not (math.isfinite(map_bias_sigma_m) and map_bias_sigma_m > 0.0):
+            raise ValueError(f"map_bias_sigma_m = {map_bias_sigma_m!r}: expected a finite 1-sigma > 0 [m]")
+        x0 = np.concatenate([x0, np.zeros(2)])
+        P0 = np.block([[P0, np.zeros((DIM_X, 2))], [np.zeros((2, DIM_X)), np.eye(2) * map_bias_sigma_m**2]])
+    return NavFilter(c, x0, P0, int(t0_ns), q0, mount, gyro_delta_angle=gyro_delta_angle)

@@ -162,12 +162,24 @@ class MapFixConfig(BaseModel):
     min_patch_std_dn: float = Field(2.0, ge=0.0, description="smallest DN standard deviation of a patch (texture) [DN]")
     outlier_mad_k: float = Field(3.0, gt=0.0, description="reject patches beyond this many robust sigmas [-]")
     min_inliers: int = Field(12, ge=4, description="fewest inlier patches for a fix [-]")
-    subpixel_floor_px: float = Field(0.05, ge=0.0, description="floor of the fix's 1-sigma per axis [work px]")
+    subpixel_floor_px: float = Field(
+        0.05, ge=0.0, description="floor of the 1-sigma per axis of the fix's error independent from fix to fix [work px]"
+    )
+    outlier_floor_px: float = Field(
+        0.05, gt=0.0, description="floor of the robust sigma that patches are rejected against [work px]"
+    )
     common_mode_sigma_px: float = Field(
-        0.25, ge=0.0,
-        description="error common to all patches that their scatter cannot show (the frame's and the map's "
-                    "different illumination, the map's blur), 1-sigma per axis [work px]; a budget, to be "
-                    "calibrated in closed-loop campaigns",
+        0.025, ge=0.0,
+        description="floor of the error common to all patches that their scatter cannot show (the frame's and "
+                    "the map's different illumination and blur), 1-sigma per axis [work px]; it is common to "
+                    "consecutive fixes too, so the filter carries it as a state (MapNavConfig.common_time_s), "
+                    "not as white noise; calibrated in closed-loop campaigns (README, issue 14)",
+    )
+    common_peak_gain: float = Field(
+        0.2, ge=0.0,
+        description="the common error grows as the frame looks less like the map: this gain times "
+                    "((1 - peak) / peak)^2 work px, peak the coarse correlation peak, 1-sigma per axis [-]; "
+                    "calibrated in closed-loop campaigns (README, issue 14)",
     )
 
 
@@ -179,7 +191,9 @@ class MapFix:
         ok: Whether the fix was accepted.
         reason: Why it was refused ("" when accepted).
         r_CM_xy_m: Measured horizontal camera position in the map frame M (2,) [m] (NaN when refused).
-        cov_xy_m2: Its covariance (2, 2) [m^2] (NaN when refused).
+        cov_xy_m2: The covariance of its error independent from fix to fix (2, 2) [m^2] (NaN when refused).
+        common_sigma_m: 1-sigma per axis of its error common to consecutive fixes [m] (the filter's ``b_map``;
+            NaN when refused). The fix's whole error covariance is ``cov_xy_m2 + common_sigma_m^2 I``.
         offset_xy_m: Measured minus estimated camera position (2,) [m] (NaN when the coarse peak was refused).
         psr: Peak-to-sidelobe ratio of the coarse peak [-].
         sidelobe_ratio: Highest sidelobe over the coarse peak [-].
@@ -201,6 +215,12 @@ class MapFix:
     n_inliers: int = 0
     scale: float = float("nan")
     work_res_m: float = float("nan")
+    common_sigma_m: float = float("nan")
+
+    @property
+    def total_cov_xy_m2(self) -> np.ndarray:
+        """The fix's whole error covariance (2, 2) [m^2]: the independent part plus the common part."""
+        return self.cov_xy_m2 + np.eye(2) * self.common_sigma_m**2
 
 
 def _nan2() -> np.ndarray:
@@ -421,7 +441,7 @@ class MapMatcher:
             sol = np.linalg.lstsq(A, d[keep].ravel(), rcond=None)[0]
             resid = d - sol[:2] - sol[2] * rel
             rn = np.hypot(resid[:, 0], resid[:, 1])
-            sig = max(MAD_TO_SIGMA * float(np.median(rn[keep])), cfg.subpixel_floor_px * res)
+            sig = max(MAD_TO_SIGMA * float(np.median(rn[keep])), cfg.outlier_floor_px * res)
             new = rn <= cfg.outlier_mad_k * sig
             if np.array_equal(new, keep) or new.sum() < cfg.min_inliers:
                 break
@@ -443,12 +463,17 @@ class MapMatcher:
                     pairs += 1
         rho = np.clip(prod / (pairs * np.maximum(var, 1e-18)), 0.0, 0.95) if pairs else np.zeros(2)
         vif = 1.0 + 2.0 * rho * pairs / n_in
-        var_t = var * vif / n_in + (cfg.subpixel_floor_px * res) ** 2 + (cfg.common_mode_sigma_px * res) ** 2
+        var_t = var * vif / n_in + (cfg.subpixel_floor_px * res) ** 2
         # Attitude error moves the whole ortho image by height * angle; map DEM error by its view angle.
         tan_view = float(np.mean(np.hypot(rel[keep, 0], rel[keep, 1]))) / height
         var_t = var_t + (sigma_att_rad * height) ** 2 + (m.dem_sigma_m * tan_view) ** 2 * vif / n_in
+        # The part common to every patch, and to consecutive frames (the same ground under slowly changing
+        # views): a floor, plus a part that grows as the frame looks less like the map (another sun, a blurrier
+        # frame), read from the coarse correlation peak.
+        dissimilar = (1.0 - peak) / peak
+        common = res * math.hypot(cfg.common_mode_sigma_px, cfg.common_peak_gain * dissimilar * dissimilar)
         return MapFix(True, "", r_C[:2] + t, np.diag(var_t), t, n_patches=n_patches, n_inliers=n_in,
-                      scale=scale, **diag)
+                      scale=scale, common_sigma_m=common, **diag)
 
 
 # ------------------------------------------------------------------ map navigation in flight
@@ -484,6 +509,10 @@ class MapNavConfig(BaseModel):
     )
     acquire_max_sigmas: float = Field(
         6.0, gt=0.0, le=10.0, description="widest coarse search window before the first lock [sigma of the prior]"
+    )
+    common_time_s: float = Field(
+        5.0, gt=0.0,
+        description="correlation time of the fixes' common error (the filter's Gauss-Markov state b_map) [s]",
     )
     fix: MapFixConfig = MapFixConfig()
 
@@ -526,6 +555,12 @@ class MapNavigator:
     filter's estimate differ by at most ``confirm_sigmas`` of the difference's sigma): one
     fix alone may be a false lock. Once locked, every fix goes to the filter's gate.
 
+    The fix's error common to consecutive fixes (:attr:`MapFix.common_sigma_m`) is the filter's
+    ``b_map`` state when it has one (``NavFilter.has_map_bias``): before each update it is carried
+    from the last fix as a Gauss-Markov process of correlation time ``common_time_s`` at this fix's
+    1-sigma, and the update's noise is the independent part alone. A filter without the state
+    takes the whole covariance as this fix's noise.
+
     Acquisition: a hand-over error beyond the window's ``search_sigmas`` (a 3-sigma window
     misses about one case in a hundred) would leave every fix refused and the lander flying
     on its hand-over error to touchdown. So, before the first lock, every
@@ -551,7 +586,10 @@ class MapNavigator:
         self.r_cam_B = np.asarray(r_cam_B_m, float)
         self.stats = MapNavStats()
         self._last_t_ns: int | None = None
-        self._pending: tuple[np.ndarray, np.ndarray] | None = None  # (offset, covariance) awaiting confirmation
+        # (t_ns, offset, independent covariance, common 1-sigma) of a first fix awaiting confirmation
+        self._pending: tuple[int, np.ndarray, np.ndarray, float] | None = None
+        self._bias_t_ns: int | None = None  # time the filter's b_map was last carried to (None: not yet)
+        self._bias_sigma_m = 0.0  # the 1-sigma it was carried at [m]
         self._window_refusals = 0  # window refusals before the first lock
 
     def _window_scale(self) -> float:
@@ -604,13 +642,18 @@ class MapNavigator:
             self.stats.log.append((t_ns, fix, False, None))
             return fix
         if not self.stats.locked:
-            pending, self._pending = self._pending, (fix.offset_xy_m.copy(), fix.cov_xy_m2.copy())
+            pending = self._pending
+            self._pending = (t_ns, fix.offset_xy_m.copy(), fix.cov_xy_m2.copy(), fix.common_sigma_m)
             if pending is None:
                 self.stats.unconfirmed += 1
                 self.stats.log.append((t_ns, fix, False, None))
                 return fix
-            d = fix.offset_xy_m - pending[0]
-            S = fix.cov_xy_m2 + pending[1] + np.eye(2) * self.cfg.confirm_drift_m**2
+            d = fix.offset_xy_m - pending[1]
+            # The common error's change between the two (Gauss-Markov: 2 sigma^2 (1 - phi)), each's own error,
+            # and the filter's drift.
+            phi = math.exp(-(t_ns - pending[0]) / NS_PER_S / self.cfg.common_time_s)
+            common_var = 2.0 * (1.0 - phi) * max(fix.common_sigma_m, pending[3]) ** 2
+            S = fix.cov_xy_m2 + pending[2] + np.eye(2) * (self.cfg.confirm_drift_m**2 + common_var)
             if not float(d @ np.linalg.solve(S, d)) <= self.cfg.confirm_sigmas**2:
                 self.stats.unconfirmed += 1
                 self.stats.log.append((t_ns, fix, False, None))
@@ -618,7 +661,20 @@ class MapNavigator:
             self.stats.locked = True
             if scale > 1.0:  # found only in a widened window: the prior was off by more than it knew
                 nav_filter.inflate_horizontal_position(scale)
-        rec = nav_filter.update_map_position(t_ns, fix.r_CM_xy_m, fix.cov_xy_m2, lever[:2])
+        if nav_filter.has_map_bias:
+            # Carry b_map to this fix: correlated with the last fix's over common_time_s, at this fix's 1-sigma
+            # (reset at the first update, or when the flight software restarted).
+            sigma_c = fix.common_sigma_m
+            if self._bias_t_ns is None:
+                nav_filter.step_map_bias(0.0, sigma_c)
+            else:
+                phi = math.exp(-(t_ns - self._bias_t_ns) / NS_PER_S / self.cfg.common_time_s)
+                nav_filter.step_map_bias(phi, sigma_c, sigma_c / self._bias_sigma_m if self._bias_sigma_m > 0 else 1.0)
+            self._bias_t_ns, self._bias_sigma_m = t_ns, sigma_c
+            R = fix.cov_xy_m2
+        else:  # a filter without the state takes the common part as noise of this fix alone
+            R = fix.total_cov_xy_m2
+        rec = nav_filter.update_map_position(t_ns, fix.r_CM_xy_m, R, lever[:2])
         self.stats.updates += 1
         self.stats.gate_rejected += int(not rec.accepted)
         self.stats.log.append((t_ns, fix, True, bool(rec.accepted)))

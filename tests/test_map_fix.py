@@ -77,12 +77,12 @@ def test_map_fix_covariance_matches_its_errors(onboard):
         r_true = np.array([xy[0], xy[1], float(onboard.dem_height(*xy)) + rng.uniform(100.0, 160.0)])
         R_LC = attitude(*rng.uniform(-5.0, 5.0, 2), rng.uniform(0.0, 360.0))
         frame = render_frame(onboard, r_true, R_LC, rng)
-        fix = MapMatcher(onboard, MapFixConfig(common_mode_sigma_px=0.0)).fix(
-            frame, K, R_LC, r_true + np.r_[rng.normal(0.0, 4.0, 2), 0.0], 5.0)
+        fix = MapMatcher(onboard).fix(frame, K, R_LC, r_true + np.r_[rng.normal(0.0, 4.0, 2), 0.0], 5.0)
         assert fix.ok, fix.reason
         e = fix.r_CM_xy_m - r_true[:2]
         errs.append(e)
-        nees.append(float(e @ np.linalg.solve(fix.cov_xy_m2, e)))
+        # The whole error model: the part independent from fix to fix and the common part.
+        nees.append(float(e @ np.linalg.solve(fix.total_cov_xy_m2, e)))
     # 2 degrees of freedom: mean NEES 2 when the covariance is right; not wildly optimistic nor useless.
     assert 0.3 < np.mean(nees) < 6.0, (np.mean(nees), np.sqrt(np.mean(np.square(errs), axis=0)))
 
@@ -174,3 +174,22 @@ def test_descent_sun_unlike_the_maps_gives_fixes_within_a_metre_or_refusals(sun,
             errors.append(float(np.hypot(*(fix.r_CM_xy_m - r_true[:2]))))
     assert len(errors) >= min_accepted
     assert max(errors, default=0.0) < 1.5, errors
+
+
+def test_common_error_of_a_fix_grows_as_the_frame_looks_less_like_the_map(onboard):
+    # The fix's common error: the floor plus the gain times ((1 - peak) / peak)^2, in work pixels.
+    cfg = MapFixConfig()
+    r_true = np.array([0.0, 0.0, float(onboard.dem_height(0.0, 0.0)) + 150.0])
+    frame = render_frame(onboard, r_true, attitude(), np.random.default_rng(4))
+    offset = np.array([3.0, -2.0, 0.0])
+    fix = MapMatcher(onboard, cfg).fix(frame, K, attitude(), r_true + offset, 5.0)
+    assert fix.ok, fix.reason
+    q = ((1.0 - fix.peak) / fix.peak) ** 2
+    expected = fix.work_res_m * math.sqrt(cfg.common_mode_sigma_px**2 + (cfg.common_peak_gain * q) ** 2)
+    assert fix.common_sigma_m == pytest.approx(expected, rel=1e-12)
+    np.testing.assert_allclose(fix.total_cov_xy_m2, fix.cov_xy_m2 + np.eye(2) * expected**2, rtol=1e-12)
+    # The same ground in a noisier, lower-contrast frame correlates worse with the map: a larger common error.
+    dim = np.clip(0.5 * frame.astype(float) + 60.0 + np.random.default_rng(9).normal(0.0, 6.0, frame.shape),
+                  0, 255).astype(np.uint8)
+    worse = MapMatcher(onboard, cfg).fix(dim, K, attitude(), r_true + offset, 5.0)
+    assert worse.ok and worse.peak < fix.peak and worse.common_sigma_m > fix.common_sigma_m

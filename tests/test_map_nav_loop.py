@@ -184,3 +184,85 @@ def test_default_landing_with_map_navigation_lands_on_the_map_target():
     want = math.hypot(tel["nav_err_r_x_m"][k], tel["nav_err_r_y_m"][k])
     assert m["nav_err_map_frame_50m_m"] == pytest.approx(want, rel=1e-12)
     assert m["nav_err_map_frame_50m_xy_m"] == pytest.approx([tel["nav_err_r_x_m"][k], tel["nav_err_r_y_m"][k]])
+
+
+def _filter_with_map_bias(r0, sigma_b):
+    f = make_estimator(None, r0, np.zeros(3), 0, altimeter_mount_B_m=np.zeros(3), map_bias_sigma_m=sigma_b)
+    f.set_attitude(AttitudeMessage(0, np.array([1.0, 0.0, 0.0, 0.0])))
+    return f
+
+
+def test_map_update_with_the_common_error_state_is_the_augmented_kalman_update():
+    plain = _filter(np.array([10.0, -5.0, 300.0]), [1.0, 0.0, 0.0, 0.0])
+    f = _filter_with_map_bias(np.array([10.0, -5.0, 300.0]), 0.7)
+    assert not plain.has_map_bias and plain.x.size == 24  # the switch off: the filter is as it was
+    assert f.has_map_bias and f.x.size == 26
+    np.testing.assert_array_equal(f.P[:24, :24], plain.P)
+    np.testing.assert_array_equal(f.P[24:, 24:], np.eye(2) * 0.7**2)
+    assert not f.P[24:, :24].any() and not f.x[24:].any()
+    # A correlated state first (as after other updates), then the map update against the textbook one:
+    # z = r_xy + lever + b_map + w, H picking the horizontal position and the common error.
+    rng = np.random.default_rng(2)
+    A = rng.normal(size=(26, 26)) * 0.05
+    f.ekf.P = f.P + A @ A.T
+    f.ekf.x = f.x + rng.normal(size=26) * 0.1
+    x0, P0 = f.x, f.P
+    lever = np.array([0.4, -0.1])
+    R = np.array([[0.05, 0.01], [0.01, 0.03]])
+    z = x0[:2] + lever + x0[24:] + np.array([0.8, -0.5])
+    rec = f.update_map_position(0, z, R, lever)
+    assert rec.accepted
+    H = np.zeros((2, 26))
+    H[:, 0:2] = np.eye(2)
+    H[:, 24:26] = np.eye(2)
+    S = H @ P0 @ H.T + R
+    Kg = P0 @ H.T @ np.linalg.inv(S)
+    y = z - (x0[:2] + lever + x0[24:])
+    np.testing.assert_allclose(f.x, x0 + Kg @ y, atol=1e-9)
+    np.testing.assert_allclose(f.P, (np.eye(26) - Kg @ H) @ P0, atol=1e-8)
+    assert rec.nis == pytest.approx(float(y @ np.linalg.solve(S, y)))
+
+
+def test_map_bias_step_is_a_gauss_markov_step():
+    f = _filter_with_map_bias(np.array([0.0, 0.0, 300.0]), 0.5)
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(26, 26)) * 0.1
+    f.ekf.P = f.P + A @ A.T
+    f.ekf.x = rng.normal(size=26)
+    x0, P0 = f.x, f.P
+    phi, sigma, scale = 0.8, 0.3, 0.6
+    f.step_map_bias(phi, sigma, scale)
+    a = phi * scale
+    x1, P1 = x0.copy(), P0.copy()
+    for i in (24, 25):  # explicit: b <- a b; its rows and columns times a; stationary noise sigma^2 (1 - phi^2)
+        x1[i] *= a
+    for i in range(26):
+        for j in range(26):
+            P1[i, j] *= (a if i >= 24 else 1.0) * (a if j >= 24 else 1.0)
+    P1[24, 24] += sigma**2 * (1 - phi**2)
+    P1[25, 25] += sigma**2 * (1 - phi**2)
+    np.testing.assert_allclose(f.x, x1, rtol=1e-14)
+    np.testing.assert_allclose(f.P, P1, rtol=1e-13)
+    with pytest.raises(ValueError, match="no map bias"):
+        _filter(np.zeros(3) + 300.0, [1.0, 0.0, 0.0, 0.0]).step_map_bias(phi, sigma)
+
+
+def test_a_common_fix_error_is_not_averaged_down():
+    # N fixes sharing one error b (phi = 1) and each its own w: they tell r + b to sigma_w^2 / N, so r's
+    # variance cannot fall below what b leaves: sigma0^2 v / (sigma0^2 + v), v = sigma_b^2 + sigma_w^2 / N
+    # (a Gaussian prior N(r0, sigma0^2) and the sufficient statistic, the mean fix). Taken as white noise of
+    # variance sigma_b^2 + sigma_w^2 per fix, the same fixes would claim (sigma_b^2 + sigma_w^2) / N.
+    sigma0, sigma_b, sigma_w, n = 20.0, 0.4, 0.2, 25
+    f = _filter_with_map_bias(np.array([0.0, 0.0, 300.0]), 1.0)
+    white = _filter(np.array([0.0, 0.0, 300.0]), [1.0, 0.0, 0.0, 0.0])
+    f.step_map_bias(0.0, sigma_b)
+    for k in range(n):
+        f.step_map_bias(1.0, sigma_b)
+        assert f.update_map_position(0, np.zeros(2), np.eye(2) * sigma_w**2, np.zeros(2)).accepted
+        assert white.update_map_position(0, np.zeros(2), np.eye(2) * (sigma_b**2 + sigma_w**2), np.zeros(2)).accepted
+    v = sigma_b**2 + sigma_w**2 / n
+    assert f.P[0, 0] == pytest.approx(sigma0**2 * v / (sigma0**2 + v), rel=1e-9)
+    assert f.P[1, 1] == pytest.approx(sigma0**2 * v / (sigma0**2 + v), rel=1e-9)
+    vw = (sigma_b**2 + sigma_w**2) / n
+    assert white.P[0, 0] == pytest.approx(sigma0**2 * vw / (sigma0**2 + vw), rel=1e-9)
+    assert white.P[0, 0] < 0.25 * f.P[0, 0]  # the white model claims four times the information it has

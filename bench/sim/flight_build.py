@@ -108,9 +108,11 @@ def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.nda
     limits = dataclasses.replace(controller.guidance_limits(), isp_s=knowledge.isp_s)  # G-FOLD models the mass flow
     guidance = make_guidance(scenario.guidance, limits)
     # The realistic vehicle's IMU integrates (delta-velocity and delta-angle); the ideal one point-samples.
+    # With map fixes the filter carries their common error b_map (its 1-sigma is set at the first fix).
     nav_filter = make_estimator(scenario.estimator, x0_r_L, x0_v_L, int(t0_ns), q0_LB,
                                 altimeter_mount_B_m=knowledge.r_alt_B_m,
-                                gyro_delta_angle=scenario.realism == "realistic")
+                                gyro_delta_angle=scenario.realism == "realistic",
+                                map_bias_sigma_m=1.0 if scenario.nav_map == "on" else None)
     tracker = Tracker(scenario.tracker) if scenario.tracks == "vision" and scenario.vision == "on" else None
     map_nav = None
     if scenario.nav_map == "on":

@@ -476,7 +476,7 @@ def _map_nav_summary(fsw: FlightSoftware, map_truth: Any, truth_log: list[tuple[
             continue
         e = fix.r_CM_xy_m - (truth_at[t_ns][:2] + shift)
         errs.append(float(np.hypot(*e)))
-        n = float(e @ np.linalg.solve(fix.cov_xy_m2, e))
+        n = float(e @ np.linalg.solve(fix.total_cov_xy_m2, e))
         nis.append(n)
         if n > MAP_FALSE_LOCK_NIS:
             false_locks += 1

@@ -361,3 +361,170 @@ def test_ssd_maps_rows_equal_ssd_maps_and_an_explicit_loop(n_t, wy, wx, ry, rx):
         np.testing.assert_array_equal(got[t], _ssd_map_reference(windows[t], templates[t]))
     # Zero padding leaves the template's centred energy as it is.
     np.testing.assert_array_equal(centred_energy(tpl_rows, wy * wx), centred_energy(templates))
+
+
+# ------------------------------------------- trk-256: seeds, refills, blend
+def _preferred_reference(variance, n, sx, sy, size, shape, border, sep, min_var, occupied, preferred):
+    """The greedy of §2.3 with a preference, written out: the preferred
+    candidates first (greedy among them), then the others, the separation
+    applying to everything chosen."""
+    height, width = shape
+    cand = [(v, u) for v in range(variance.shape[0]) for u in range(variance.shape[1])
+            if not (u * sx < border or v * sy < border or u * sx + size > width - border
+                    or v * sy + size > height - border) and variance[v, u] > min_var]
+    centre = {c: (c[1] * sx + 0.5 * (size - 1), c[0] * sy + 0.5 * (size - 1)) for c in cand}
+    taken = [tuple(o) for o in occupied]
+    chosen = []
+    for group in (True, False):
+        while len(chosen) < n:
+            best = None
+            for c in cand:  # raster order: the first of equal variances wins
+                if bool(preferred[c]) != group:
+                    continue
+                cx, cy = centre[c]
+                if any((cx - ox) ** 2 + (cy - oy) ** 2 < sep * sep for ox, oy in taken):
+                    continue
+                if best is None or variance[c] > variance[best]:
+                    best = c
+            if best is None:
+                break
+            chosen.append([best[1] * sx, best[0] * sy])
+            taken.append(centre[best])
+    return chosen
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_select_templates_with_a_preference_equals_the_greedy_written_out(seed):
+    from vision.fixation import select_templates
+
+    rng = np.random.default_rng(100 + seed)
+    sx, sy = (5, 5) if seed % 2 else (4, 3)
+    size = int(np.lcm(sx, sy)) * 2
+    shape = (int(rng.integers(120, 200)), int(rng.integers(120, 200)))
+    var = rng.integers(0, 6, (shape[0] // sy - size // sy + 1, shape[1] // sx - size // sx + 1)).astype(np.float64)
+    sep = float(rng.uniform(0.0, 60.0))
+    occ = rng.uniform(0, 200, (int(rng.integers(0, 5)), 2))
+    n = int(rng.integers(1, 12))
+    pref = rng.random(var.shape) < (0.0 if seed == 0 else 1.0 if seed == 1 else 0.4)
+    got = select_templates(var, n, sx, sy, (size, size), shape, 9, sep, 1.0, occupied_xy=occ, preferred=pref)
+    ref = _preferred_reference(var, n, sx, sy, size, shape, 9, sep, 1.0, occ.tolist(), pref)
+    assert got.tolist() == ref
+    if seed == 1:  # all preferred: the paper's selection unchanged
+        assert got.tolist() == select_templates(var, n, sx, sy, (size, size), shape, 9, sep, 1.0, occupied_xy=occ).tolist()
+
+
+def test_similarity_prediction_equals_least_squares_and_recovers_a_similarity():
+    from vision.tracker import similarity_prediction
+
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(20, 230, (7, 2))
+    disp = rng.normal(0.0, 2.0, (7, 2))
+    new = rng.uniform(20, 230, (3, 2))
+    # Reference: np.linalg.lstsq on d = t + [[a, -b], [b, a]] (x - m), unknowns (tx, ty, a, b).
+    m = xy.mean(axis=0)
+    rows, rhs = [], []
+    for (x, y), (dx, dy) in zip(xy - m, disp):
+        rows += [[1.0, 0.0, x, -y], [0.0, 1.0, y, x]]
+        rhs += [dx, dy]
+    tx, ty, a, b = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)[0]
+    r = new - m
+    ref = np.column_stack([tx + a * r[:, 0] - b * r[:, 1], ty + b * r[:, 0] + a * r[:, 1]])
+    np.testing.assert_allclose(similarity_prediction(xy, disp, new), ref, atol=1e-9)
+    # An exact zoom about the image centre plus a drift is recovered anywhere.
+    c, s, drift = np.array([127.5, 127.5]), 0.02, np.array([0.6, -2.1])
+    exact = drift + s * (xy - c)
+    np.testing.assert_allclose(similarity_prediction(xy, exact, new), drift + s * (new - c), atol=1e-9)
+    # Fallbacks: one template -> its displacement, none -> zero.
+    np.testing.assert_allclose(similarity_prediction(xy[:1], disp[:1], new), np.tile(disp[0], (3, 1)))
+    np.testing.assert_array_equal(similarity_prediction(xy[:0], disp[:0], new), np.zeros((3, 2)))
+
+
+def test_lasting_areas_equal_an_explicit_loop():
+    from vision import Tracker, TrackerConfig
+    from vision.tracker import similarity_prediction
+
+    cfg = TrackerConfig(template_lookahead_frames=6)
+    tr = Tracker(cfg)
+    tr.config_for((256, 256))
+    tr._tpl_xy = np.array([[30, 40], [150, 60], [100, 180], [190, 190]])
+    tr._tpl_sub = np.array([[-1.1, -2.4], [1.2, -2.9], [0.2, 0.7], [1.9, 1.3]])
+    got = tr._lasting_areas((256, 256), tr._cfg)
+    size, e = cfg.template_size, cfg.edge_margin_px
+    assert got.shape == (256 // 5 - size // 5 + 1, 256 // 5 - size // 5 + 1)
+    for v in range(got.shape[0]):
+        for u in range(got.shape[1]):
+            d = similarity_prediction(tr._tpl_xy.astype(float), tr._tpl_sub, np.array([[5.0 * u, 5.0 * v]]))[0]
+            x, y = 5 * u + 6 * d[0], 5 * v + 6 * d[1]
+            assert got[v, u] == (e <= x <= 256 - size - e and e <= y <= 256 - size - e), (u, v)
+    assert got.any() and not got.all()
+
+
+def test_forward_backward_blend_moves_back_by_a_fraction_of_the_round_trip():
+    rng = np.random.default_rng(8)
+    base = cv2.GaussianBlur(rng.random((80, 300)).astype(np.float32) * 255, (0, 0), 1.5)
+    prev = np.clip(base, 0, 255).astype(np.uint8)
+    cur = cv2.warpAffine(prev, np.float32([[1.02, 0, -1.0], [0, 1.02, -0.5]]), (300, 80), flags=cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REFLECT)
+    xy = np.column_stack([rng.uniform(15, 285, 120), rng.uniform(15, 65, 120)])
+    init = xy + rng.normal(0.0, 0.15, xy.shape)
+    pts = np.stack([xy, init, -(init - xy)]).astype(np.float32)
+    kw_fwd, kw_back = seeded_lk_kwargs(13, 20, 0.03, 1e-2, 7)
+    fwd, ok = forward_backward_opencv_ok(prev, cur, pts, kw_fwd, kw_back, 0.5)
+    # The two solves by hand: the backward one from the forward result.
+    f2, _, _ = cv2.calcOpticalFlowPyrLK(prev, cur, pts[0], pts[1].copy(), **kw_fwd)
+    b2, _, _ = cv2.calcOpticalFlowPyrLK(cur, prev, f2, f2 + pts[2], **kw_back)
+    round_trip = b2.reshape(-1, 2).astype(np.float64) - pts[0]
+    for w in (0.3, 1.0):
+        got, ok_w = forward_backward_opencv_ok(prev, cur, pts, kw_fwd, kw_back, 0.5, blend=w)
+        np.testing.assert_array_equal(ok_w, ok)  # the verdict does not depend on the blend
+        np.testing.assert_allclose(got, fwd - w * round_trip, atol=1e-5)
+    assert np.abs(round_trip[ok]).max() > 1e-3  # the windows (13 and 7 px) do disagree
+
+
+def test_tracker_blend_numpy_backend_follows_the_same_rule():
+    # With the NumPy reference LK the blend is applied the same way: the
+    # position is the forward result minus w x the round trip.
+    from vision.lk import forward_backward
+
+    rng = np.random.default_rng(4)
+    prev = np.clip(cv2.GaussianBlur(rng.random((60, 60)).astype(np.float32) * 255, (0, 0), 1.2), 0, 255)
+    cur = cv2.warpAffine(prev, np.float32([[1.02, 0, 0.3], [0, 1.02, -0.4]]), (60, 60), flags=cv2.INTER_LINEAR)
+    xy = rng.uniform(15, 45, (20, 2))
+    fb = forward_backward(prev, cur, xy, xy + [0.3, -0.4], None, 0.5, window=13, back_window=7)
+    assert fb.back_xy is not None and fb.back_xy.shape == xy.shape
+    np.testing.assert_allclose(np.linalg.norm(fb.back_xy - xy, axis=1)[fb.ok], fb.fb_error[fb.ok])
+
+
+def test_a_poor_match_inside_the_narrow_window_is_dropped_without_the_wide_search(monkeypatch):
+    # Frame 2 is frame 1 under strong independent noise: every template's
+    # narrow minimum is inside its window (no motion) but fails max_rel_ssd.
+    # With wide_search_on_poor_match the +-12 px search runs for each and
+    # finds nothing better; without it the templates are dropped at once.
+    # Either way the same templates are lost.
+    import vision.tracker as vt
+    from vision import Tracker, TrackerConfig
+
+    rng = np.random.default_rng(0)
+    base = cv2.GaussianBlur(rng.random((160, 160)).astype(np.float32) * 255, (0, 0), 2.0)
+    f1 = np.clip(128 + 3.0 * (base - base.mean()), 0, 255).astype(np.uint8)
+    f2 = np.clip(f1 + rng.normal(0.0, 1.2 * f1.std(), f1.shape), 0, 255).astype(np.uint8)
+    calls = []
+    region = vt._match_region
+
+    def spy(img, tpl, cx, cy, radius, xmax, ymax):
+        calls.append(radius)
+        return region(img, tpl, cx, cy, radius, xmax, ymax)
+
+    monkeypatch.setattr(vt, "_match_region", spy)
+    lost = {}
+    for wide in (True, False):
+        calls.clear()
+        tr = Tracker(TrackerConfig(wide_search_on_poor_match=wide))
+        tr.step(f1)
+        n0 = tr.templates.shape[0]
+        assert n0 > 0
+        tr._track(tr._prev, f2)  # the matching alone, before any refill
+        lost[wide] = n0 - tr.templates.shape[0]
+        wide_calls = [r for r in calls if r == tr._cfg.search_radius_px]
+        assert (len(wide_calls) == n0) if wide else not wide_calls
+    assert lost[True] == lost[False] > 0

@@ -149,6 +149,7 @@ def select_templates(
     min_separation_px: float,
     min_variance: float = 0.0,
     occupied_xy: np.ndarray | None = None,
+    preferred: np.ndarray | None = None,
 ) -> np.ndarray:
     """Pick fixation areas (templates) from a variance map (§2.3).
 
@@ -174,6 +175,11 @@ def select_templates(
         min_separation_px: Minimum distance between template centres [px].
         min_variance: Candidates need V above this [DN^2] (featureless -> none).
         occupied_xy: Centres of templates already in use, (K, 2) [px], or None.
+        preferred: Optional bool mask of the shape of ``variance``: the
+            candidates where it is True are all taken before any other (each
+            group in decreasing variance, the separation rule applying across
+            both), e.g. the areas that will stay in view longest. None: no
+            preference.
 
     Returns:
         Top-left corners (x, y) of the new templates, (M, 2) int64 [px], M <= n,
@@ -198,6 +204,14 @@ def select_templates(
         variance[v_lo : v_hi + 1, u_lo : u_hi + 1].astype(np.float64),
         -np.inf,
     )
+    if preferred is not None:
+        # The others rank below every preferred candidate: shifted under the
+        # lowest finite score (variances are >= 0), still above -inf.
+        pref = np.asarray(preferred, dtype=bool)[v_lo : v_hi + 1, u_lo : u_hi + 1]
+        finite = np.isfinite(score)
+        if finite.any():
+            shift = float(score[finite].max()) + 1.0
+            score = np.where(pref | ~finite, score, score - shift)
     # Template centres of the candidates [px], per column and per row.
     cx = np.arange(u_lo, u_hi + 1) * sx + 0.5 * (wx_full - 1)
     cy = np.arange(v_lo, v_hi + 1) * sy + 0.5 * (wy_full - 1)
@@ -257,6 +271,7 @@ def fixation_areas(
     min_separation_px: float,
     min_variance: float = 0.0,
     occupied_xy: np.ndarray | None = None,
+    preferred: np.ndarray | None = None,
 ) -> FixationAreas:
     """Fixation-area detection of §2 on one frame: eqs. (2.1), Laplacian, (2.2), selection.
 
@@ -265,8 +280,8 @@ def fixation_areas(
         n: Templates wanted.
         sx, sy: Block-averaging intervals [px].
         template_size: Template side [px], a multiple of sx and sy.
-        border_px, min_separation_px, min_variance, occupied_xy: As in
-            :func:`select_templates`.
+        border_px, min_separation_px, min_variance, occupied_xy, preferred: As in
+            :func:`select_templates` (``preferred`` has the variance map's shape).
 
     Returns:
         The intermediate images and the selected templates.
@@ -288,7 +303,7 @@ def fixation_areas(
     var = variance_map(lap, template_size // sx, template_size // sy)
     top_left = select_templates(
         var, n, sx, sy, (template_size, template_size), image.shape, border_px, min_separation_px,
-        min_variance, occupied_xy=occupied_xy,
+        min_variance, occupied_xy=occupied_xy, preferred=preferred,
     )
     return FixationAreas(averaged=averaged, laplacian=lap, variance=var, top_left=top_left)
 

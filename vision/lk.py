@@ -345,7 +345,8 @@ def seeded_lk_kwargs(
 
 
 def forward_backward_opencv_ok(
-    prev_image: np.ndarray, image: np.ndarray, pts: np.ndarray, kw_fwd: dict, kw_back: dict, fb_max_px: float
+    prev_image: np.ndarray, image: np.ndarray, pts: np.ndarray, kw_fwd: dict, kw_back: dict, fb_max_px: float,
+    blend: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`forward_backward_opencv_fast` with the tracker's inputs already
     in OpenCV's form, returning the verdict instead of the round-trip error
@@ -359,6 +360,11 @@ def forward_backward_opencv_ok(
         kw_fwd, kw_back: Keywords of the forward and backward solves
             (:func:`seeded_lk_kwargs`).
         fb_max_px: Largest accepted round-trip error [px].
+        blend: The returned position is the forward solution minus this
+            fraction of the round trip (backward result - start): 0 gives the
+            forward solution; w gives (1 - w) x the forward solve's
+            displacement + w x the backward solve's, the two windows'
+            estimates averaged (see ``TrackerConfig.fb_blend``).
 
     Returns:
         (xy_k1 (P, 2) float32 [px], ok (P,) bool: both solves valid and the
@@ -373,6 +379,8 @@ def forward_backward_opencv_ok(
     dx, dy = d[:, 0], d[:, 1]
     ok = dx * dx + dy * dy <= fb_max_px * fb_max_px
     ok &= (st1 & st2).reshape(-1).view(bool)
+    if blend:
+        fwd = (fwd - blend * d).astype(np.float32)
     return fwd, ok
 
 
@@ -410,11 +418,13 @@ class FBResult:
         ok: Both solves valid and the round trip closes within the limit, (P,) bool.
         fb_error: Distance between the start point and the back-tracked point,
             (P,) float64 [px] (inf where a solve failed).
+        back_xy: The back-tracked points in frame k, (P, 2) float64 [px].
     """
 
     xy: np.ndarray
     ok: np.ndarray
     fb_error: np.ndarray
+    back_xy: np.ndarray | None = None
 
 
 def forward_backward(
@@ -466,4 +476,4 @@ def forward_backward(
     err = np.linalg.norm(bwd.xy - xy, axis=1) if xy.shape[0] else np.zeros(0)
     valid = fwd.status & bwd.status
     err = np.where(valid, err, np.inf)
-    return FBResult(xy=fwd.xy, ok=valid & (err <= fb_max_px), fb_error=err)
+    return FBResult(xy=fwd.xy, ok=valid & (err <= fb_max_px), fb_error=err, back_xy=bwd.xy)

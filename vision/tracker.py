@@ -243,7 +243,7 @@ class TrackerConfig(BaseModel):
       validated against its seed and residual) the tracker is as accurate on
       the rendered descent, but on recorded closed-loop descents the vision
       measurement's NIS at 400-600 m and its gated-out measurements rose;
-    * branch trk-256 (README, "Margin at 256^2"), checked on the rendered
+    * the 256^2 margin round (README, "Margin at 256^2"), checked on the rendered
       descent, the held-out one, three more unseen seeds and suns, and the
       photographs: non-maximum suppression radius 1 instead of 2 (the
       strongest corners of a sub-image sit close together; radius 2 traded

@@ -83,7 +83,8 @@ filter's vertical 1-sigma is above ``abort_sigma_z_frac`` of the estimated
 height (and above ``abort_sigma_z_min_m``); below ``abort_check_height_m``
 (just above the vision cut-off) the horizontal velocity's 1-sigma is above
 ``abort_sigma_vh_mps``; the estimated descent cannot be stopped above the
-ground at full thrust (``v^2 / (2 a_max) > stop_margin h``); below
+ground at full thrust, down to the touchdown rate it lands at by design
+(``(v^2 - touchdown_vz_max_mps^2) / (2 a_max) > stop_margin h``); below
 ``touchdown_check_height_m`` it descends with a horizontal speed above
 ``touchdown_vh_max_mps``; or the estimated
 height is implausibly negative. The flight software then nulls its horizontal
@@ -201,8 +202,11 @@ class FdirConfig(BaseModel):
                                   "limit [m]")
     touchdown_vh_max_mps: float = Field(0.4, gt=0.0, description="... of this (the 0.5 m/s criterion less a margin) "
                                                                    "[m/s]")
-    stop_margin: float = Field(1.0, gt=0.0, description="abort when the stopping distance at full thrust exceeds "
-                                                           "this fraction of the height [-]")
+    stop_margin: float = Field(1.0, gt=0.0, description="abort when the distance to slow to touchdown_vz_max_mps at "
+                                                           "full thrust exceeds this fraction of the height [-]")
+    touchdown_vz_max_mps: float = Field(
+        0.9, ge=0.0, description="the descent rate the stopping check allows at the ground: the lander touches down "
+                                 "at its terminal descent rate by design (the 1 m/s criterion less a margin) [m/s]")
     abort_hover_gain_per_s: float = Field(0.5, gt=0.0, description="safe abort: velocity feedback gain [1/s]")
     abort_climb_mps: float = Field(3.0, ge=0.0, le=20.0, description="safe abort: climb rate commanded [m/s]")
 
@@ -937,8 +941,9 @@ class HealthMonitor:
         elif not altitude_observed and sigma_z_m > max(c.abort_sigma_z_min_m, c.abort_sigma_z_frac * max(height_m, 0.0)):
             reason = (f"altitude not observed and its 1-sigma {sigma_z_m:.1f} m is beyond "
                       f"{100 * c.abort_sigma_z_frac:.0f} % of the height {height_m:.1f} m")
-        elif v_z_mps < 0.0 and height_m > 0.0 and (decel_max_mps2 <= 0.0 or
-                                                   v_z_mps**2 / (2.0 * decel_max_mps2) > c.stop_margin * height_m):
+        elif v_z_mps < 0.0 and height_m > 0.0 and (
+                decel_max_mps2 <= 0.0
+                or (v_z_mps**2 - c.touchdown_vz_max_mps**2) / (2.0 * decel_max_mps2) > c.stop_margin * height_m):
             reason = (f"cannot stop before the ground: {-v_z_mps:.1f} m/s down at {height_m:.0f} m with "
                       f"{decel_max_mps2:.2f} m/s^2 of net deceleration")
         elif height_m < c.touchdown_check_height_m and v_z_mps < 0.0 and v_h_mps > c.touchdown_vh_max_mps:

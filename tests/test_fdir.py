@@ -167,6 +167,12 @@ def test_abort_criterion():
     m = _monitor()
     assert m.abort_reason(0, 60.0, 1.0, True, False, v_z_mps=-15.0, decel_max_mps2=2.0) is None  # stops in 56 m
     assert "cannot stop" in m.abort_reason(0, 50.0, 1.0, True, False, v_z_mps=-15.0, decel_max_mps2=2.0)
+    # The terminal descent touches down at 0.8 m/s by design: a few centimetres above the ground it cannot stop,
+    # and need not (campaign seed 1, case 89 with map fixes: a safe abort declared at the touchdown itself).
+    m = _monitor()
+    assert m.abort_reason(0, 0.05, 0.1, True, False, v_z_mps=-0.8, decel_max_mps2=3.21) is None
+    # Too fast to slow to 0.9 m/s in 0.3 m: (2^2 - 0.9^2) / (2 * 3.2) = 0.50 m.
+    assert "cannot stop" in m.abort_reason(0, 0.3, 0.1, True, False, v_z_mps=-2.0, decel_max_mps2=3.2)
     m = _monitor()
     assert m.abort_reason(0, -8.0, 1.0, True, False) == "implausible negative altitude estimate"
     m = _monitor()

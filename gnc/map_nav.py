@@ -592,6 +592,10 @@ class MapNavigator:
         self._bias_sigma_m = 0.0  # the 1-sigma it was carried at [m]
         self._window_refusals = 0  # window refusals before the first lock
 
+    def _common_correlation(self, dt_ns: int) -> float:
+        """Correlation of the fixes' common error over ``dt_ns`` (Gauss-Markov, ``common_time_s``) [-]."""
+        return math.exp(-dt_ns / NS_PER_S / self.cfg.common_time_s)
+
     def _window_scale(self) -> float:
         """The factor on the prior's search window now (1 once locked; see the class docstring)."""
         if self.stats.locked:
@@ -651,7 +655,7 @@ class MapNavigator:
             d = fix.offset_xy_m - pending[1]
             # The common error's change between the two (Gauss-Markov: 2 sigma^2 (1 - phi)), each's own error,
             # and the filter's drift.
-            phi = math.exp(-(t_ns - pending[0]) / NS_PER_S / self.cfg.common_time_s)
+            phi = self._common_correlation(t_ns - pending[0])
             common_var = 2.0 * (1.0 - phi) * max(fix.common_sigma_m, pending[3]) ** 2
             S = fix.cov_xy_m2 + pending[2] + np.eye(2) * (self.cfg.confirm_drift_m**2 + common_var)
             if not float(d @ np.linalg.solve(S, d)) <= self.cfg.confirm_sigmas**2:
@@ -665,11 +669,8 @@ class MapNavigator:
             # Carry b_map to this fix: correlated with the last fix's over common_time_s, at this fix's 1-sigma
             # (reset at the first update, or when the flight software restarted).
             sigma_c = fix.common_sigma_m
-            if self._bias_t_ns is None:
-                nav_filter.step_map_bias(0.0, sigma_c)
-            else:
-                phi = math.exp(-(t_ns - self._bias_t_ns) / NS_PER_S / self.cfg.common_time_s)
-                nav_filter.step_map_bias(phi, sigma_c, sigma_c / self._bias_sigma_m if self._bias_sigma_m > 0 else 1.0)
+            phi = 0.0 if self._bias_t_ns is None else self._common_correlation(t_ns - self._bias_t_ns)
+            nav_filter.step_map_bias(phi, sigma_c, sigma_c / self._bias_sigma_m if self._bias_sigma_m > 0 else 1.0)
             self._bias_t_ns, self._bias_sigma_m = t_ns, sigma_c
             R = fix.cov_xy_m2
         else:  # a filter without the state takes the common part as noise of this fix alone

@@ -99,18 +99,23 @@ def _select_templates_reference(variance, n, sx, sy, size, shape, border, sep, m
     return chosen
 
 
-@pytest.mark.parametrize("seed", range(6))
-def test_select_templates_equals_the_greedy_written_out(seed):
-    from vision.fixation import select_templates
-
-    rng = np.random.default_rng(seed)
-    sx, sy = (5, 5) if seed % 2 else (4, 3)
+def _random_selection_case(rng, odd):
+    """A random template-selection problem: (variance map, n, sx, sy, size, frame shape, separation, occupied)."""
+    sx, sy = (5, 5) if odd else (4, 3)
     size = int(np.lcm(sx, sy)) * 2
     shape = (int(rng.integers(120, 200)), int(rng.integers(120, 200)))
     var = rng.integers(0, 6, (shape[0] // sy - size // sy + 1, shape[1] // sx - size // sx + 1)).astype(np.float64)
     sep = float(rng.uniform(0.0, 60.0))
     occ = rng.uniform(0, 200, (int(rng.integers(0, 5)), 2))
     n = int(rng.integers(1, 12))
+    return var, n, sx, sy, size, shape, sep, occ
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_select_templates_equals_the_greedy_written_out(seed):
+    from vision.fixation import select_templates
+
+    var, n, sx, sy, size, shape, sep, occ = _random_selection_case(np.random.default_rng(seed), seed % 2)
     got = select_templates(var, n, sx, sy, (size, size), shape, 9, sep, 1.0, occupied_xy=occ)
     ref = _select_templates_reference(var, n, sx, sy, size, shape, 9, sep, 1.0, occ.tolist())
     assert got.tolist() == ref
@@ -398,13 +403,7 @@ def test_select_templates_with_a_preference_equals_the_greedy_written_out(seed):
     from vision.fixation import select_templates
 
     rng = np.random.default_rng(100 + seed)
-    sx, sy = (5, 5) if seed % 2 else (4, 3)
-    size = int(np.lcm(sx, sy)) * 2
-    shape = (int(rng.integers(120, 200)), int(rng.integers(120, 200)))
-    var = rng.integers(0, 6, (shape[0] // sy - size // sy + 1, shape[1] // sx - size // sx + 1)).astype(np.float64)
-    sep = float(rng.uniform(0.0, 60.0))
-    occ = rng.uniform(0, 200, (int(rng.integers(0, 5)), 2))
-    n = int(rng.integers(1, 12))
+    var, n, sx, sy, size, shape, sep, occ = _random_selection_case(rng, seed % 2)
     pref = rng.random(var.shape) < (0.0 if seed == 0 else 1.0 if seed == 1 else 0.4)
     got = select_templates(var, n, sx, sy, (size, size), shape, 9, sep, 1.0, occupied_xy=occ, preferred=pref)
     ref = _preferred_reference(var, n, sx, sy, size, shape, 9, sep, 1.0, occ.tolist(), pref)

@@ -163,23 +163,27 @@ class MapFixConfig(BaseModel):
     outlier_mad_k: float = Field(3.0, gt=0.0, description="reject patches beyond this many robust sigmas [-]")
     min_inliers: int = Field(12, ge=4, description="fewest inlier patches for a fix [-]")
     subpixel_floor_px: float = Field(
-        0.05, ge=0.0, description="floor of the 1-sigma per axis of the fix's error independent from fix to fix [work px]"
+        0.02, ge=0.0, description="floor of the 1-sigma per axis of the fix's error independent from fix to fix [work px]"
     )
     outlier_floor_px: float = Field(
         0.05, gt=0.0, description="floor of the robust sigma that patches are rejected against [work px]"
     )
     common_mode_sigma_px: float = Field(
-        0.025, ge=0.0,
+        0.03, ge=0.0,
         description="floor of the error common to all patches that their scatter cannot show (the frame's and "
                     "the map's different illumination and blur), 1-sigma per axis [work px]; it is common to "
                     "consecutive fixes too, so the filter carries it as a state (MapNavConfig.common_time_s), "
                     "not as white noise; calibrated in closed-loop campaigns (README, issue 14)",
     )
     common_peak_gain: float = Field(
-        0.2, ge=0.0,
+        0.3, ge=0.0,
         description="the common error grows as the frame looks less like the map: this gain times "
-                    "((1 - peak) / peak)^2 work px, peak the coarse correlation peak, 1-sigma per axis [-]; "
-                    "calibrated in closed-loop campaigns (README, issue 14)",
+                    "((1 - peak) / peak)^common_peak_power work px, peak the coarse correlation peak, 1-sigma per "
+                    "axis [-]; calibrated in closed-loop campaigns (README, issue 14)",
+    )
+    common_peak_power: float = Field(
+        1.5, gt=0.0, le=4.0,
+        description="power of (1 - peak) / peak in the common error's peak term [-]",
     )
 
 
@@ -471,7 +475,7 @@ class MapMatcher:
         # views): a floor, plus a part that grows as the frame looks less like the map (another sun, a blurrier
         # frame), read from the coarse correlation peak.
         dissimilar = (1.0 - peak) / peak
-        common = res * math.hypot(cfg.common_mode_sigma_px, cfg.common_peak_gain * dissimilar * dissimilar)
+        common = res * math.hypot(cfg.common_mode_sigma_px, cfg.common_peak_gain * dissimilar**cfg.common_peak_power)
         return MapFix(True, "", r_C[:2] + t, np.diag(var_t), t, n_patches=n_patches, n_inliers=n_in,
                       scale=scale, common_sigma_m=common, **diag)
 

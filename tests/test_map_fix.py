@@ -177,15 +177,15 @@ def test_descent_sun_unlike_the_maps_gives_fixes_within_a_metre_or_refusals(sun,
 
 
 def test_common_error_of_a_fix_grows_as_the_frame_looks_less_like_the_map(onboard):
-    # The fix's common error: the floor plus the gain times ((1 - peak) / peak)^2, in work pixels.
+    # The fix's common error: the floor plus the gain times ((1 - peak) / peak)^power, in work pixels.
     cfg = MapFixConfig()
     r_true = np.array([0.0, 0.0, float(onboard.dem_height(0.0, 0.0)) + 150.0])
     frame = render_frame(onboard, r_true, attitude(), np.random.default_rng(4))
     offset = np.array([3.0, -2.0, 0.0])
     fix = MapMatcher(onboard, cfg).fix(frame, K, attitude(), r_true + offset, 5.0)
     assert fix.ok, fix.reason
-    q = ((1.0 - fix.peak) / fix.peak) ** 2
-    expected = fix.work_res_m * math.sqrt(cfg.common_mode_sigma_px**2 + (cfg.common_peak_gain * q) ** 2)
+    q = ((1.0 - fix.peak) / fix.peak) ** cfg.common_peak_power
+    expected = fix.work_res_m * math.hypot(cfg.common_mode_sigma_px, cfg.common_peak_gain * q)
     assert fix.common_sigma_m == pytest.approx(expected, rel=1e-12)
     np.testing.assert_allclose(fix.total_cov_xy_m2, fix.cov_xy_m2 + np.eye(2) * expected**2, rtol=1e-12)
     # The same ground in a noisier, lower-contrast frame correlates worse with the map: a larger common error.

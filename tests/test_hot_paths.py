@@ -81,6 +81,7 @@ class _ArrayPropulsion(PropulsionModel):
         self._ref_on_s = np.zeros(3)
         self._ref_sign = np.zeros(3)
         self._ref_carry = np.zeros(3)
+        self._ref_fault = None  # the reference's RCS faults as (3,) arrays; set by set_rcs_fault
 
     def set_rcs_fault(self, fault):
         super().set_rcs_fault(fault)  # the new path's floats; the reference keeps its own arrays, as before
@@ -89,7 +90,7 @@ class _ArrayPropulsion(PropulsionModel):
             np.asarray(fault[2], float) * float(self.cfg.rcs_torque_max_Nm))
 
     def _ref_rcs_faulted(self, torque_B_Nm: np.ndarray) -> np.ndarray:
-        if getattr(self, "_ref_fault", None) is None:
+        if self._ref_fault is None:
             return torque_B_Nm
         pos, neg, stuck = self._ref_fault
         return np.where(torque_B_Nm > 0.0, torque_B_Nm * pos, torque_B_Nm * neg) + stuck

@@ -46,7 +46,9 @@ the onboard site map (:func:`relief_scale`): the landing site, cleared of crater
 states follow, ``b_map`` (2) [m]: the error common to consecutive map fixes (the same ground seen under slowly
 changing views), a Gauss-Markov process that :class:`gnc.map_nav.MapNavigator` steps before each fix
 (:meth:`NavFilter.step_map_bias`) and that each fix measures with the position; without it, fixes that share an
-error would be averaged as if independent. L is the landing frame (origin at the target on the
+error would be averaged as if independent; and ``b_kz`` (1) [m], unused until a keyframe is taken below the
+last map fix, when ``(b_map, b_kz)`` become the error of the pose the keyframe was laid on the ground with
+(:meth:`NavFilter.map_bias_to_keyframe`). L is the landing frame (origin at the target on the
 surface, x east, y north, z up, gravity ``g_L = [0, 0, -g]``); B is the body frame.
 
 Model:
@@ -177,6 +179,8 @@ IDX_SV = slice(22, 24)  # slope of the ground the camera tracks, (dh/dx, dh/dy) 
 # Only in a filter made with a map bias (``nav_map = "on"``, :func:`make_estimator`): the error common to
 # consecutive map fixes, in the map frame (2) [m], appended after the 24 states above.
 IDX_MB = slice(24, 26)
+# And one more with it: the height error of a keyframe's pose (see :meth:`NavFilter.map_bias_to_keyframe`) [m].
+IDX_KZ = 26
 _IDX_TERRAIN = np.array([IDX_H, *range(IDX_S.start, IDX_S.stop)])  # the terrain's height and slope, stepped together
 _IX_TERRAIN = np.ix_(_IDX_TERRAIN, _IDX_TERRAIN)
 # Vision's consider states: the vertical channel (height, vertical velocity and accelerometer bias,
@@ -435,7 +439,8 @@ class NavFilter:
     Attributes:
         cfg: The validated configuration.
         ekf: The filterpy :class:`~filterpy.kalman.ExtendedKalmanFilter` holding
-            ``x`` (n,) and ``P`` (n, n): n = 24, or 26 with the map fixes' common error (``dim_x``).
+            ``x`` (n,) and ``P`` (n, n): n = 24, or 27 with the map fixes' common error and a
+            keyframe's height error (``dim_x``).
         log: One :class:`UpdateRecord` per measurement update, in call order.
         counters: Per input (``imu``, ``attitude``, ``altimeter``, ``velocity``),
             counts of used / accepted / rejected / invalid / skipped / stale messages.
@@ -447,7 +452,7 @@ class NavFilter:
                  q0_LB: Quat | None, altimeter_mount_B_m: np.ndarray, gyro_delta_angle: bool = False) -> None:
         """Use :func:`make_estimator`; this constructor does not validate its inputs."""
         self.cfg = cfg
-        n = self.dim_x = int(x0.shape[0])  # DIM_X, or DIM_X + 2 with the map bias
+        n = self.dim_x = int(x0.shape[0])  # DIM_X, or DIM_X + 3 with the map bias and the keyframe height
         ekf = ExtendedKalmanFilter(dim_x=n, dim_z=1, dim_u=3)
         ekf.x = x0.copy()
         ekf.P = P0.copy()
@@ -890,7 +895,7 @@ class NavFilter:
         self.ekf.P = self.ekf.P * np.outer(d, d)
 
     def update_map_position(self, t_ns: int, z_xy_m: np.ndarray, R: np.ndarray,
-                            lever_xy_m: np.ndarray) -> UpdateRecord:
+                            lever_xy_m: np.ndarray, keyframe_gain: np.ndarray | None = None) -> UpdateRecord:
         """Horizontal position update from a map fix (kind ``"map"``, chi-square gated like every update).
 
         Args:
@@ -898,6 +903,9 @@ class NavFilter:
             z_xy_m: Measured horizontal position of a point on the body (the camera) in the map frame, (2,) [m].
             R: Its covariance, (2, 2) [m^2].
             lever_xy_m: Horizontal offset of that point from the body origin, in L, (2,) [m].
+            keyframe_gain: For a fix against a keyframe: ``(r_C - r_C,k) / h_k`` (2,) [-], the camera's
+                horizontal displacement from the keyframe's over the keyframe's height (both estimated),
+                the fix's sensitivity to the keyframe's height error (``IDX_KZ``); None for a map fix.
 
         Returns:
             The update's record (the state is unchanged unless accepted).
@@ -917,9 +925,13 @@ class NavFilter:
         hx = x[0:2] + x[3:5] * lag_s + np.asarray(lever_xy_m, dtype=float)
         H = np.zeros((2, self.dim_x))
         H[0, 0] = H[1, 1] = 1.0
-        if self.has_map_bias:  # z = r + v lag + lever + b_map + w
+        if self.has_map_bias:  # z = r + v lag + lever + b_map (+ g b_kz against a keyframe) + w
             hx = hx + x[IDX_MB]
             H[:, IDX_MB] = np.eye(2)
+            if keyframe_gain is not None:
+                g = np.asarray(keyframe_gain, dtype=float).reshape(2)
+                hx = hx + g * x[IDX_KZ]
+                H[:, IDX_KZ] = g
         return self._gated_update(int(t_ns), KIND_MAP, z, hx, H, R)
 
     @property
@@ -937,6 +949,48 @@ class NavFilter:
         if not self.has_map_bias:
             raise ValueError("step_map_bias: this filter has no map bias (make_estimator(map_bias_sigma_m=...))")
         _decay(self.ekf.x, self.ekf.P, IDX_MB, phi, sigma_m, scale)
+
+    def map_bias_to_keyframe(self, t_ns: int, extra_sigma_m: float = 0.0) -> None:
+        """Make ``b_map`` and ``b_kz`` a keyframe's pose error: the error of the camera position estimate now.
+
+        A keyframe ortho image laid on the ground through the estimate ``r + v lag`` (``lag`` from the
+        filter time to ``t_ns``) is a map shifted by that estimate's horizontal error
+        ``e_k = (r + v lag)_est - (r + v lag)`` and magnified about the keyframe camera's nadir by its
+        height error ``dz_k`` (the same, vertically): a ground point ``q`` from the nadir lands at
+        ``q (1 + dz_k / h_k)``. A later frame matched against it measures
+        ``r + v lag' + lever + e_k + g dz_k``, ``g = (r_C - r_C,k) / h_k`` (:meth:`update_map_position`'s
+        ``keyframe_gain``). So ``(b_map, b_kz)`` become ``(e_k, dz_k)``, constant from now on: estimate 0,
+        covariance ``T P T^T + extra_sigma_m^2 I`` and cross-covariance ``-T P`` with
+        ``T = [I, lag I]`` on the position and velocity (the error is minus the position's: truth
+        minus estimate), replacing what they held. ``extra_sigma_m`` [m] is the keyframe's own
+        horizontal error (its attitude's, seen from its height), independent of the state.
+        """
+        if not self.has_map_bias:
+            raise ValueError("map_bias_to_keyframe: this filter has no map bias (make_estimator(map_bias_sigma_m=...))")
+        lag_s = self._lag_ns(t_ns) / NS_PER_S
+        x, P = self.ekf.x, self.ekf.P
+        TP = P[IDX_R, :] + lag_s * P[IDX_V, :]
+        cov = TP[:, IDX_R] + lag_s * TP[:, IDX_V]
+        cov[0:2, 0:2] += np.eye(2) * float(extra_sigma_m) ** 2
+        idx = [IDX_MB.start, IDX_MB.start + 1, IDX_KZ]
+        x[idx] = 0.0
+        P[idx, :] = -TP
+        P[:, idx] = -TP.T
+        P[np.ix_(idx, idx)] = cov
+        self.ekf.P = 0.5 * (P + P.T)
+
+    def map_prior_cov_xy(self, t_ns: int, keyframe_gain: np.ndarray | None = None) -> np.ndarray:
+        """Covariance (2, 2) [m^2] of the map-fix model's prediction ``r + v lag + b_map (+ g b_kz)``
+        (``b_map`` when carried; ``g`` = ``keyframe_gain`` as in :meth:`update_map_position`)."""
+        lag_s = self._lag_ns(t_ns) / NS_PER_S
+        H = np.zeros((2, self.dim_x))
+        H[0, 0] = H[1, 1] = 1.0
+        H[0, 3] = H[1, 4] = lag_s
+        if self.has_map_bias:
+            H[:, IDX_MB] = np.eye(2)
+            if keyframe_gain is not None:
+                H[:, IDX_KZ] = np.asarray(keyframe_gain, dtype=float).reshape(2)
+        return H @ self.ekf.P @ H.T
 
     def clone_frame(self, t_ns: int) -> bool:
         """Clone the state of a camera frame at ``t_ns``: its position and its image offset.
@@ -1468,7 +1522,9 @@ def make_estimator(
             not the rate at the sample time (integrated with the trapezoid of two samples).
         map_bias_sigma_m: With map fixes (``nav_map = "on"``): the initial 1-sigma per axis [m] of their
             common error ``b_map``, two more states (``IDX_MB``) that :meth:`NavFilter.update_map_position`
-            measures with the position; None (the default): the 24 states alone.
+            measures with the position, and a keyframe's height error (``IDX_KZ``, the same initial
+            1-sigma; used once :meth:`NavFilter.map_bias_to_keyframe` sets it); None (the default): the
+            24 states alone.
 
     Returns:
         The filter, with zero bias and terrain estimates and the config's initial covariance.
@@ -1494,9 +1550,11 @@ def make_estimator(
     mount = _vec3(altimeter_mount_B_m, "altimeter_mount_B_m")
     x0 = np.concatenate([r0, v0, np.zeros(4), r0, np.zeros(11)])
     P0 = initial_covariance(c, float(r0[2]), r0[:2])
-    if map_bias_sigma_m is not None:  # the map fixes' common error: two more states, zero mean, independent
+    if map_bias_sigma_m is not None:
+        # The map fixes' common error (two states) and a keyframe's height error (one, measured by nothing
+        # until a keyframe is taken): zero mean, independent of the rest.
         if not (math.isfinite(map_bias_sigma_m) and map_bias_sigma_m > 0.0):
             raise ValueError(f"map_bias_sigma_m = {map_bias_sigma_m!r}: expected a finite 1-sigma > 0 [m]")
-        x0 = np.concatenate([x0, np.zeros(2)])
-        P0 = np.block([[P0, np.zeros((DIM_X, 2))], [np.zeros((2, DIM_X)), np.eye(2) * map_bias_sigma_m**2]])
+        x0 = np.concatenate([x0, np.zeros(3)])
+        P0 = np.block([[P0, np.zeros((DIM_X, 3))], [np.zeros((3, DIM_X)), np.eye(3) * map_bias_sigma_m**2]])
     return NavFilter(c, x0, P0, int(t0_ns), q0, mount, gyro_delta_angle=gyro_delta_angle)

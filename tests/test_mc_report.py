@@ -389,3 +389,15 @@ def test_map_nav_lines_against_hand_computed_figures():
         flat = " ".join(line.split())
         assert f"3σ per axis {three:.2f} m, max {worst:.2f} m (40 cases)" in flat, line
     assert map_nav_lines([{"case": 0, "outcome": "landed"}]) == []
+    assert "keyframe" not in text  # rows without keyframe columns (a campaign from before them)
+    # Keyframe lines: pooled over the fixes used (RMS weighted by each case's fixes).
+    kf = [dict(r, map_nav_keyframe_t_s=33.0 if i < 3 else None, map_nav_keyframe_attempts=[10, 20, 0, 0][i],
+               map_nav_keyframe_updates=[8, 18, 0, 0][i], map_nav_keyframe_gate_rejected=[1, 0, 0, 0][i],
+               map_nav_keyframe_refused=[1, 2, 0, 0][i], map_nav_keyframe_false_locks=[0, 1, 0, 0][i],
+               map_nav_keyframe_fix_err_rms_m=[0.02, 0.05, None, None][i],
+               map_nav_keyframe_fix_nis_mean=[1.0, 3.0, None, None][i]) for i, r in enumerate(rows[:4])]
+    line = next(ln for ln in map_nav_lines(kf) if "keyframe" in ln)
+    pooled = math.sqrt((8 * 0.02**2 + 18 * 0.05**2) / 26)
+    nis = (8 * 1.0 + 18 * 3.0) / 26
+    assert (f"keyframe in 3/4 cases: 26 fixes used of 30 attempts (3 refused, 1 gated out); fix error RMS "
+            f"{pooled:.3f} m, mean NIS {nis:.2f} (2 expected), false locks 1") in " ".join(line.split()), line

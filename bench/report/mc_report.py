@@ -355,7 +355,30 @@ def map_nav_lines(rows: Sequence[Mapping[str, Any]]) -> list[str]:
         three, worst, k = _three_sigma(dx, dy)
         lines.append(f"  {label:<30} 3σ per axis {_fmt(three, '.2f', 'm'):>9}, max {_fmt(worst, '.2f', 'm'):>9}"
                      f" ({k} cases)")
+    lines.extend(_keyframe_lines(nav))
     return lines
+
+
+def _keyframe_lines(nav: Sequence[Mapping[str, Any]]) -> list[str]:
+    """Keyframe registration below the last map fix: cases with a keyframe, its fixes, their error
+    (RMS over the cases' own RMS, weighted by their fixes) and false locks (as for map fixes)."""
+    kf_t = column(nav, "map_nav_keyframe_t_s")
+    if not np.isfinite(kf_t).any() and not np.nansum(column(nav, "map_nav_keyframe_attempts")):
+        return []
+    attempts = int(np.nansum(column(nav, "map_nav_keyframe_attempts")))
+    updates = int(np.nansum(column(nav, "map_nav_keyframe_updates")))
+    gated = int(np.nansum(column(nav, "map_nav_keyframe_gate_rejected")))
+    refused = int(np.nansum(column(nav, "map_nav_keyframe_refused")))
+    rms, used = column(nav, "map_nav_keyframe_fix_err_rms_m"), column(nav, "map_nav_keyframe_updates")
+    nis = column(nav, "map_nav_keyframe_fix_nis_mean")
+    ok = np.isfinite(rms) & (used > 0)
+    pooled = float(np.sqrt(np.sum(used[ok] * rms[ok] ** 2) / np.sum(used[ok]))) if ok.any() else math.nan
+    ok_nis = np.isfinite(nis) & (used > 0)
+    nis_mean = float(np.sum(used[ok_nis] * nis[ok_nis]) / np.sum(used[ok_nis])) if ok_nis.any() else math.nan
+    false = int(np.nansum(column(nav, "map_nav_keyframe_false_locks")))
+    return [f"  keyframe in {int(np.isfinite(kf_t).sum())}/{len(nav)} cases: {updates} fixes used of {attempts} "
+            f"attempts ({refused} refused, {gated} gated out); fix error RMS {_fmt(pooled, '.3f', 'm')}, "
+            f"mean NIS {_fmt(nis_mean, '.2f', '')} (2 expected), false locks {false}"]
 
 
 # =================================================================== figure

@@ -338,7 +338,7 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                     timing["render_s"] += time.perf_counter() - t0
                     frames_rendered += 1
                 t0 = time.perf_counter()
-                n_map = len(fsw.map_nav.stats.log) if fsw.map_nav is not None else 0
+                n_map = fsw.map_nav.stats.frames_used if fsw.map_nav is not None else 0
                 if not delivered:
                     pass  # the frame never reaches the flight software (blackout, drop, computer down)
                 elif tracker_truth is not None:
@@ -355,7 +355,7 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                 elif cam.enabled:
                     fsw.skip_image(t_ns)  # what on_image does with a frame it does not use
                 timing["vision_s"] += time.perf_counter() - t0
-                if fsw.map_nav is not None and len(fsw.map_nav.stats.log) > n_map:
+                if fsw.map_nav is not None and fsw.map_nav.stats.frames_used > n_map:
                     map_truth_log.append((t_ns, world.camera_pose()[1]))
                 if frame is not None and frame_sink is not None:
                     frame_sink(t_ns, frame, truth, tracks)
@@ -481,6 +481,7 @@ def _map_nav_summary(fsw: FlightSoftware, map_truth: Any, truth_log: list[tuple[
         if n > MAP_FALSE_LOCK_NIS:
             false_locks += 1
             used_false += int(bool(used and gate_ok))
+    kf = _keyframe_summary(stats, shift, truth_at)
     out: dict[str, Any] = {
         "shift_xy_m": [float(c) for c in shift],
         "target_xy_L_m": [float(c) for c in map_truth.target_xy_L_m],
@@ -494,6 +495,7 @@ def _map_nav_summary(fsw: FlightSoftware, map_truth: Any, truth_log: list[tuple[
         "false_locks": false_locks, "false_locks_used": used_false,
         "miss_vs_map_target_m": None, "nav_err_map_frame_touchdown_m": None,
         "nav_err_map_frame_50m_m": None, "nav_err_map_frame_50m_xy_m": None,
+        **kf,
     }
     if touchdown is not None:
         out["miss_vs_map_target_m"] = float(math.hypot(touchdown["x_m"] - map_truth.target_xy_L_m[0],
@@ -512,6 +514,46 @@ def _map_nav_summary(fsw: FlightSoftware, map_truth: Any, truth_log: list[tuple[
             out["nav_err_map_frame_50m_xy_m"] = e50
             out["nav_err_map_frame_50m_m"] = float(np.hypot(*e50))
     return out
+
+
+def _keyframe_summary(stats: Any, shift: np.ndarray, truth_at: dict[int, np.ndarray]) -> dict[str, Any]:
+    """The keyframe and its fixes against truth (keys always present, so campaign columns agree).
+
+    The keyframe is the map shifted by the horizontal error of the camera position it was laid down
+    with (``keyframe_err_xy_m``: estimate minus truth, in the map frame) and magnified about its nadir
+    by the height error (``keyframe_err_z_m``), so a keyframe fix's error is its measured position
+    minus (truth + map shift + e_xy + g e_z), ``g`` the estimated camera's displacement from the
+    keyframe's over the keyframe's height (the flight software's own model, fed here with the
+    truth's errors). A false lock is one accepted with an error beyond 5 of its own sigmas, as for
+    map fixes.
+    """
+    t_k = stats.keyframe_t_ns
+    e_k = dz_k = None
+    if t_k is not None and t_k in truth_at:
+        e_k = stats.keyframe_r_C_xy_m - (truth_at[t_k][:2] + shift)
+        dz_k = stats.keyframe_r_C_z_m - float(truth_at[t_k][2])
+    errs, nis, false_locks = [], [], 0
+    for t_ns, fix, _used, _gate_ok in stats.keyframe_log:
+        if e_k is None or not fix.ok or t_ns not in truth_at:
+            continue
+        g = (fix.r_CM_xy_m - fix.offset_xy_m - stats.keyframe_r_C_xy_m) / stats.keyframe_height_m
+        e = fix.r_CM_xy_m - (truth_at[t_ns][:2] + shift + e_k + g * dz_k)
+        errs.append(float(np.hypot(*e)))
+        n = float(e @ np.linalg.solve(fix.total_cov_xy_m2, e))
+        nis.append(n)
+        false_locks += int(n > MAP_FALSE_LOCK_NIS)
+    return {
+        "keyframe_t_s": None if t_k is None else t_k / NS_PER_S,
+        "keyframe_height_m": None if t_k is None else float(stats.keyframe_height_m),
+        "keyframe_err_xy_m": None if e_k is None else [float(c) for c in e_k],
+        "keyframe_err_z_m": dz_k,
+        "keyframe_attempts": stats.keyframe_attempts, "keyframe_refused": stats.keyframe_refused,
+        "keyframe_updates": stats.keyframe_updates, "keyframe_gate_rejected": stats.keyframe_gate_rejected,
+        "keyframe_fix_err_rms_m": float(np.sqrt(np.mean(np.square(errs)))) if errs else None,
+        "keyframe_fix_err_max_m": max(errs) if errs else None,
+        "keyframe_fix_nis_mean": float(np.mean(nis)) if nis else None,
+        "keyframe_false_locks": false_locks,
+    }
 
 
 def _delivered(msg: Any, down: bool) -> Any:

@@ -883,15 +883,23 @@ class NavFilter:
     def inflate_horizontal_position(self, factor: float) -> None:
         """Scale the horizontal position's sigmas by ``factor``, keeping every correlation.
 
-        The covariance's rows and columns of ``r_x`` and ``r_y`` are multiplied by
-        ``factor`` (``P <- D P D``, ``D`` diagonal), so ``P`` stays positive definite.
-        For a map acquisition that found the position only in a search window
-        ``factor`` times wider than the prior's: the prior was off by more than it knew.
+        The covariance's rows and columns of ``r_x`` and ``r_y``, and of the position clone's
+        ``x`` and ``y`` (the position at the last camera frame, which shares the prior's error),
+        are multiplied by ``factor`` (``P <- D P D``, ``D`` diagonal), so ``P`` stays positive
+        definite and the displacement since the last frame, ``r - r_clone``, keeps its small
+        variance (times ``factor^2``). For a map acquisition that found the position only in a
+        search window ``factor`` times wider than the prior's: the prior was off by more than it
+        knew. (Scaling the position alone made ``r - r_clone`` as uncertain as the position
+        itself; the update that followed moved the clone by half the position's jump, the next
+        vision pair saw the rest as motion, and later fixes were gated out: in a 20-case stress
+        campaign with a 100 m 3-sigma hand-over error, one case gated out 12 of its 21 fixes and
+        reached 50 m with a 2.6 m error.)
         """
         if not factor >= 1.0:
             raise ValueError(f"inflate_horizontal_position: factor = {factor}; allowed: >= 1")
         d = np.ones(self.ekf.P.shape[0])
         d[0:2] = factor
+        d[IDX_C.start:IDX_C.start + 2] = factor  # the clone is the position of the last frame: the same prior
         self.ekf.P = self.ekf.P * np.outer(d, d)
 
     def update_map_position(self, t_ns: int, z_xy_m: np.ndarray, R: np.ndarray,

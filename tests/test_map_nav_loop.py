@@ -144,11 +144,15 @@ def test_inflating_the_horizontal_position_scales_its_rows_and_columns():
     P0, x0 = f.P, f.x
     f.inflate_horizontal_position(1.5)
     expected = P0.copy()
-    for i in range(P0.shape[0]):  # explicit loop: rows and columns 0 and 1 times 1.5, their crossing 2.25
+    horizontal = (0, 1, 10, 11)  # r_x, r_y and the position clone's x, y (the same prior error)
+    for i in range(P0.shape[0]):  # explicit loop: those rows and columns times 1.5, their crossings 2.25
         for j in range(P0.shape[1]):
-            expected[i, j] *= (1.5 if i < 2 else 1.0) * (1.5 if j < 2 else 1.0)
+            expected[i, j] *= (1.5 if i in horizontal else 1.0) * (1.5 if j in horizontal else 1.0)
     np.testing.assert_allclose(f.P, expected, rtol=1e-15)
     assert np.array_equal(f.x, x0) and np.all(np.linalg.eigvalsh(f.P) > 0)
+    # The displacement since the last frame keeps its variance, scaled: it does not take the position's.
+    var_d = lambda P: P[0, 0] + P[10, 10] - 2 * P[0, 10]  # noqa: E731
+    assert var_d(f.P) == pytest.approx(1.5**2 * var_d(P0), rel=1e-12)
     with pytest.raises(ValueError, match="factor"):
         f.inflate_horizontal_position(0.5)
 

@@ -599,8 +599,7 @@ class MapNavStats:
     frames_used: int = 0  # frames taken: map-fix attempts, the keyframe, keyframe-fix attempts
     keyframe_t_ns: int | None = None  # when the keyframe was taken
     keyframe_height_m: float = float("nan")  # the camera's estimated height above the map's ground then [m]
-    keyframe_r_C_xy_m: np.ndarray | None = None  # the estimated camera position it was laid on the ground from [m]
-    keyframe_r_C_z_m: float = float("nan")  # and its estimated height in L [m]
+    keyframe_r_C_m: np.ndarray | None = None  # the estimated camera position in L it was laid on the ground from (3,) [m]
     keyframe_attempts: int = 0
     keyframe_refused: int = 0  # keyframe fixes refused by the matcher (and keyframes not made)
     keyframe_updates: int = 0
@@ -719,15 +718,14 @@ class MapNavigator:
         if not self.wants_frame(t_ns, float(x[2])) or nav_filter.q_LB is None:
             return None
         self._last_t_ns = t_ns
-        P = nav_filter.ekf.P
         R_LB = quat_to_matrix(nav_filter.q_LB)
         lag_s = (t_ns - nav_filter.time_ns) / NS_PER_S
         lever = R_LB @ self.r_cam_B
         r_C = x[0:3] + x[3:6] * lag_s + lever
-        sigma_xy = math.sqrt(max(float(np.linalg.eigvalsh(P[0:2, 0:2])[-1]), 0.0))
         sigma_att = nav_filter.cfg.attitude_sigma_arcsec * ARCSEC_TO_RAD
         if float(x[2]) < self.cfg.min_altitude_m:
             return self._keyframe_frame(t_ns, frame, nav_filter, R_LB @ self.R_BC, r_C, lever, sigma_att)
+        sigma_xy = math.sqrt(max(float(np.linalg.eigvalsh(nav_filter.ekf.P[0:2, 0:2])[-1]), 0.0))
         self.stats.frames_used += 1
         self.stats.attempts += 1
         scale = self._window_scale()
@@ -793,15 +791,15 @@ class MapNavigator:
             nav_filter.map_bias_to_keyframe(t_ns, sigma_att * height)
             self._keyframe = MapMatcher(keyframe, self.cfg.fix)
             stats.keyframe_t_ns, stats.keyframe_height_m = t_ns, height
-            stats.keyframe_r_C_xy_m, stats.keyframe_r_C_z_m = r_C[:2].copy(), float(r_C[2])
+            stats.keyframe_r_C_m = r_C.copy()
             return None
         stats.frames_used += 1
         stats.keyframe_attempts += 1
         # How far the keyframe's height error shows here: its magnification about its nadir, at this nadir.
-        gain = (r_C[:2] - stats.keyframe_r_C_xy_m) / stats.keyframe_height_m
+        gain = (r_C[:2] - stats.keyframe_r_C_m[:2]) / stats.keyframe_height_m
         sigma_xy = math.sqrt(max(float(np.linalg.eigvalsh(nav_filter.map_prior_cov_xy(t_ns, gain))[-1]), 0.0))
         fix = self._keyframe.fix(frame, self.K, R_LC, r_C, sigma_xy, sigma_att,
-                                 keyframe_view=(stats.keyframe_r_C_xy_m, stats.keyframe_height_m))
+                                 keyframe_view=(stats.keyframe_r_C_m[:2], stats.keyframe_height_m))
         if not fix.ok:
             stats.keyframe_refused += 1
             stats.keyframe_log.append((t_ns, fix, False, None))

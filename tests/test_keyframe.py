@@ -125,7 +125,7 @@ def test_the_navigator_takes_a_keyframe_below_its_fix_window_then_fixes_against_
     frame = render_map_frame(onboard, K, r_B, R_LB @ R_BC, np.random.default_rng(0))
     assert nav.on_frame(0, frame, f) is None  # the keyframe
     assert nav.stats.keyframe_t_ns == 0 and nav.stats.attempts == 0 and nav.stats.frames_used == 1
-    np.testing.assert_allclose(nav.stats.keyframe_r_C_xy_m, (r_B + e)[:2])
+    np.testing.assert_allclose(nav.stats.keyframe_r_C_m, r_B + e)
     np.testing.assert_allclose(f.P[24:26, 0:2], -f.P[0:2, 0:2])
     # The lander moved (truth 0.5 m east, 15 m lower); its estimate drifted 0.3 m north meanwhile.
     r_B2 = r_B + np.array([0.5, 0.0, -15.0])

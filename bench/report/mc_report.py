@@ -366,10 +366,11 @@ def _keyframe_lines(nav: Sequence[Mapping[str, Any]]) -> list[str]:
     if not np.isfinite(kf_t).any() and not np.nansum(column(nav, "map_nav_keyframe_attempts")):
         return []
     attempts = int(np.nansum(column(nav, "map_nav_keyframe_attempts")))
-    updates = int(np.nansum(column(nav, "map_nav_keyframe_updates")))
+    used = column(nav, "map_nav_keyframe_updates")
+    updates = int(np.nansum(used))
     gated = int(np.nansum(column(nav, "map_nav_keyframe_gate_rejected")))
     refused = int(np.nansum(column(nav, "map_nav_keyframe_refused")))
-    rms, used = column(nav, "map_nav_keyframe_fix_err_rms_m"), column(nav, "map_nav_keyframe_updates")
+    rms = column(nav, "map_nav_keyframe_fix_err_rms_m")
     nis = column(nav, "map_nav_keyframe_fix_nis_mean")
     ok = np.isfinite(rms) & (used > 0)
     pooled = float(np.sqrt(np.sum(used[ok] * rms[ok] ** 2) / np.sum(used[ok]))) if ok.any() else math.nan

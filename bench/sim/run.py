@@ -530,13 +530,13 @@ def _keyframe_summary(stats: Any, shift: np.ndarray, truth_at: dict[int, np.ndar
     t_k = stats.keyframe_t_ns
     e_k = dz_k = None
     if t_k is not None and t_k in truth_at:
-        e_k = stats.keyframe_r_C_xy_m - (truth_at[t_k][:2] + shift)
-        dz_k = stats.keyframe_r_C_z_m - float(truth_at[t_k][2])
+        e_k = stats.keyframe_r_C_m[:2] - (truth_at[t_k][:2] + shift)
+        dz_k = float(stats.keyframe_r_C_m[2] - truth_at[t_k][2])
     errs, nis, false_locks = [], [], 0
     for t_ns, fix, _used, _gate_ok in stats.keyframe_log:
         if e_k is None or not fix.ok or t_ns not in truth_at:
             continue
-        g = (fix.r_CM_xy_m - fix.offset_xy_m - stats.keyframe_r_C_xy_m) / stats.keyframe_height_m
+        g = (fix.r_CM_xy_m - fix.offset_xy_m - stats.keyframe_r_C_m[:2]) / stats.keyframe_height_m
         e = fix.r_CM_xy_m - (truth_at[t_ns][:2] + shift + e_k + g * dz_k)
         errs.append(float(np.hypot(*e)))
         n = float(e @ np.linalg.solve(fix.total_cov_xy_m2, e))

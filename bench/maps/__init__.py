@@ -6,6 +6,13 @@ them, :func:`models.terrain.generate_surface`), an
 georeferencing error and the products' noise come from the run's own "map"
 stream (:mod:`bench.scenario.seeding`), so no other stream changes.
 
+A product takes seconds and some 300 MB to make (the region's surface is
+regenerated at texel resolution), so it is kept in the disk cache of
+:mod:`bench.sim.terrain_cache` (``$LANDBENCH_CACHE_DIR/map``, about 1 MB an
+entry), content-addressed by everything that shapes it: a campaign flown again
+on the same seeds (a regression's candidate, a controller study's second law)
+reads its maps instead of making them.
+
 Outputs: (:class:`gnc.map_nav.OnboardMap` for the flight software,
 :class:`MapTruth` for the bench: the drawn shift and where the map's target
 truly lies).
@@ -13,14 +20,23 @@ truly lies).
 
 from __future__ import annotations
 
+import hashlib
+import json
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+import bench.scenario.seeding as seeding_module
+import models.orbital_map as orbital_map_module
+import models.terrain as terrain_module
 from bench.scenario.seeding import component_rng
+from bench.sim.terrain_cache import cached_arrays, source_digest
 from gnc.map_nav import OnboardMap
 from models.orbital_map import OrbitalMapConfig, OrbitalProduct, render_orbital_map
 from models.terrain import Surface, TerrainConfig, generate_surface
+
+MAP_CACHE_FORMAT = 1
 
 
 @dataclass(frozen=True)
@@ -74,13 +90,55 @@ def build_onboard_map(terrain_cfg: TerrainConfig, terrain_seed: int, map_cfg: Or
     Returns:
         (the map for the flight software, the truth about it for the bench).
     """
-    if surface is None:
-        surface = generate_surface(terrain_cfg, component_rng(terrain_seed, "terrain"))
     shift, rng_noise = draw_map_shift(map_cfg, seed)
-    product = render_orbital_map(surface, map_cfg, shift, rng_noise, photometric=terrain_cfg.photometric_function)
+
+    def generate() -> OrbitalProduct:
+        ground = surface if surface is not None else generate_surface(terrain_cfg,
+                                                                      component_rng(terrain_seed, "terrain"))
+        return render_orbital_map(ground, map_cfg, shift, rng_noise, photometric=terrain_cfg.photometric_function)
+
+    if surface is None and terrain_cfg.kind == "procedural":
+        product = cached_arrays("map", map_key(terrain_cfg, terrain_seed, map_cfg, seed, shift), generate,
+                                _decode_product, _encode_product)
+    else:
+        product = generate()
     onboard = onboard_map_from_product(product, map_cfg)
     truth = MapTruth(shift_xy_m=shift, target_xy_L_m=(-shift[0], -shift[1]))
     return onboard, truth
+
+
+def map_key(terrain_cfg: TerrainConfig, terrain_seed: int, map_cfg: OrbitalMapConfig, seed: int,
+            shift_xy_m: tuple[float, float]) -> str:
+    """The content address (sha256 hex) of a run's map product: the terrain and map settings, the terrain
+    seed, the run's seed and its drawn shift, the generators' code (the terrain, the product, this module's
+    streams) and the numerical libraries' versions."""
+    import cv2
+    import scipy
+
+    doc = {
+        "format": MAP_CACHE_FORMAT,
+        "terrain": json.loads(terrain_cfg.model_dump_json()),
+        "terrain_seed": int(terrain_seed),
+        "map": json.loads(map_cfg.model_dump_json()),
+        "seed": int(seed),
+        "shift_xy_m": [float(v).hex() for v in shift_xy_m],
+        "code": [source_digest(m.__file__) for m in (terrain_module, orbital_map_module, seeding_module)]
+                + [source_digest(Path(__file__))],
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "opencv": cv2.__version__,
+    }
+    return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
+
+
+def _decode_product(header: dict, arrays: dict[str, np.ndarray]) -> OrbitalProduct:
+    return OrbitalProduct(image=arrays["image"], image_res_m=float(header["image_res_m"]), dem_m=arrays["dem_m"],
+                          dem_spacing_m=float(header["dem_spacing_m"]), size_m=float(header["size_m"]))
+
+
+def _encode_product(product: OrbitalProduct) -> tuple[dict[str, np.ndarray], dict]:
+    return ({"image": product.image, "dem_m": product.dem_m},
+            {"image_res_m": product.image_res_m, "dem_spacing_m": product.dem_spacing_m, "size_m": product.size_m})
 
 
 def scenario_onboard_map(scenario) -> tuple[OnboardMap, MapTruth]:

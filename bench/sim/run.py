@@ -212,14 +212,16 @@ def run(scenario: Scenario, frame_sink: FrameSink | None = None, progress: bool 
         telemetry and the terrain.
     """
     t_setup = time.perf_counter()
-    terrain = build_terrain(scenario)
-    world = build_world(scenario, terrain)
-    sensors = build_sensors(scenario)
     maps = None
     if scenario.nav_map == "on":  # the onboard map (for the flight software) and its truth (for the bench)
         from bench.maps import scenario_onboard_map
 
+        # Made first: its regenerated surface (about 300 MB while it lasts) is freed before the terrain,
+        # the world and its GL context exist, so that the two do not add up in the case's peak memory.
         maps = scenario_onboard_map(scenario)
+    terrain = build_terrain(scenario)
+    world = build_world(scenario, terrain)
+    sensors = build_sensors(scenario)
     hazard = None
     if scenario.hazard.scored:  # the fine truth ground (and the lidar that sees it)
         from bench.sim.hazard_truth import HazardTruth

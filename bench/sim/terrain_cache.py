@@ -24,6 +24,10 @@ The folder is ``$LANDBENCH_CACHE_DIR/terrain`` (default
 cache off. Terrains loaded from a DEM file are not cached. When the folder
 grows past ``LANDBENCH_TERRAIN_CACHE_MB`` (default 2048 MB), the least
 recently used entries are removed.
+
+The same store keeps the onboard map products of ``nav_map = "on"``
+(:func:`cached_arrays`, used by :mod:`bench.maps`) in a folder of their own,
+``$LANDBENCH_CACHE_DIR/map``, under the same rules.
 """
 
 from __future__ import annotations
@@ -50,19 +54,24 @@ _ARRAYS = ("height_m", "albedo", "craters", "boulders", "patch_height_m", "patch
 _source_digest: str | None = None
 
 
-def cache_dir() -> Path | None:
-    """The terrain cache folder, or None when the disk cache is off."""
+def cache_dir(kind: str = "terrain") -> Path | None:
+    """The cache folder of ``kind`` ("terrain" or "map"), or None when the disk cache is off."""
     root = os.environ.get(CACHE_ENV, "")
     if root.strip().lower() in ("off", "0", "none", "false"):
         return None
     base = Path(root).expanduser() if root else Path.home() / ".cache" / "landbench"
-    return base / "terrain"
+    return base / kind
+
+
+def source_digest(path: str | Path) -> str:
+    """sha256 of a source file's bytes (a generator's code belongs in its products' keys)."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def _generator_digest() -> str:
     global _source_digest
     if _source_digest is None:
-        _source_digest = hashlib.sha256(Path(terrain_module.__file__).read_bytes()).hexdigest()
+        _source_digest = source_digest(terrain_module.__file__)
     return _source_digest
 
 
@@ -96,8 +105,11 @@ def _arrays(terrain: Terrain) -> dict[str, np.ndarray]:
     return out
 
 
-def load(path: Path, key: str) -> Terrain | None:
-    """The terrain in the entry ``path``, or None when it is missing or not valid (then it is removed)."""
+def load_entry(path: Path, key: str) -> tuple[dict, dict[str, np.ndarray]] | None:
+    """The header and arrays of the entry ``path``, or None when it is missing or not valid (then it is removed).
+
+    Valid: it reads, its header names ``key`` and this format, and every array matches its sha256.
+    """
     try:
         with np.load(path, allow_pickle=False) as z:
             header = json.loads(bytes(z["header"]).decode("utf-8"))
@@ -112,30 +124,19 @@ def load(path: Path, key: str) -> Terrain | None:
     except FileNotFoundError:
         return None
     except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile, json.JSONDecodeError):
-        with contextlib.suppress(OSError):
-            path.unlink()
-        return None
-    try:
-        patch = None
-        if "patch_height_m" in arrays:
-            patch = TerrainPatch(height_m=arrays["patch_height_m"], size_m=float(header["patch_size_m"]),
-                                 albedo=arrays["patch_albedo"])
-        terrain = Terrain(height_m=arrays["height_m"], size_m=float(header["size_m"]), albedo=arrays["albedo"],
-                          craters=arrays["craters"], boulders=arrays["boulders"], patch=patch)
-    except (KeyError, ValueError, TypeError):
-        with contextlib.suppress(OSError):
-            path.unlink()
+        _remove(path)
         return None
     with contextlib.suppress(OSError):
         os.utime(path)  # recently used
-    return terrain
+    return header, arrays
 
 
-def store(path: Path, key: str, terrain: Terrain) -> None:
-    """Write the entry atomically (temporary file in the same folder, then ``os.replace``)."""
-    arrays = _arrays(terrain)
-    header = {"format": FORMAT_VERSION, "key": key, "size_m": terrain.size_m,
-              "patch_size_m": terrain.patch.size_m if terrain.patch is not None else None,
+def store_entry(path: Path, key: str, arrays: dict[str, np.ndarray], meta: dict | None = None) -> None:
+    """Write an entry atomically (temporary file in the same folder, then ``os.replace``).
+
+    ``meta``: plain JSON values kept in the header beside the key and the arrays' checksums.
+    """
+    header = {**(meta or {}), "format": FORMAT_VERSION, "key": key,
               "sha256": {name: _sha256(a) for name, a in arrays.items()}}
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem[:16]}.", suffix=".tmp", dir=path.parent)
@@ -146,9 +147,44 @@ def store(path: Path, key: str, terrain: Terrain) -> None:
             os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
+        _remove(tmp)
         raise
+
+
+def _remove(path: Path | str) -> None:
+    with contextlib.suppress(OSError):
+        os.unlink(path)
+
+
+def _decode_terrain(header: dict, arrays: dict[str, np.ndarray]) -> Terrain:
+    patch = None
+    if "patch_height_m" in arrays:
+        patch = TerrainPatch(height_m=arrays["patch_height_m"], size_m=float(header["patch_size_m"]),
+                             albedo=arrays["patch_albedo"])
+    return Terrain(height_m=arrays["height_m"], size_m=float(header["size_m"]), albedo=arrays["albedo"],
+                   craters=arrays["craters"], boulders=arrays["boulders"], patch=patch)
+
+
+def _encode_terrain(terrain: Terrain) -> tuple[dict[str, np.ndarray], dict]:
+    return _arrays(terrain), {"size_m": terrain.size_m,
+                              "patch_size_m": terrain.patch.size_m if terrain.patch is not None else None}
+
+
+def load(path: Path, key: str) -> Terrain | None:
+    """The terrain in the entry ``path``, or None when it is missing or not valid (then it is removed)."""
+    entry = load_entry(path, key)
+    if entry is None:
+        return None
+    try:
+        return _decode_terrain(*entry)
+    except (KeyError, ValueError, TypeError):
+        _remove(path)
+        return None
+
+
+def store(path: Path, key: str, terrain: Terrain) -> None:
+    """Write the terrain's entry atomically (:func:`store_entry`)."""
+    store_entry(path, key, *_encode_terrain(terrain))
 
 
 def _prune(folder: Path, keep: Path) -> None:
@@ -173,21 +209,40 @@ def _prune(folder: Path, keep: Path) -> None:
             total -= size
 
 
-def cached_terrain(cfg: TerrainConfig, terrain_seed: int, sun_elevation_deg: float, sun_azimuth_deg: float,
-                   generate) -> Terrain:
-    """The terrain from the disk cache, else ``generate()`` stored there (when the cache is on)."""
-    folder = cache_dir()
-    if folder is None or cfg.kind != "procedural":
+def cached_arrays(kind: str, key: str, generate, decode, encode):
+    """A product from the disk cache of ``kind``, else ``generate()`` stored there (when the cache is on).
+
+    Args:
+        kind: The cache folder's name ("terrain", "map").
+        key: The product's content address (a sha256 hex of everything that shapes it).
+        generate: Makes the product.
+        decode: ``(header, arrays) -> product``; raises KeyError, ValueError or TypeError for an entry it
+            cannot use (which is then removed and the product generated).
+        encode: ``product -> (arrays, meta)`` for :func:`store_entry`.
+    """
+    folder = cache_dir(kind)
+    if folder is None:
         return generate()
-    key = terrain_key(cfg, terrain_seed, sun_elevation_deg, sun_azimuth_deg)
     path = folder / f"{key}.npz"
-    terrain = load(path, key)
-    if terrain is not None:
-        return terrain
-    terrain = generate()
+    entry = load_entry(path, key)
+    if entry is not None:
+        try:
+            return decode(*entry)
+        except (KeyError, ValueError, TypeError):
+            _remove(path)
+    product = generate()
     try:
-        store(path, key, terrain)
+        store_entry(path, key, *encode(product))
         _prune(folder, keep=path)
     except OSError:
         pass  # a read-only or full disk costs the cache, never the run
-    return terrain
+    return product
+
+
+def cached_terrain(cfg: TerrainConfig, terrain_seed: int, sun_elevation_deg: float, sun_azimuth_deg: float,
+                   generate) -> Terrain:
+    """The terrain from the disk cache, else ``generate()`` stored there (when the cache is on)."""
+    if cfg.kind != "procedural":
+        return generate()
+    key = terrain_key(cfg, terrain_seed, sun_elevation_deg, sun_azimuth_deg)
+    return cached_arrays("terrain", key, generate, _decode_terrain, _encode_terrain)

@@ -29,6 +29,23 @@ def flat_terrain() -> Terrain:
     return make_terrain(np.zeros((33, 33)), 256.0)
 
 
+def damage_file(path, damage: str, flip_at: float = 0.5) -> None:
+    """Damage a disk-cache entry in place, as a crash or bit rot would: ``"truncate"`` (to half its
+    length), ``"flip"`` (one bit at ``flip_at`` of its length), ``"garbage"`` (other bytes) or ``"empty"``."""
+    data = bytearray(path.read_bytes())
+    if damage == "truncate":
+        data = data[: len(data) // 2]
+    elif damage == "flip":
+        data[int(len(data) * flip_at)] ^= 0x01
+    elif damage == "garbage":
+        data = bytearray(b"not a cache entry" * 10)
+    elif damage == "empty":
+        data = bytearray()
+    else:
+        raise ValueError(f"damage = {damage!r}")
+    path.write_bytes(bytes(data))
+
+
 def pytest_addoption(parser):
     parser.addoption("--regen-snapshots", action="store_true", default=False,
                      help="rewrite the replay metric snapshots (tests/snapshots/*.json, not the tolerance files) "

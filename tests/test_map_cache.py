@@ -11,6 +11,7 @@ from bench.scenario import load_scenario
 from bench.scenario.seeding import component_rng
 from bench.sim import terrain_cache
 from models.terrain import generate_surface
+from tests.conftest import damage_file
 
 SMALL = ["terrain.texture_px=256", "terrain.geometry_px=33", "terrain.size_m=256.0", "terrain.patch_size_m=64.0",
          "terrain.patch_texture_px=128", "onboard_map.size_m=128.0", "nav_map=on"]
@@ -65,14 +66,7 @@ def test_damaged_entry_is_rebuilt_not_trusted(cache, damage):
     sc = _scenario("seed=4")
     scenario_onboard_map(sc)
     (path,) = cache.glob("*.npz")
-    data = bytearray(path.read_bytes())
-    if damage == "truncate":
-        data = data[: len(data) // 2]
-    elif damage == "flip":
-        data[len(data) // 3] ^= 0x01  # inside the image: only the checksum sees it
-    else:
-        data = bytearray(b"not a map" * 10)
-    path.write_bytes(bytes(data))
+    damage_file(path, damage, flip_at=1 / 3)  # a flip lands inside the image: only the checksum sees it
     _assert_same(scenario_onboard_map(sc), _fresh(sc))
     (rebuilt,) = cache.glob("*.npz")
     assert terrain_cache.load_entry(rebuilt, rebuilt.stem) is not None

@@ -11,6 +11,7 @@ import pytest
 from bench.scenario import load_scenario
 from bench.sim import terrain_cache
 from bench.sim.world_builder import build_terrain, clear_terrain_cache, generate_scenario_terrain
+from tests.conftest import damage_file
 
 SMALL = ["terrain.texture_px=256", "terrain.geometry_px=33", "terrain.size_m=256.0", "terrain.patch_size_m=64.0",
          "terrain.patch_texture_px=128"]
@@ -68,16 +69,7 @@ def test_damaged_entry_is_rebuilt_not_trusted(cache, damage):
     calls: list = []
     _get(sc, calls)
     (path,) = cache.glob("*.npz")
-    data = bytearray(path.read_bytes())
-    if damage == "truncate":
-        data = data[: len(data) // 2]
-    elif damage == "flip":
-        data[len(data) // 2] ^= 0x01  # inside the albedo: only the checksum sees it
-    elif damage == "garbage":
-        data = bytearray(b"not a terrain" * 10)
-    else:
-        data = bytearray()
-    path.write_bytes(bytes(data))
+    damage_file(path, damage)  # a flip lands inside the albedo: only the checksum sees it
     again = _get(sc, calls)
     assert len(calls) == 2
     _assert_same(again, generate_scenario_terrain(sc))

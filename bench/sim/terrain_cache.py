@@ -170,16 +170,22 @@ def _encode_terrain(terrain: Terrain) -> tuple[dict[str, np.ndarray], dict]:
                               "patch_size_m": terrain.patch.size_m if terrain.patch is not None else None}
 
 
-def load(path: Path, key: str) -> Terrain | None:
-    """The terrain in the entry ``path``, or None when it is missing or not valid (then it is removed)."""
+def _load_decoded(path: Path, key: str, decode):
+    """The product in the entry ``path`` (``decode(header, arrays)``), or None when the entry is missing,
+    not valid, or one ``decode`` cannot use (raising KeyError, ValueError or TypeError); a bad entry is removed."""
     entry = load_entry(path, key)
     if entry is None:
         return None
     try:
-        return _decode_terrain(*entry)
+        return decode(*entry)
     except (KeyError, ValueError, TypeError):
         _remove(path)
         return None
+
+
+def load(path: Path, key: str) -> Terrain | None:
+    """The terrain in the entry ``path``, or None when it is missing or not valid (then it is removed)."""
+    return _load_decoded(path, key, _decode_terrain)
 
 
 def store(path: Path, key: str, terrain: Terrain) -> None:
@@ -224,12 +230,9 @@ def cached_arrays(kind: str, key: str, generate, decode, encode):
     if folder is None:
         return generate()
     path = folder / f"{key}.npz"
-    entry = load_entry(path, key)
-    if entry is not None:
-        try:
-            return decode(*entry)
-        except (KeyError, ValueError, TypeError):
-            _remove(path)
+    product = _load_decoded(path, key, decode)
+    if product is not None:
+        return product
     product = generate()
     try:
         store_entry(path, key, *encode(product))

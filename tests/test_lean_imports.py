@@ -16,6 +16,14 @@ def test_campaign_worker_imports_no_plotting_parquet_or_ray():
     assert not {"matplotlib", "pyarrow", "pandas", "ray", "statsmodels"} & mods
 
 
+def test_the_command_line_parses_before_it_imports_the_simulation():
+    """``landbench --help`` and the start of every command: the scenario's schema (with the filter, filterpy
+    and scipy.stats behind it, about 1.4 s) is imported by the command that needs it, so that a campaign can
+    start its workers' fork server first."""
+    mods = _modules_after("import bench.cli; bench.cli.build_parser()")
+    assert not {"scipy", "filterpy", "mujoco", "cv2", "pydantic", "bench.scenario", "bench.sim"} & mods
+
+
 def test_parquet_writing_does_not_import_pandas(tmp_path):
     path = tmp_path / "t.parquet"
     code = f"""

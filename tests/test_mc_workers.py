@@ -6,10 +6,14 @@ test_mc_recovery.py; the Ray backend's in test_mc_ray.py.)
 
 from __future__ import annotations
 
+import subprocess
+import sys
+import textwrap
+
 from bench.campaign import mc
 from bench.scenario import load_scenario
 from tests.conftest import SMALL_SET
-from tests.test_mc import _strip
+from tests.test_mc import QUICK, _strip
 
 # The default descent with every default dispersion (a new terrain per case), camera, vision and filter in
 # the loop, cut after 2 s of flight: each case renders its frames over its own terrain, which is what a
@@ -45,3 +49,46 @@ def test_cases_per_worker_must_be_positive(tmp_path):
     with pytest.raises(ValueError, match="--cases-per-worker"):
         mc.run_campaign(load_scenario(None, RENDERING), 1, tmp_path / "x", campaign_seed=1, cases_per_worker=0,
                         progress=False)
+
+
+def test_the_fork_server_started_first_is_the_one_the_campaign_forks_from(tmp_path):
+    """``landbench mc`` starts its workers' fork server before it imports the simulation (the two then
+    overlap): the master has imported nothing heavy yet, the server alone gets the workers' thread
+    counts, and the campaign that follows forks its workers from that server instead of starting one."""
+    code = textwrap.dedent("""
+        import os, sys
+        from pathlib import Path
+        from bench.campaign.workers import THREAD_ENV_VARS, start_worker_server, threads_per_worker
+
+        def servers():
+            found = set()
+            for d in Path("/proc").iterdir():
+                try:
+                    ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+                    cmd = (d / "cmdline").read_bytes()
+                except (OSError, ValueError, IndexError):
+                    continue
+                if ppid == os.getpid() and b"forkserver" in cmd:
+                    found.add(int(d.name))
+            return found
+
+        env_before = dict(os.environ)
+        assert start_worker_server(2)
+        assert dict(os.environ) == env_before, "the thread counts are the server's, not the master's"
+        heavy = [m for m in sys.modules if m.split(".")[0] in ("mujoco", "scipy", "filterpy", "cv2")
+                 or m.startswith(("bench.scenario", "bench.sim"))]
+        assert not heavy, heavy
+        (server,) = servers()
+        env = dict(kv.split("=", 1) for kv in Path(f"/proc/{server}/environ").read_bytes().decode().split("\\0")
+                   if "=" in kv)
+        want = str(threads_per_worker(2))
+        assert all(env.get(k) == os.environ.get(k, want) for k in THREAD_ENV_VARS), env
+
+        from bench.campaign import mc
+        from bench.scenario import load_scenario
+        rows = mc.run_campaign(load_scenario(None, QUICK), 1, Path(OUT), campaign_seed=3, workers=2, progress=False)
+        assert rows[0]["outcome"] == "landed", rows
+        assert servers() == {server}, "the campaign forked its worker from the server started first"
+    """)
+    subprocess.run([sys.executable, "-c", f"QUICK = {QUICK!r}\nOUT = {str(tmp_path / 'mc')!r}\n" + code],
+                   check=True, timeout=300)

@@ -10,7 +10,7 @@ Execution, after NASA Trick's Monte Carlo master, on either backend:
       flying cases one after another (``cases_per_worker`` at most, then a
       fresh process takes its place). Workers are forked from a fork server
       that has imported what a case needs and nothing more (no GL context, no
-      MuJoCo model: see :func:`_worker_context`), so a new worker costs a fork,
+      MuJoCo model: see :func:`bench.campaign.workers.worker_context`), so a new worker costs a fork,
       not a second of imports; ``ray``: one Ray task per case on a Ray
       cluster (given by ``--address`` or ``RAY_ADDRESS``, else a local Ray
       instance started here), a Ray worker process running at most
@@ -40,15 +40,15 @@ from __future__ import annotations
 
 import contextlib
 import json
-import multiprocessing as mp
 import multiprocessing.connection as mp_connection
 import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from bench.campaign.workers import thread_env, threads_per_worker, worker_context
 from bench.evaluation.consistency import CONSISTENCY_FILE, campaign_consistency
 from bench.report.io import atomic_write_bytes, atomic_write_text, json_safe
 from bench.scenario import Scenario, apply_dispersions, case_seeds, load_scenario, scenario_from_dict, scenario_to_toml
@@ -112,29 +112,6 @@ def summary_row(summary: dict[str, Any]) -> dict[str, Any]:
     if profile is not None:
         row["nees_profile"] = profile
     return row
-
-
-# Threads a case may use are set per worker: the CPUs divided among the
-# workers. Without this, llvmpipe, OpenCV and BLAS each start one thread per
-# core in every worker, and K workers on K cores fight over them.
-THREAD_ENV_VARS = ("LP_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-
-
-def threads_per_worker(workers: int) -> int:
-    """The CPUs this process may use, shared out among ``workers`` (at least 1 each)."""
-    return max(1, len(os.sched_getaffinity(0)) // workers)
-
-
-@contextlib.contextmanager
-def _thread_env(threads: int) -> Iterator[None]:
-    """Set the thread-count variables a spawned child reads at start (the user's own win)."""
-    added = [k for k in THREAD_ENV_VARS if k not in os.environ]
-    os.environ.update({k: str(threads) for k in added})
-    try:
-        yield
-    finally:
-        for k in added:
-            os.environ.pop(k, None)
 
 
 def _limit_threads(threads: int) -> None:
@@ -446,35 +423,6 @@ class _Worker:
     attempt: int = 0
 
 
-# What a fork server imports before it forks any worker: every module a case needs, and nothing
-# that opens a GL display or builds a MuJoCo model (the GL backend is chosen in the master and
-# handed over in the environment, so importing mujoco there probes nothing).
-WORKER_PRELOAD = ["bench.sim.run"]
-
-
-def _worker_context() -> Any:
-    """The multiprocessing context local workers start from.
-
-    A fork server (where the platform has one): a process started fresh, which
-    imports :data:`WORKER_PRELOAD` once and then forks a worker on request. A
-    worker thus starts in milliseconds with its imports done, yet inherits no
-    GL context, MuJoCo model or random state: the server never flies, renders
-    or draws. The GL backend (``MUJOCO_GL``) is chosen here, in the master, and
-    passed down in the environment, so that the server's ``import mujoco``
-    does not initialise an EGL display that its forks would share. Its BLAS
-    and OpenMP thread pools are sized once, from the environment of the first
-    campaign that starts it. Elsewhere: ``spawn``, a fresh interpreter per worker.
-    """
-    if "forkserver" not in mp.get_all_start_methods():
-        return mp.get_context("spawn")
-    from models.gl import ensure_gl_backend
-
-    ensure_gl_backend()
-    ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(WORKER_PRELOAD)
-    return ctx
-
-
 def _run_local(job: _Job, todo: list[int], workers: int, done: Callable[[int], Any],
                cases_per_worker: int = CASES_PER_WORKER) -> None:
     """Local backend: at most ``workers`` worker processes, each flying up to ``cases_per_worker`` cases in turn.
@@ -485,7 +433,7 @@ def _run_local(job: _Job, todo: list[int], workers: int, done: Callable[[int], A
     out; a worker that dies without the case's row is replaced and the case
     retried once on a fresh process, then recorded as failed.
     """
-    ctx = _worker_context()
+    ctx = worker_context()
     threads = threads_per_worker(workers)
     lp_threads = os.environ.get("LP_NUM_THREADS", str(threads))  # the user's own wins
     pool: list[_Worker] = []
@@ -497,7 +445,7 @@ def _run_local(job: _Job, todo: list[int], workers: int, done: Callable[[int], A
         p = ctx.Process(target=_case_worker, args=(child, job.base_data, job.campaign_seed, job.runs,
                                                    str(job.cases_dir), job.retention, threads, cases_per_worker,
                                                    lp_threads))
-        with _thread_env(threads):
+        with thread_env(threads):
             p.start()
         child.close()
         return _Worker(p, conn)

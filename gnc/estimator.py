@@ -928,19 +928,28 @@ class NavFilter:
         if isinstance(checked, UpdateRecord):
             return checked
         R, lag_ns = checked
+        hx, H = self._map_fix_model(lag_ns / NS_PER_S, np.asarray(lever_xy_m, dtype=float), keyframe_gain)
+        return self._gated_update(int(t_ns), KIND_MAP, z, hx, H, R)
+
+    def _map_fix_model(self, lag_s: float, lever_xy_m: np.ndarray,
+                       keyframe_gain: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """A map fix's prediction ``z = r + v lag + lever + b_map (+ g b_kz against a keyframe)``, (2,) [m], and
+        its Jacobian (2, dim_x) (the model is linear): ``b_map`` and ``b_kz`` where the filter carries them,
+        ``g`` = ``keyframe_gain`` [-], ``lag`` [s] from the filter time to the fix's time of validity,
+        ``lever`` (2,) [m] the camera's horizontal offset from the body origin."""
         x = self.ekf.x
-        lag_s = lag_ns / NS_PER_S
-        hx = x[0:2] + x[3:5] * lag_s + np.asarray(lever_xy_m, dtype=float)
+        hx = x[0:2] + x[3:5] * lag_s + lever_xy_m
         H = np.zeros((2, self.dim_x))
         H[0, 0] = H[1, 1] = 1.0
-        if self.has_map_bias:  # z = r + v lag + lever + b_map (+ g b_kz against a keyframe) + w
+        H[0, 3] = H[1, 4] = lag_s
+        if self.has_map_bias:
             hx = hx + x[IDX_MB]
             H[:, IDX_MB] = np.eye(2)
             if keyframe_gain is not None:
                 g = np.asarray(keyframe_gain, dtype=float).reshape(2)
                 hx = hx + g * x[IDX_KZ]
                 H[:, IDX_KZ] = g
-        return self._gated_update(int(t_ns), KIND_MAP, z, hx, H, R)
+        return hx, H
 
     @property
     def has_map_bias(self) -> bool:
@@ -990,14 +999,7 @@ class NavFilter:
     def map_prior_cov_xy(self, t_ns: int, keyframe_gain: np.ndarray | None = None) -> np.ndarray:
         """Covariance (2, 2) [m^2] of the map-fix model's prediction ``r + v lag + b_map (+ g b_kz)``
         (``b_map`` when carried; ``g`` = ``keyframe_gain`` as in :meth:`update_map_position`)."""
-        lag_s = self._lag_ns(t_ns) / NS_PER_S
-        H = np.zeros((2, self.dim_x))
-        H[0, 0] = H[1, 1] = 1.0
-        H[0, 3] = H[1, 4] = lag_s
-        if self.has_map_bias:
-            H[:, IDX_MB] = np.eye(2)
-            if keyframe_gain is not None:
-                H[:, IDX_KZ] = np.asarray(keyframe_gain, dtype=float).reshape(2)
+        _, H = self._map_fix_model(self._lag_ns(t_ns) / NS_PER_S, np.zeros(2), keyframe_gain)
         return H @ self.ekf.P @ H.T
 
     def clone_frame(self, t_ns: int) -> bool:

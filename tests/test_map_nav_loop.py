@@ -13,7 +13,7 @@ from bench.maps.synthetic import render_map_frame
 from bench.scenario import ScenarioError, load_scenario
 from bench.scenario.seeding import component_rng
 from bench.sim.flight_build import build_flight_software
-from gnc.estimator import KIND_MAP, make_estimator
+from gnc.estimator import IDX_MB, KIND_MAP, make_estimator
 from gnc.map_nav import REFUSALS, MapNavConfig, MapNavigator
 from gnc.messages import AttitudeMessage
 from models.orbital_map import OrbitalMapConfig, render_orbital_map
@@ -63,6 +63,35 @@ def test_map_position_update_is_the_kalman_update_under_the_gate():
     far = f.update_map_position(0, x1[:2] + lever + 500.0, R, lever)
     assert not far.accepted and far.reason == "gate" and np.array_equal(f.x, x1)
     assert f.counters[KIND_MAP]["rejected"] == 1
+
+
+@pytest.mark.parametrize("bias", [False, True])
+def test_a_fix_off_the_filter_time_is_predicted_and_linearised_through_the_velocity(bias):
+    """A fix stamped 80 ms after the filter time predicts ``r + v lag``, and its Jacobian carries the velocity
+    column ``lag I`` as well: the update is the textbook one with that H, and its innovation covariance is
+    :meth:`map_prior_cov_xy` plus R (the two share one model of the fix)."""
+    f = make_estimator(None, np.array([10.0, -5.0, 300.0]), np.array([4.0, -3.0, -20.0]), 0,
+                       altimeter_mount_B_m=np.zeros(3), map_bias_sigma_m=1.5 if bias else None)
+    f.set_attitude(AttitudeMessage(0, np.array([1.0, 0.0, 0.0, 0.0])))
+    assert f.has_map_bias == bias
+    lag_s, t_ns = 0.08, 80_000_000
+    x0, P0 = f.x, f.P
+    lever = np.array([0.4, -0.1])
+    R = np.array([[0.5, 0.1], [0.1, 0.3]])
+    prior = f.map_prior_cov_xy(t_ns)
+    H = np.zeros((2, x0.size))
+    H[0, 0] = H[1, 1] = 1.0
+    H[0, 3] = H[1, 4] = lag_s
+    if bias:
+        H[:, IDX_MB] = np.eye(2)
+    z = x0[:2] + x0[3:5] * lag_s + lever + np.array([1.0, -0.5])
+    rec = f.update_map_position(t_ns, z, R, lever)
+    assert rec.accepted
+    S = H @ P0 @ H.T + R
+    np.testing.assert_allclose(rec.S, S, atol=1e-9)
+    np.testing.assert_allclose(prior, H @ P0 @ H.T, atol=1e-9)
+    Kg = P0 @ H.T @ np.linalg.inv(S)
+    np.testing.assert_allclose(f.x, x0 + Kg @ (z - H @ x0 - lever), atol=1e-9)
 
 
 def _attitude(yaw_deg):

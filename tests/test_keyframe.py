@@ -146,3 +146,38 @@ def test_the_navigator_takes_a_keyframe_below_its_fix_window_then_fixes_against_
     assert not nav2.wants_frame(2_000_000_000, 40.0)
     # Switched off: no frame below the fix window.
     assert not MapNavigator(onboard, MapNavConfig(keyframe=False), K, R_BC, np.zeros(3)).wants_frame(0, 40.0)
+
+
+def test_the_keyframe_summary_scores_each_fix_against_truth_and_its_own_sigma():
+    """A keyframe fix's error is measured against truth + map shift + the keyframe's own pose error
+    (horizontal e_k, and the height error dz_k magnified by g = (r_C - r_C,k)/h_k); a false lock is one
+    beyond 5 of its own sigmas. Written out by hand for three fixes: one exact, one 2 sigma off, one
+    6 sigma off, and one the matcher refused (not scored)."""
+    from types import SimpleNamespace
+
+    from bench.sim.run import _keyframe_summary
+
+    shift = np.array([1.0, -2.0])
+    r_k = np.array([3.0, 4.0, 50.0])  # the estimated camera position the keyframe was laid with
+    truth_at = {0: np.array([2.5, 6.2, 50.4]), 1: np.array([7.0, 4.0, 30.0]), 2: np.array([3.0, 9.0, 20.0]),
+                3: np.array([3.0, 9.0, 19.0])}
+    e_k, dz_k = r_k[:2] - (truth_at[0][:2] + shift), r_k[2] - truth_at[0][2]
+
+    def fix(t, err_xy, sigma, ok=True):
+        offset = np.array([0.2, -0.1])
+        r_est = truth_at[t][:2] + np.array([0.3, 0.1])  # the fix's own estimate of the camera: g from it
+        g = (r_est - r_k[:2]) / r_k[2]
+        r_cm = truth_at[t][:2] + shift + e_k + g * dz_k + np.asarray(err_xy)
+        return SimpleNamespace(ok=ok, r_CM_xy_m=r_cm, offset_xy_m=r_cm - r_est,
+                               total_cov_xy_m2=np.eye(2) * sigma**2) if ok else SimpleNamespace(ok=False)
+
+    log = [(1, fix(1, [0.0, 0.0], 0.1), True, True), (2, fix(2, [0.0, 0.2], 0.1), True, True),
+           (3, fix(3, [0.6, 0.0], 0.1), True, False), (3, fix(3, [9.0, 9.0], 0.1, ok=False), False, None)]
+    stats = SimpleNamespace(keyframe_t_ns=0, keyframe_r_C_m=r_k, keyframe_height_m=r_k[2], keyframe_log=log,
+                            keyframe_attempts=4, keyframe_refused=1, keyframe_updates=3, keyframe_gate_rejected=1)
+    s = _keyframe_summary(stats, shift, truth_at)
+    assert s["keyframe_err_xy_m"] == pytest.approx(list(e_k)) and s["keyframe_err_z_m"] == pytest.approx(dz_k)
+    assert s["keyframe_fix_err_max_m"] == pytest.approx(0.6)
+    assert s["keyframe_fix_err_rms_m"] == pytest.approx(np.sqrt((0.0 + 0.04 + 0.36) / 3))
+    assert s["keyframe_fix_nis_mean"] == pytest.approx((0.0 + 4.0 + 36.0) / 3)
+    assert s["keyframe_false_locks"] == 1

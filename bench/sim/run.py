@@ -472,17 +472,9 @@ def _map_nav_summary(fsw: FlightSoftware, map_truth: Any, truth_log: list[tuple[
     stats = fsw.map_nav.stats
     shift = np.array(map_truth.shift_xy_m)
     truth_at = dict(truth_log)
-    errs, nis, false_locks, used_false = [], [], 0, 0
-    for t_ns, fix, used, gate_ok in stats.log:
-        if not fix.ok or t_ns not in truth_at:
-            continue
-        e = fix.r_CM_xy_m - (truth_at[t_ns][:2] + shift)
-        errs.append(float(np.hypot(*e)))
-        n = float(e @ np.linalg.solve(fix.total_cov_xy_m2, e))
-        nis.append(n)
-        if n > MAP_FALSE_LOCK_NIS:
-            false_locks += 1
-            used_false += int(bool(used and gate_ok))
+    errs, nis, used = _scored_fixes(stats.log, truth_at, lambda t_ns, fix: truth_at[t_ns][:2] + shift)
+    false_locks = sum(n > MAP_FALSE_LOCK_NIS for n in nis)
+    used_false = sum(n > MAP_FALSE_LOCK_NIS and u for n, u in zip(nis, used))
     kf = _keyframe_summary(stats, shift, truth_at)
     out: dict[str, Any] = {
         "shift_xy_m": [float(c) for c in shift],
@@ -491,9 +483,7 @@ def _map_nav_summary(fsw: FlightSoftware, map_truth: Any, truth_log: list[tuple[
         "search_sigmas_max": stats.search_sigmas_max,
         "updates": stats.updates, "gate_rejected": stats.gate_rejected,
         "fixes_accepted_by_matcher": len(errs),
-        "fix_err_rms_m": float(np.sqrt(np.mean(np.square(errs)))) if errs else None,
-        "fix_err_max_m": max(errs) if errs else None,
-        "fix_nis_mean": float(np.mean(nis)) if nis else None,
+        **_fix_error_stats(errs, nis, ""),
         "false_locks": false_locks, "false_locks_used": used_false,
         "miss_vs_map_target_m": None, "nav_err_map_frame_touchdown_m": None,
         "nav_err_map_frame_50m_m": None, "nav_err_map_frame_50m_xy_m": None,
@@ -534,16 +524,15 @@ def _keyframe_summary(stats: Any, shift: np.ndarray, truth_at: dict[int, np.ndar
     if t_k is not None and t_k in truth_at:
         e_k = stats.keyframe_r_C_m[:2] - (truth_at[t_k][:2] + shift)
         dz_k = float(stats.keyframe_r_C_m[2] - truth_at[t_k][2])
-    errs, nis, false_locks = [], [], 0
-    for t_ns, fix, _used, _gate_ok in stats.keyframe_log:
-        if e_k is None or not fix.ok or t_ns not in truth_at:
-            continue
-        g = (fix.r_CM_xy_m - fix.offset_xy_m - stats.keyframe_r_C_m[:2]) / stats.keyframe_height_m
-        e = fix.r_CM_xy_m - (truth_at[t_ns][:2] + shift + e_k + g * dz_k)
-        errs.append(float(np.hypot(*e)))
-        n = float(e @ np.linalg.solve(fix.total_cov_xy_m2, e))
-        nis.append(n)
-        false_locks += int(n > MAP_FALSE_LOCK_NIS)
+    errs: list[float] = []
+    nis: list[float] = []
+    if e_k is not None:
+
+        def expected(t_ns: int, fix: Any) -> np.ndarray:
+            g = (fix.r_CM_xy_m - fix.offset_xy_m - stats.keyframe_r_C_m[:2]) / stats.keyframe_height_m
+            return truth_at[t_ns][:2] + shift + e_k + g * dz_k
+
+        errs, nis, _ = _scored_fixes(stats.keyframe_log, truth_at, expected)
     return {
         "keyframe_t_s": None if t_k is None else t_k / NS_PER_S,
         "keyframe_height_m": None if t_k is None else float(stats.keyframe_height_m),
@@ -551,10 +540,36 @@ def _keyframe_summary(stats: Any, shift: np.ndarray, truth_at: dict[int, np.ndar
         "keyframe_err_z_m": dz_k,
         "keyframe_attempts": stats.keyframe_attempts, "keyframe_refused": stats.keyframe_refused,
         "keyframe_updates": stats.keyframe_updates, "keyframe_gate_rejected": stats.keyframe_gate_rejected,
-        "keyframe_fix_err_rms_m": float(np.sqrt(np.mean(np.square(errs)))) if errs else None,
-        "keyframe_fix_err_max_m": max(errs) if errs else None,
-        "keyframe_fix_nis_mean": float(np.mean(nis)) if nis else None,
-        "keyframe_false_locks": false_locks,
+        **_fix_error_stats(errs, nis, "keyframe_"),
+        "keyframe_false_locks": sum(n > MAP_FALSE_LOCK_NIS for n in nis),
+    }
+
+
+def _scored_fixes(log: list[tuple], truth_at: dict[int, np.ndarray],
+                  expected_xy_m: Any) -> tuple[list[float], list[float], list[bool]]:
+    """The fixes of a map or keyframe log that the matcher accepted, scored against truth.
+
+    ``expected_xy_m(t_ns, fix)`` is where a perfect fix would put the camera (map frame) [m]. Returns
+    each scored fix's error norm [m], its NIS under its own covariance ``total_cov_xy_m2`` [-], and
+    whether the filter took it (used and through the gate).
+    """
+    errs, nis, taken = [], [], []
+    for t_ns, fix, used, gate_ok in log:
+        if not fix.ok or t_ns not in truth_at:
+            continue
+        e = fix.r_CM_xy_m - expected_xy_m(t_ns, fix)
+        errs.append(float(np.hypot(*e)))
+        nis.append(float(e @ np.linalg.solve(fix.total_cov_xy_m2, e)))
+        taken.append(bool(used and gate_ok))
+    return errs, nis, taken
+
+
+def _fix_error_stats(errs: list[float], nis: list[float], prefix: str) -> dict[str, float | None]:
+    """RMS and largest error [m] and mean NIS [-] of scored fixes, under ``prefix``; None without fixes."""
+    return {
+        f"{prefix}fix_err_rms_m": float(np.sqrt(np.mean(np.square(errs)))) if errs else None,
+        f"{prefix}fix_err_max_m": max(errs) if errs else None,
+        f"{prefix}fix_nis_mean": float(np.mean(nis)) if nis else None,
     }
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -44,6 +46,28 @@ def damage_file(path, damage: str, flip_at: float = 0.5) -> None:
     else:
         raise ValueError(f"damage = {damage!r}")
     path.write_bytes(bytes(data))
+
+
+def live_processes() -> dict[int, tuple[int, bytes]]:
+    """Every live process on this machine (zombies, exited but not yet reaped, left out): pid -> (parent pid,
+    command line)."""
+    procs = {}
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            state, ppid = (d / "stat").read_text().rsplit(")", 1)[1].split()[:2]
+            cmd = (d / "cmdline").read_bytes()
+        except (OSError, IndexError, ValueError):
+            continue
+        if state != "Z":
+            procs[int(d.name)] = (int(ppid), cmd)
+    return procs
+
+
+def fork_servers(procs: dict[int, tuple[int, bytes]], parent: int) -> set[int]:
+    """The multiprocessing fork servers among ``procs`` (:func:`live_processes`) that ``parent`` started."""
+    return {pid for pid, (ppid, cmd) in procs.items() if ppid == parent and b"forkserver" in cmd}
 
 
 def pytest_addoption(parser):

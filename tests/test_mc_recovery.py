@@ -11,11 +11,11 @@ import subprocess
 import sys
 import threading
 import time
-from pathlib import Path
 
 from bench.campaign import mc
 from bench.cli import main
 from bench.scenario import load_scenario
+from tests.conftest import fork_servers, live_processes
 from tests.test_mc import QUICK, _sets, _strip
 
 
@@ -60,12 +60,6 @@ def test_kill_and_resume_loses_and_duplicates_nothing(tmp_path):
     assert _strip(rows) == _strip(fresh)
 
 
-def _stat_ppid_cmdline(d: Path) -> tuple[int, bytes] | None:
-    """(parent pid, command line) of a live process; None for a zombie (exited, not yet reaped)."""
-    state, ppid = (d / "stat").read_text().rsplit(")", 1)[1].split()[:2]
-    return None if state == "Z" else (int(ppid), (d / "cmdline").read_bytes())
-
-
 def _kill_next_worker(seen: set[int], timeout_s: float = 120.0) -> None:
     """SIGKILL the next case worker this process starts (one not in ``seen``).
 
@@ -75,16 +69,8 @@ def _kill_next_worker(seen: set[int], timeout_s: float = 120.0) -> None:
     me = os.getpid()
     deadline = time.time() + timeout_s
     while time.time() < deadline:
-        procs = {}
-        for d in Path("/proc").iterdir():
-            if d.name.isdigit():
-                try:
-                    info = _stat_ppid_cmdline(d)
-                except (OSError, IndexError, ValueError):
-                    continue
-                if info is not None:
-                    procs[int(d.name)] = info
-        servers = {pid for pid, (ppid, cmd) in procs.items() if ppid == me and b"forkserver" in cmd}
+        procs = live_processes()
+        servers = fork_servers(procs, me)
         for pid, (ppid, cmd) in procs.items():
             is_worker = ppid in servers or (ppid == me and b"spawn_main" in cmd)
             if is_worker and pid not in seen:

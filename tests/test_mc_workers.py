@@ -9,6 +9,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 from bench.campaign import mc
 from bench.scenario import load_scenario
@@ -60,24 +61,17 @@ def test_the_fork_server_started_first_is_the_one_the_campaign_forks_from(tmp_pa
         from pathlib import Path
         from bench.campaign.workers import THREAD_ENV_VARS, start_worker_server, threads_per_worker
 
-        def servers():
-            found = set()
-            for d in Path("/proc").iterdir():
-                try:
-                    ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
-                    cmd = (d / "cmdline").read_bytes()
-                except (OSError, ValueError, IndexError):
-                    continue
-                if ppid == os.getpid() and b"forkserver" in cmd:
-                    found.add(int(d.name))
-            return found
-
         env_before = dict(os.environ)
         assert start_worker_server(2)
         assert dict(os.environ) == env_before, "the thread counts are the server's, not the master's"
         heavy = [m for m in sys.modules if m.split(".")[0] in ("mujoco", "scipy", "filterpy", "cv2")
                  or m.startswith(("bench.scenario", "bench.sim"))]
         assert not heavy, heavy
+        from tests.conftest import fork_servers, live_processes  # (after the check: it imports the terrain)
+
+        def servers():
+            return fork_servers(live_processes(), os.getpid())
+
         (server,) = servers()
         env = dict(kv.split("=", 1) for kv in Path(f"/proc/{server}/environ").read_bytes().decode().split("\\0")
                    if "=" in kv)
@@ -91,4 +85,4 @@ def test_the_fork_server_started_first_is_the_one_the_campaign_forks_from(tmp_pa
         assert servers() == {server}, "the campaign forked its worker from the server started first"
     """)
     subprocess.run([sys.executable, "-c", f"QUICK = {QUICK!r}\nOUT = {str(tmp_path / 'mc')!r}\n" + code],
-                   check=True, timeout=300)
+                   check=True, timeout=300, cwd=Path(__file__).resolve().parents[1])

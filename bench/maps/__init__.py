@@ -20,7 +20,6 @@ truly lies).
 
 from __future__ import annotations
 
-import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,7 +30,7 @@ import bench.scenario.seeding as seeding_module
 import models.orbital_map as orbital_map_module
 import models.terrain as terrain_module
 from bench.scenario.seeding import component_rng
-from bench.sim.terrain_cache import cached_arrays, source_digest
+from bench.sim.terrain_cache import cached_arrays, content_address, source_digest
 from gnc.map_nav import OnboardMap
 from models.orbital_map import OrbitalMapConfig, OrbitalProduct, render_orbital_map
 from models.terrain import Surface, TerrainConfig, generate_surface
@@ -128,7 +127,7 @@ def map_key(terrain_cfg: TerrainConfig, terrain_seed: int, map_cfg: OrbitalMapCo
         "scipy": scipy.__version__,
         "opencv": cv2.__version__,
     }
-    return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
+    return content_address(doc)
 
 
 def _decode_product(header: dict, arrays: dict[str, np.ndarray]) -> OrbitalProduct:

@@ -89,6 +89,11 @@ def terrain_key(cfg: TerrainConfig, terrain_seed: int, sun_elevation_deg: float,
         "numpy": np.__version__,
         "scipy": scipy.__version__,
     }
+    return content_address(doc)
+
+
+def content_address(doc: dict) -> str:
+    """sha256 hex of a key document (plain JSON values, serialised with sorted keys): a cache entry's name."""
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
 
 

@@ -196,6 +196,10 @@ def test_nav_map_switch_is_off_by_default_and_checked():
         load_scenario(None, ["nav_map=on", "onboard_map.size_m=2000.0"])
     with pytest.raises(ScenarioError, match="map_nav.period_ns = 150000000"):
         load_scenario(None, ["nav_map=on", "map_nav.period_ns=150000000"])
+    # The regional relief the filter carries with map fixes must be smoother than the cleared site.
+    with pytest.raises(ScenarioError, match="estimator.regional_relief_sigma_m / regional_relief_length_m = 0.05"):
+        load_scenario(None, ["nav_map=on", "estimator.regional_relief_sigma_m=5.0"])
+    load_scenario(None, ["estimator.regional_relief_sigma_m=5.0"])  # not read without map fixes
 
 
 @pytest.mark.slow
@@ -303,3 +307,30 @@ def test_a_common_fix_error_is_not_averaged_down():
     vw = (sigma_b**2 + sigma_w**2) / n
     assert white.P[0, 0] == pytest.approx(sigma0**2 * vw / (sigma0**2 + vw), rel=1e-9)
     assert white.P[0, 0] < 0.25 * f.P[0, 0]  # the white model claims four times the information it has
+
+
+@pytest.mark.parametrize("nav_map", ["off", "on"])
+def test_computer_restart_keeps_the_terrain_states_and_the_regional_relief(onboard, nav_map):
+    # A warm restart restores the kinematic, accelerometer-bias and terrain states from the checkpoint (carried
+    # ballistically), with their covariance among themselves; with map fixes the regional relief is terrain too.
+    from bench.sim.flight_build import restart_flight_software
+    from gnc.estimator import DIM_REGIONAL, IDX_RR
+    from gnc.fdir import restart_estimate
+
+    sc = load_scenario(None, [f'nav_map="{nav_map}"'])
+    old = build_flight_software(sc, np.array([5.0, -3.0, 400.0]), np.array([1.0, 0.0, -10.0]), 0,
+                                onboard_map=onboard if nav_map == "on" else None)
+    n = old.filter.dim_x
+    assert n == (DIM_REGIONAL if nav_map == "on" else 24)
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(n, n)) * 0.1
+    P = A @ A.T + np.eye(n) * 0.01
+    x = rng.normal(size=n)
+    old.checkpoint = (0, x, P, 1500.0, np.array([1.0, 0.0, 0.0, 0.0]))
+    new = restart_flight_software(sc, old, 2 * 10**9)
+    keep = list(range(10)) + (list(range(IDX_RR, DIM_REGIONAL)) if nav_map == "on" else [])
+    xr, Pr = restart_estimate(x, P, 2.0, sc.estimator.gravity_mps2)
+    np.testing.assert_array_equal(new.filter.ekf.x[keep], xr[keep])
+    np.testing.assert_array_equal(new.filter.ekf.P[np.ix_(keep, keep)], Pr[np.ix_(keep, keep)])
+    rest = [i for i in range(n) if i not in keep]
+    assert not new.filter.ekf.P[np.ix_(keep, rest)].any()

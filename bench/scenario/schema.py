@@ -30,7 +30,7 @@ from bench.scenario.dispersions import Dispersion, check_dispersion_paths, draw_
 from bench.scenario.hazard import HazardSettings
 from gnc.config import format_validation_error
 from gnc.control import ControlConfig
-from gnc.estimator import EstimatorConfig
+from gnc.estimator import EstimatorConfig, local_site_config
 from gnc.fdir import FdirConfig
 from gnc.guidance import GuidanceConfig
 from gnc.map_nav import MapNavConfig
@@ -309,6 +309,7 @@ class Scenario(BaseModel):
             if self.map_nav.period_ns % self.camera.period_ns:
                 raise ValueError(f"map_nav.period_ns = {self.map_nav.period_ns} is not a whole multiple of "
                                  f"camera.period_ns = {self.camera.period_ns}; allowed: multiples of it")
+            local_site_config(self.estimator)  # the regional relief the filter carries with map fixes
         return self
 
     @model_validator(mode="after")

@@ -21,7 +21,7 @@ import numpy as np
 from bench.scenario import Scenario
 from bench.scenario.seeding import component_rng
 from gnc.control import VehicleParams, make_controller
-from gnc.estimator import IDX_H, make_estimator
+from gnc.estimator import DIM_REGIONAL, IDX_H, IDX_RR, make_estimator
 from gnc.fdir import COMPUTER, FdirEvent, HealthMonitor, SensorSpec, restart_estimate
 from gnc.flight import FlightSoftware, OnboardKnowledge
 from gnc.guidance import make_guidance
@@ -108,11 +108,13 @@ def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.nda
     limits = dataclasses.replace(controller.guidance_limits(), isp_s=knowledge.isp_s)  # G-FOLD models the mass flow
     guidance = make_guidance(scenario.guidance, limits)
     # The realistic vehicle's IMU integrates (delta-velocity and delta-angle); the ideal one point-samples.
-    # With map fixes the filter carries their common error b_map (its 1-sigma is set at the first fix).
+    # With map fixes the filter carries their common error b_map (its 1-sigma is set at the first fix) and the
+    # regional relief under the altimeter.
+    map_on = scenario.nav_map == "on"
     nav_filter = make_estimator(scenario.estimator, x0_r_L, x0_v_L, int(t0_ns), q0_LB,
                                 altimeter_mount_B_m=knowledge.r_alt_B_m,
                                 gyro_delta_angle=scenario.realism == "realistic",
-                                map_bias_sigma_m=1.0 if scenario.nav_map == "on" else None)
+                                map_bias_sigma_m=1.0 if map_on else None, regional_relief=map_on)
     tracker = Tracker(scenario.tracker) if scenario.tracks == "vision" and scenario.vision == "on" else None
     map_nav = None
     if scenario.nav_map == "on":
@@ -142,11 +144,14 @@ def restart_flight_software(scenario: Scenario, old: FlightSoftware, t_ns: int) 
     new = build_flight_software(scenario, x[:3], x[3:6], t0_ns=t_ns, q0_LB=q0, onboard_map=onboard_map)
     # Warm restart: the checkpointed kinematic, accelerometer-bias and terrain states with their covariance;
     # the vision states (clone, image offsets, flow bias, viewed ground) start afresh, as the tracker does.
-    keep = slice(0, IDX_H + 1)
+    # The regional relief, where carried, is terrain too: kept.
+    keep = np.arange(IDX_H + 1)
+    if x.size == DIM_REGIONAL:
+        keep = np.concatenate([keep, np.arange(IDX_RR, DIM_REGIONAL)])
     new.filter.ekf.x[keep] = x[keep]
     new.filter.ekf.P[keep, :] = 0.0
     new.filter.ekf.P[:, keep] = 0.0
-    new.filter.ekf.P[keep, keep] = P[keep, keep]
+    new.filter.ekf.P[np.ix_(keep, keep)] = P[np.ix_(keep, keep)]
     new.mass_kg = mass
     if old.hda is not None:  # the scan's result (the retargeted site) is kept in non-volatile memory
         new.hda = old.hda

@@ -558,7 +558,7 @@ class NavFilter:
 
     @property
     def x(self) -> np.ndarray:
-        """State copy, (24,), in the order of the module docstring (``IDX_*``)."""
+        """State copy, (dim_x,), in the order of the module docstring (``IDX_*``)."""
         return self.ekf.x.copy()
 
     @property
@@ -902,15 +902,12 @@ class NavFilter:
             local = (F * (k_new / self._k_terrain), Q)
         else:
             local = None
-        if not self._regional:
+        if not self._regional or (local is None and not moved):
             return local
-        if not moved:
-            if local is None:
-                return None
-            F_r, Q_r = np.eye(3), np.zeros((3, 3))
-        else:
-            F_r, Q_r = matern32_terrain_step(d, cfg.regional_relief_sigma_m, cfg.regional_relief_length_m)
-        F_l, Q_l = local if local is not None else (np.eye(3), np.zeros((3, 3)))
+        still = (np.eye(3), np.zeros((3, 3)))  # a field that does not move
+        F_l, Q_l = still if local is None else local
+        F_r, Q_r = (matern32_terrain_step(d, cfg.regional_relief_sigma_m, cfg.regional_relief_length_m)
+                    if moved else still)
         z3 = np.zeros((3, 3))
         return np.block([[F_l, z3], [z3, F_r]]), np.block([[Q_l, z3], [z3, Q_r]])
 
@@ -1604,16 +1601,18 @@ def regional_relief_prior(cfg: EstimatorConfig, r_xy_m: np.ndarray) -> np.ndarra
 
 
 def initial_covariance(cfg: EstimatorConfig, camera_height_m: float = 500.0,
-                       r_xy_m: np.ndarray | None = None) -> np.ndarray:
+                       r_xy_m: np.ndarray | None = None, terrain_cfg: EstimatorConfig | None = None) -> np.ndarray:
     """Initial covariance (24, 24) from the config's 1-sigma values.
 
     Diagonal in position, velocity, bias and terrain; the position clone starts
     as an exact copy of the position (fully correlated with it), as if cloned at
     t0; the image offsets start at zero, unknown until an update enters them.
+    ``terrain_cfg``: the config whose site map the terrain under the altimeter
+    follows (:func:`local_site_config` with the regional relief); ``cfg`` by default.
     """
     r_xy = np.zeros(2) if r_xy_m is None else np.asarray(r_xy_m, dtype=float)[:2]
     cov_xy = np.eye(2) * cfg.init_pos_sigma_m**2
-    k_terrain = relief_scale(cfg, r_xy, cov_xy)
+    k_terrain = relief_scale(cfg if terrain_cfg is None else terrain_cfg, r_xy, cov_xy)
     k_view = relief_scale(cfg, r_xy, cov_xy + view_spread(cfg, camera_height_m))
     sig = np.concatenate([
         np.repeat([cfg.init_pos_sigma_m, cfg.init_vel_sigma_mps, cfg.init_accel_bias_sigma_mps2], 3),
@@ -1687,7 +1686,11 @@ def make_estimator(
         q0 = tuple(float(v) for v in q / norm)  # type: ignore[assignment]
     mount = _vec3(altimeter_mount_B_m, "altimeter_mount_B_m")
     x0 = np.concatenate([r0, v0, np.zeros(4), r0, np.zeros(11)])
-    P0 = initial_covariance(c, float(r0[2]), r0[:2])
+    if regional_relief and map_bias_sigma_m is None:
+        raise ValueError("regional_relief = True: the regional relief is carried with map fixes; "
+                         "give map_bias_sigma_m as well")
+    # With the regional relief the terrain under the altimeter takes its share of the site map.
+    P0 = initial_covariance(c, float(r0[2]), r0[:2], local_site_config(c) if regional_relief else None)
     if map_bias_sigma_m is not None:
         # The map fixes' common error (two states) and a keyframe's height error (one, measured by nothing
         # until a keyframe is taken): zero mean, independent of the rest.
@@ -1696,13 +1699,6 @@ def make_estimator(
         x0 = np.concatenate([x0, np.zeros(3)])
         P0 = np.block([[P0, np.zeros((DIM_X, 3))], [np.zeros((3, DIM_X)), np.eye(3) * map_bias_sigma_m**2]])
     if regional_relief:
-        if map_bias_sigma_m is None:
-            raise ValueError("regional_relief = True: the regional relief is carried with map fixes; "
-                             "give map_bias_sigma_m as well")
-        # The local relief under the altimeter takes its share of the site map (local_site_config).
-        k_local = relief_scale(local_site_config(c), r0[:2], np.eye(2) * c.init_pos_sigma_m**2)
-        P0[IDX_H, IDX_H] = (c.terrain_relief_sigma_m * k_local) ** 2
-        P0[IDX_S, IDX_S] = np.eye(2) * (terrain_slope_sigma(c) * k_local) ** 2
         n = x0.size
         x0 = np.concatenate([x0, np.zeros(4)])
         P0 = np.block([[P0, np.zeros((n, 4))], [np.zeros((4, n)), regional_relief_prior(c, r0[:2])]])

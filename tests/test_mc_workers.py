@@ -80,9 +80,17 @@ def test_the_fork_server_started_first_is_the_one_the_campaign_forks_from(tmp_pa
 
         from bench.campaign import mc
         from bench.scenario import load_scenario
-        rows = mc.run_campaign(load_scenario(None, QUICK), 1, Path(OUT), campaign_seed=3, workers=2, progress=False)
+        import threading
+        sc = load_scenario(None, QUICK)
+        assert "matplotlib.figure" not in sys.modules
+        rows = mc.run_campaign(sc, 1, Path(OUT), campaign_seed=3, workers=2, progress=False)
         assert rows[0]["outcome"] == "landed", rows
         assert servers() == {server}, "the campaign forked its worker from the server started first"
+        # Its last case handed back, the master imported what the campaign's end needs on a thread.
+        for t in threading.enumerate():
+            if t.name == "campaign-tail-imports":
+                t.join()
+        assert all(m in sys.modules for m in mc.TAIL_MODULES), [m for m in mc.TAIL_MODULES if m not in sys.modules]
     """)
     subprocess.run([sys.executable, "-c", f"QUICK = {QUICK!r}\nOUT = {str(tmp_path / 'mc')!r}\n" + code],
                    check=True, timeout=300, cwd=Path(__file__).resolve().parents[1])

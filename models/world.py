@@ -18,8 +18,10 @@ qacc/qpos/qvel are checked and :class:`PhysicsDivergedError` is raised
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,6 +33,7 @@ import mujoco  # noqa: E402  (the GL backend must be chosen first)
 
 from models.actuators import PropulsionModel, PropulsionOutput  # noqa: E402
 from models.camera import R_MJCAM_C, CameraConfig, intrinsics  # noqa: E402
+from models.render_context import CameraRenderer  # noqa: E402
 from models.lander import (  # noqa: E402
     CONTACT_SOLREF,
     FOOTPAD_NAMES,
@@ -46,6 +49,8 @@ from models.terrain import Terrain  # noqa: E402
 from models.sun import SunConfig  # noqa: E402,F401  (the scenario's type; re-exported)
 
 NS_PER_S = 1_000_000_000
+# Terrain -> digest of the texture pixels a world writes from it (see World._texture_key).
+_TEXTURE_KEYS: "weakref.WeakKeyDictionary[Terrain, bytes]" = weakref.WeakKeyDictionary()
 logger = logging.getLogger(__name__)
 # MuJoCo's default warning handler appends to MUJOCO_LOG.TXT in the working
 # directory; route its warnings to logging instead. Divergence is still caught
@@ -213,7 +218,7 @@ class World:
         self._ray_geomid = np.zeros(1, np.int32)
         self.propulsion = PropulsionModel(lander)
         self.K = intrinsics(camera)
-        self._renderer: mujoco.Renderer | None = None
+        self._renderer: CameraRenderer | None = None
         self._depth_renderer: mujoco.Renderer | None = None
         # Per-physics-step indices and live views into MjData (allocated once; mj_resetData keeps them).
         self._i_engine = int(self._act_engine)
@@ -256,6 +261,20 @@ class World:
         # MuJoCo maps texture row 0 to the north (+y) edge; terrain rows run south to north.
         rgb = np.repeat(np.ascontiguousarray(albedo[::-1])[..., None], nch, axis=2).ravel()
         m.tex_data[m.tex_adr[tid]:m.tex_adr[tid] + rgb.size] = rgb
+
+    def _texture_key(self) -> bytes:
+        """Digest of the pixels ``_write_terrain`` wrote into the model's textures: its albedo
+        arrays (21 MB for the default terrain, not the 63 MB of RGB), once per terrain object."""
+        key = _TEXTURE_KEYS.get(self.terrain)
+        if key is None:
+            h = hashlib.sha256()
+            arrays = [self.terrain.albedo] + ([self.terrain.patch.albedo] if self.terrain.patch is not None else [])
+            for a in arrays:
+                a = np.ascontiguousarray(a)
+                h.update(f"{a.dtype.str}{a.shape};".encode())
+                h.update(memoryview(a.reshape(-1)).cast("B"))
+            key = _TEXTURE_KEYS[self.terrain] = h.digest()
+        return key
 
     def _set_clip_planes(self) -> None:
         """Near/far planes in metres (MuJoCo stores them relative to the model extent)."""
@@ -544,27 +563,25 @@ class World:
         R_L_mj = self.data.cam_xmat[self._cam].reshape(3, 3)
         return R_L_mj @ R_MJCAM_C, self.data.cam_xpos[self._cam].copy()
 
-    def _get_renderer(self, depth: bool) -> "mujoco.Renderer":
-        cfg = self.camera_cfg
-        if depth:
-            if self._depth_renderer is None:
-                self._depth_renderer = mujoco.Renderer(self.model, cfg.height_px, cfg.width_px)
-                self._depth_renderer.enable_depth_rendering()
-            return self._depth_renderer
-        if self._renderer is None:
-            self._renderer = mujoco.Renderer(self.model, cfg.height_px, cfg.width_px)
-        return self._renderer
-
     def render_signal(self) -> np.ndarray:
-        """Noise-free grayscale camera image, (H, W) uint8 [DN]."""
-        r = self._get_renderer(depth=False)
-        r.update_scene(self.data, camera=self._cam)
+        """Noise-free grayscale camera image, (H, W) uint8 [DN].
+
+        Through a render context shared with earlier worlds of this process whose
+        textures, heightfields and meshes are the same (``models.render_context``).
+        """
+        if self._renderer is None:
+            self._renderer = CameraRenderer(self.model, self.camera_cfg.width_px, self.camera_cfg.height_px,
+                                            texture_key=self._texture_key())
         # The scene is gray (white sun, gray albedo), so one channel carries it all.
-        return r.render()[:, :, 1]
+        return self._renderer.render_green(self.data, self._cam)
 
     def render_depth(self) -> np.ndarray:
         """Z-depth along the boresight, (H, W) float32 [m]."""
-        r = self._get_renderer(depth=True)
+        if self._depth_renderer is None:
+            cfg = self.camera_cfg
+            self._depth_renderer = mujoco.Renderer(self.model, cfg.height_px, cfg.width_px)
+            self._depth_renderer.enable_depth_rendering()
+        r = self._depth_renderer
         r.update_scene(self.data, camera=self._cam)
         return r.render().astype(np.float32, copy=False)
 
@@ -585,9 +602,11 @@ class World:
                     for name, code in (("vendor", GL.GL_VENDOR), ("renderer", GL.GL_RENDERER),
                                        ("version", GL.GL_VERSION))}
 
-        r = self._renderer if self._renderer is not None else self._depth_renderer
-        if r is not None:
-            r._gl_context.make_current()
+        if self._renderer is not None:
+            with self._renderer.current():
+                return strings()
+        if self._depth_renderer is not None:
+            self._depth_renderer._gl_context.make_current()
             return strings()
         if not probe:
             return None

@@ -1,0 +1,241 @@
+"""The camera's off-screen renderer, with its GL resources shared between worlds that look alike.
+
+Ports:
+    Input: a MuJoCo model and data, the camera id, at the camera rate.
+    Output: the rendered grayscale frame, (H, W) uint8 [DN].
+    Rate: on request (``World.render_signal``).
+
+Building MuJoCo's render context (``MjrContext``) uploads every texture, heightfield and
+mesh of the model, the 4096² terrain texture and its mipmaps included: about 0.2 s, a few
+per cent of a campaign case. Consecutive cases of a campaign fly over the same terrain with
+the same camera, so a worker would upload the same pixels again for every case. Here the
+GL context and the render context are kept in the process, keyed by a digest of everything
+``mjr_makeContext`` reads from the model (textures, heightfields, meshes, skins, flexes, the
+materials' texture bindings, the visual block, the model's extent and its planes) and the frame size, and a
+world whose model gives the same digest renders through them: the same uploaded data, so the
+same pixels. Each world keeps its own ``MjvScene`` (the geoms of its own model).
+
+A context is shared by the worlds of one thread alive with that digest (a world of another
+thread gets its own) and, when the last of them is closed, kept idle for the next world of
+any thread; making another context frees the idle one. A context is current only during a
+call, never between calls. A context made in another process (a fork) is never used or freed
+here: its GL state did not survive the fork.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import threading
+
+import numpy as np
+
+from models.gl import ensure_gl_backend
+
+ensure_gl_backend()
+import mujoco  # noqa: E402  (the GL backend must be chosen first)
+
+# MuJoCo's Python Renderer's defaults, kept so the frames are the same.
+MAX_GEOM = 10000
+FONT_SCALE = mujoco.mjtFontScale.mjFONTSCALE_150
+
+# Model arrays mjr_makeContext (and mjr_render's use of the context) depend on.
+_ASSET_PREFIXES = ("tex_", "hfield_", "mesh_", "skin_", "flex_")
+_MATERIAL_FIELDS = ("mat_texid", "mat_texuniform", "mat_texrepeat")
+_VIS_BLOCKS = ("global_", "quality", "map", "scale", "rgba", "headlight")
+
+
+def _struct_bytes(obj: object) -> bytes:
+    """The public numeric fields of a MuJoCo struct (the vis blocks), in name order."""
+    parts = []
+    for name in sorted(a for a in dir(obj) if not a.startswith("_")):
+        value = getattr(obj, name)
+        if callable(value):
+            continue
+        parts.append(name.encode() + b"=" + np.asarray(value).tobytes())
+    return b";".join(parts)
+
+
+def _array_digest(h: "hashlib._Hash", name: str, value: object) -> None:
+    arr = np.ascontiguousarray(value)
+    h.update(f"{name}:{arr.dtype.str}:{arr.shape};".encode())
+    if arr.size:
+        h.update(memoryview(arr.reshape(-1)).cast("B"))
+
+
+def _digests(model: mujoco.MjModel, width: int, height: int, with_textures: bool) -> tuple[bytes, bytes | None]:
+    """(digest of everything but the texture pixels, digest of everything or None)."""
+    h = hashlib.sha256()
+    h.update(f"{mujoco.__version__};{width}x{height};{int(FONT_SCALE)}".encode())
+    names = sorted(a for a in dir(model) if a.startswith(_ASSET_PREFIXES)) + list(_MATERIAL_FIELDS)
+    for name in names:
+        value = getattr(model, name)
+        if name != "tex_data" and not callable(value):
+            _array_digest(h, name, value)
+    for block in _VIS_BLOCKS:
+        h.update(block.encode() + _struct_bytes(getattr(model.vis, block)))
+    # mjr_makeContext reads the model's statistics only for its extent (fog, shadow clip, and the
+    # grid of infinite planes), and the geoms only for the planes' grids.
+    h.update(b"extent" + np.float64(model.stat.extent).tobytes())
+    planes = np.flatnonzero(model.geom_type == mujoco.mjtGeom.mjGEOM_PLANE)
+    _array_digest(h, "plane_size", model.geom_size[planes])
+    _array_digest(h, "plane_matid", model.geom_matid[planes])
+    shape_key = h.digest()
+    if not with_textures:
+        return shape_key, None
+    _array_digest(h, "tex_data", model.tex_data)  # 63 MB for the default terrain: about 45 ms
+    return shape_key, h.digest()
+
+
+def visual_digest(model: mujoco.MjModel, width: int, height: int) -> bytes:
+    """A digest of what a render context built from ``model`` holds, and of the frame size.
+
+    Two models with the same digest give render contexts with the same textures,
+    heightfields, meshes, material bindings, fog, shadow and buffer settings.
+    """
+    return _digests(model, width, height, True)[1]
+
+
+class _SharedContext:
+    """One GL context and the MuJoCo render context built in it.
+
+    It is made current only for the duration of a call (:meth:`current`) and left current in
+    no thread between calls, so that a world in another thread (a Gymnasium episode runs in a
+    thread of its own) can take it over once its last user has closed, or free it.
+    """
+
+    def __init__(self, key: bytes, model: mujoco.MjModel, width: int, height: int):
+        self.key = key
+        self.pid = os.getpid()
+        self.thread: int | None = None  # the thread whose worlds use it; None while idle
+        self.users = 0
+        self.gl = mujoco.GLContext(width, height)
+        # mujoco.GLContext.as_current (MuJoCo >= 3.3) restores the thread's previous context,
+        # none included, afterwards; without it the context stays current in its thread, so
+        # it is private to its world (freed with it, never kept idle).
+        self.shareable = hasattr(self.gl, "as_current")
+        with self.current():
+            self.mjr = mujoco.MjrContext(model, FONT_SCALE.value)
+            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self.mjr)
+            self.mjr.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+
+    def current(self) -> contextlib.AbstractContextManager:
+        if self.shareable:
+            return self.gl.as_current()
+        self.gl.make_current()
+        return contextlib.nullcontext()
+
+    def free(self) -> None:
+        if self.pid != os.getpid():
+            return  # a fork's copy: the GL objects belong to the parent
+        with self.current():
+            self.mjr.free()
+        self.gl.free()
+
+
+# This process's contexts; at most one of them idle (no user), the most recently released.
+_CONTEXTS: list[_SharedContext] = []
+_LOCK = threading.Lock()
+
+
+def _acquire(model: mujoco.MjModel, width: int, height: int,
+             texture_key: bytes | None) -> _SharedContext:
+    if texture_key is None:
+        key = visual_digest(model, width, height)
+    else:
+        key = hashlib.sha256(_digests(model, width, height, False)[0] + b"tex" + texture_key).digest()
+    me = threading.get_ident()
+    with _LOCK:
+        if any(c.pid != os.getpid() for c in _CONTEXTS):
+            _CONTEXTS.clear()  # inherited through a fork: none of them is usable here
+        # A context in use serves only its own thread's worlds (two threads never share one).
+        ctx = next((c for c in _CONTEXTS if c.key == key and c.shareable and (c.users == 0 or c.thread == me)),
+                   None)
+        if ctx is None:
+            _free_idle()
+            ctx = _SharedContext(key, model, width, height)
+            _CONTEXTS.append(ctx)
+        ctx.users += 1
+        ctx.thread = me
+    return ctx
+
+
+def _release(ctx: _SharedContext) -> None:
+    with _LOCK:
+        ctx.users -= 1
+        assert ctx.users >= 0, "render context released more often than acquired"
+        if ctx.users == 0:
+            ctx.thread = None
+            if ctx.shareable:  # kept for the next world (a campaign's next case); any other idle one freed
+                _free_idle(keep=ctx)
+            else:
+                _CONTEXTS.remove(ctx)
+                ctx.free()
+
+
+def _free_idle(keep: _SharedContext | None = None) -> None:
+    for c in [c for c in _CONTEXTS if c.users == 0 and c is not keep]:
+        _CONTEXTS.remove(c)
+        c.free()
+
+
+def free_shared_contexts() -> int:
+    """Free the idle render contexts of this process; returns how many were freed."""
+    with _LOCK:
+        n = sum(c.users == 0 for c in _CONTEXTS)
+        _free_idle()
+    return n
+
+
+class CameraRenderer:
+    """Renders one model's camera through a shared render context.
+
+    The same calls, in the same order, as ``mujoco.Renderer``'s ``update_scene`` and
+    ``render`` with a fixed camera (``mjv_updateScene`` with every category, then
+    ``mjr_render`` and ``mjr_readPixels`` into the off-screen buffer, flipped to image rows).
+
+    Args:
+        model: The world's model.
+        width: Frame width [px].
+        height: Frame height [px].
+        texture_key: A digest of the model's texture pixels (``tex_data``) from whoever wrote
+            them (the world: its terrain's albedo), so that 63 MB need not be hashed for every
+            world; None hashes ``tex_data`` itself.
+    """
+
+    def __init__(self, model: mujoco.MjModel, width: int, height: int, texture_key: bytes | None = None):
+        if width > model.vis.global_.offwidth or height > model.vis.global_.offheight:
+            raise ValueError(f"a {width}x{height} frame does not fit the model's off-screen buffer "
+                             f"({model.vis.global_.offwidth}x{model.vis.global_.offheight})")
+        self._model = model
+        self._ctx: _SharedContext | None = _acquire(model, width, height, texture_key)
+        self._scene = mujoco.MjvScene(model=model, maxgeom=MAX_GEOM)
+        self._option = mujoco.MjvOption()
+        self._camera = mujoco.MjvCamera()
+        self._camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
+        self._rect = mujoco.MjrRect(0, 0, width, height)
+        self._rgb = np.empty((height, width, 3), np.uint8)
+
+    def render_green(self, data: mujoco.MjData, camera_id: int) -> np.ndarray:
+        """The frame's green channel, (H, W) uint8, image row 0 at the top."""
+        if self._ctx is None:
+            raise RuntimeError("render called after close")
+        self._camera.fixedcamid = camera_id
+        mujoco.mjv_updateScene(self._model, data, self._option, None, self._camera,
+                               mujoco.mjtCatBit.mjCAT_ALL.value, self._scene)
+        with self._ctx.current():
+            mujoco.mjr_render(self._rect, self._scene, self._ctx.mjr)
+            mujoco.mjr_readPixels(self._rgb, None, self._rect, self._ctx.mjr)
+        return np.ascontiguousarray(self._rgb[::-1, :, 1])
+
+    def current(self) -> contextlib.AbstractContextManager:
+        """This renderer's GL context, current for a ``with`` block (to query it)."""
+        return self._ctx.current()
+
+    def close(self) -> None:
+        """Give the shared context back (freed with its last user, unless kept idle)."""
+        if self._ctx is not None:
+            ctx, self._ctx = self._ctx, None
+            if ctx.pid == os.getpid():
+                _release(ctx)

@@ -1,0 +1,168 @@
+"""The camera renderer's shared render context against MuJoCo's own renderer, frame for frame."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from bench.scenario import load_scenario
+from bench.sim.world_builder import build_terrain, build_world, place_above_target
+from models import render_context as rc
+from tests.conftest import SMALL_SET
+
+mujoco = rc.mujoco  # imported after the GL backend is chosen (models.gl)
+
+SMALL_CAMERA = ["camera.width_px=96", "camera.height_px=96"]
+
+
+def _scenario(*extra: str):
+    return load_scenario(None, SMALL_SET + SMALL_CAMERA + list(extra))
+
+
+def _reference_frame(world) -> np.ndarray:
+    """The frame through a fresh ``mujoco.Renderer`` (its own GL and render contexts)."""
+    cfg = world.camera_cfg
+    r = mujoco.Renderer(world.model, cfg.height_px, cfg.width_px)
+    try:
+        r.update_scene(world.data, camera=world._cam)
+        return r.render()[:, :, 1].copy()
+    finally:
+        r.close()
+
+
+def _pose(world, altitude_m: float, dx_m: float) -> None:
+    place_above_target(world, altitude_m)
+    world.data.qpos[0] += dx_m
+    mujoco.mj_forward(world.model, world.data)
+
+
+@pytest.fixture(autouse=True)
+def _no_idle_contexts():
+    rc.free_shared_contexts()
+    yield
+    rc.free_shared_contexts()
+
+
+def test_worlds_over_one_terrain_share_a_context_and_render_what_mujoco_renders():
+    sc = _scenario()
+    heavier = _scenario("lander.dry_mass_kg=700", "lander.com_offset_B_m=[0.05, 0.02, 0.1]")
+    terrain = build_terrain(sc)
+    with build_world(sc, terrain) as a, build_world(heavier, terrain) as b:
+        for altitude_m, dx_m in ((300.0, 0.0), (60.0, 7.5), (20.0, -3.0)):
+            _pose(a, altitude_m, dx_m)
+            _pose(b, altitude_m, -dx_m)
+            fa, fb = a.render_signal(), b.render_signal()
+            assert fa.dtype == np.uint8 and fa.shape == (96, 96) and fa.flags.c_contiguous
+            np.testing.assert_array_equal(fa, _reference_frame(a))
+            np.testing.assert_array_equal(fb, _reference_frame(b))
+            if dx_m:
+                assert not np.array_equal(fa, fb)  # the two poses differ, and so do their frames
+        assert a._renderer._ctx is b._renderer._ctx
+        assert len(rc._CONTEXTS) == 1 and rc._CONTEXTS[0].users == 2
+    # Both closed: the context is kept, idle, for the next world over this terrain.
+    assert [c.users for c in rc._CONTEXTS] == [0]
+    kept = rc._CONTEXTS[0]
+    with build_world(sc, terrain) as c:
+        _pose(c, 60.0, 7.5)
+        np.testing.assert_array_equal(c.render_signal(), _reference_frame(c))
+        assert c._renderer._ctx is kept
+
+
+def test_another_terrain_gets_its_own_context_and_frees_the_idle_one():
+    sc = _scenario()
+    other = _scenario("terrain.seed=12345")
+    with build_world(sc) as a:
+        _pose(a, 100.0, 0.0)
+        a.render_signal()
+    first = rc._CONTEXTS[0]
+    with build_world(other) as b:
+        _pose(b, 100.0, 0.0)
+        np.testing.assert_array_equal(b.render_signal(), _reference_frame(b))
+        assert b._renderer._ctx is not first
+        assert first not in rc._CONTEXTS  # freed when the new one was made
+    assert len(rc._CONTEXTS) == 1
+
+
+def test_the_key_covers_heights_texture_pixels_and_frame_size():
+    sc = _scenario()
+    with build_world(sc) as world:
+        base = rc.visual_digest(world.model, 96, 96)
+        assert rc.visual_digest(world.model, 96, 64) != base
+        world.model.hfield_data[17] += 1e-6
+        assert rc.visual_digest(world.model, 96, 96) != base
+        world.model.hfield_data[17] -= 1e-6
+        assert rc.visual_digest(world.model, 96, 96) == base
+        world.model.tex_data[12345] ^= 1
+        assert rc.visual_digest(world.model, 96, 96) != base
+
+
+def test_a_different_albedo_gives_another_context():
+    """The world's texture key comes from its terrain's albedo: equal heights, other pixels."""
+    sc = _scenario()
+    terrain = build_terrain(sc)
+    albedo = terrain.albedo.copy()
+    albedo[100, 200] ^= 0x10
+    repainted = dataclasses.replace(terrain, albedo=albedo)
+    with build_world(sc, terrain) as a, build_world(sc, repainted) as b:
+        _pose(a, 100.0, 0.0)
+        _pose(b, 100.0, 0.0)
+        a.render_signal()
+        b.render_signal()
+        assert a._renderer._ctx is not b._renderer._ctx
+        assert len(rc._CONTEXTS) == 2
+
+
+def test_a_context_inherited_through_a_fork_is_not_used(monkeypatch):
+    sc = _scenario()
+    terrain = build_terrain(sc)
+    with build_world(sc, terrain) as a:
+        _pose(a, 100.0, 0.0)
+        a.render_signal()
+    inherited = rc._CONTEXTS[0]
+    monkeypatch.setattr(inherited, "pid", -1)  # as if made by the parent before a fork
+    with build_world(sc, terrain) as b:
+        _pose(b, 100.0, 0.0)
+        np.testing.assert_array_equal(b.render_signal(), _reference_frame(b))
+        assert b._renderer._ctx is not inherited
+    monkeypatch.setattr(inherited, "pid", rc.os.getpid())
+    inherited.free()  # this process made it after all: free its GL objects
+
+
+def test_a_world_in_another_thread_takes_over_the_idle_context_and_never_shares_a_live_one():
+    """A Gymnasium episode flies in a thread of its own: the context a finished episode left idle
+    serves the next one, while two threads with live worlds each get their own."""
+    import threading
+
+    sc = _scenario()
+    terrain = build_terrain(sc)
+    frames, contexts, errors = [], [], []
+
+    def episode(dx_m: float) -> None:
+        try:
+            with build_world(sc, terrain) as w:
+                _pose(w, 80.0, dx_m)
+                frames.append((w.render_signal(), _reference_frame(w)))
+                contexts.append(w._renderer._ctx)
+        except Exception as exc:  # noqa: BLE001 - reported below, in the test's thread
+            errors.append(exc)
+
+    for dx_m in (0.0, 4.0):  # one after the other, each in a new thread
+        t = threading.Thread(target=episode, args=(dx_m,))
+        t.start()
+        t.join()
+    assert not errors, errors
+    assert contexts[0] is contexts[1]
+    for got, want in frames:
+        np.testing.assert_array_equal(got, want)
+    # A live world here, and one in another thread at the same time: two contexts.
+    with build_world(sc, terrain) as mine:
+        _pose(mine, 80.0, 0.0)
+        mine.render_signal()
+        t = threading.Thread(target=episode, args=(2.0,))
+        t.start()
+        t.join()
+        assert not errors, errors
+        assert contexts[2] is not mine._renderer._ctx
+        np.testing.assert_array_equal(mine.render_signal(), _reference_frame(mine))

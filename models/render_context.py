@@ -6,21 +6,22 @@ Ports:
     Rate: on request (``World.render_signal``).
 
 Building MuJoCo's render context (``MjrContext``) uploads every texture, heightfield and
-mesh of the model, the 4096² terrain texture and its mipmaps included: about 0.2 s, a few
-per cent of a campaign case. Consecutive cases of a campaign fly over the same terrain with
-the same camera, so a worker would upload the same pixels again for every case. Here the
-GL context and the render context are kept in the process, keyed by a digest of everything
-``mjr_makeContext`` reads from the model (textures, heightfields, meshes, skins, flexes, the
-materials' texture bindings, the visual block, the model's extent and its planes) and the frame size, and a
-world whose model gives the same digest renders through them: the same uploaded data, so the
-same pixels. Each world keeps its own ``MjvScene`` (the geoms of its own model).
+mesh of the model, the 4096² terrain texture and its mipmaps included, in a new GL context
+whose shaders the driver compiles anew: together about 0.3 s of a world's first frame. Worlds
+built one after another in a process (Gymnasium resets, tests, a campaign whose terrain is not
+dispersed) often fly over the same terrain with the same camera. Here the GL context and the
+render context are kept in the process, keyed by a digest of everything ``mjr_makeContext``
+reads from the model (textures, heightfields, meshes, skins, flexes, the materials' texture
+bindings, the visual block, the model's extent and its planes) and the frame size, and a world
+whose model gives the same digest renders through them: the same uploaded data, so the same
+pixels. Each world keeps its own ``MjvScene`` (the geoms of its own model).
 
 A context is shared by the worlds of one thread alive with that digest (a world of another
-thread gets its own) and, when the last of them is closed, kept idle for the next world of
-any thread. A world with other assets takes over the idle context's GL context (its assets
-replaced: the driver's compiled shaders are kept, about 0.1 s a case); any other idle context is
-freed then. A context is current only during a call, never between calls. A context made in another process (a fork) is never used or freed
-here: its GL state did not survive the fork.
+thread gets its own) and, when the last of them is closed, kept idle for the next world of any
+thread. A world with other assets takes over the idle context's GL context (its assets
+replaced; the driver's compiled shaders are kept, about 0.1 s a world); any other idle context
+is freed then. A context is current only during a call, never between calls. A context made in
+another process (a fork) is never used or freed here: its GL state did not survive the fork.
 """
 
 from __future__ import annotations
@@ -258,3 +259,8 @@ class CameraRenderer:
             ctx, self._ctx = self._ctx, None
             if ctx.pid == os.getpid():
                 _release(ctx)
+
+    def __del__(self) -> None:
+        # A world dropped without close(): give the context back, as mujoco.Renderer frees its own.
+        with contextlib.suppress(Exception):
+            self.close()

@@ -264,7 +264,8 @@ class World:
 
     def _texture_key(self) -> bytes:
         """Digest of the pixels ``_write_terrain`` wrote into the model's textures: its albedo
-        arrays (21 MB for the default terrain, not the 63 MB of RGB), once per terrain object."""
+        arrays (21 MB for the default terrain, not the 63 MB of RGB), once per terrain object
+        (a terrain's arrays are read-only)."""
         key = _TEXTURE_KEYS.get(self.terrain)
         if key is None:
             h = hashlib.sha256()
@@ -618,7 +619,8 @@ class World:
             ctx.free()
 
     def close(self) -> None:
-        """Free the GL contexts (also done by garbage collection)."""
+        """Give the camera's render context back (kept idle for the next world, see
+        ``models.render_context``) and free the depth renderer's (also done by garbage collection)."""
         for r in (self._renderer, self._depth_renderer):
             if r is not None:
                 r.close()

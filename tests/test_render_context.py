@@ -168,3 +168,17 @@ def test_a_world_in_another_thread_takes_over_the_idle_context_and_never_shares_
         assert not errors, errors
         assert contexts[2] is not mine._renderer._ctx
         np.testing.assert_array_equal(mine.render_signal(), _reference_frame(mine))
+
+
+def test_a_world_dropped_without_close_gives_its_context_back():
+    import gc
+
+    sc = _scenario()
+    w = build_world(sc)
+    _pose(w, 100.0, 0.0)
+    w.render_signal()
+    ctx = w._renderer._ctx
+    assert ctx.users == 1
+    del w
+    gc.collect()
+    assert ctx.users == 0 and ctx in rc._CONTEXTS  # idle, kept for the next world

@@ -243,6 +243,25 @@ class SensorSpec:
     altimeter_max_range_m: float
 
 
+@dataclass(frozen=True)
+class EngineResponse:
+    """The nominal engine's throttle response, as its specification gives it to the flight software.
+
+    The accelerometer check compares the measured axial specific force with the thrust the
+    nominal engine delivers for the commands given (first-order lag, then the slew limit, as the
+    engine is specified), not with the command itself: a fuel-optimal profile's step from the
+    deep-throttle limit to full thrust takes the engine 0.3 s of slewing, and over a 1 s window
+    the command would run 15-25 % ahead of the thrust of a healthy engine.
+
+    Attributes:
+        time_constant_s: First-order response time constant [s] (0: none).
+        slew_rate_Nps: Largest rate of change of the thrust [N/s] (inf: none).
+    """
+
+    time_constant_s: float = 0.0
+    slew_rate_Nps: float = math.inf
+
+
 def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     w1, x1, y1, z1 = a
     w2, x2, y2, z2 = b
@@ -306,11 +325,14 @@ class HealthMonitor:
     Args:
         cfg: Thresholds and switches.
         spec: The sensors' periods and the altimeter's maximum range.
+        engine: The nominal engine's throttle response (the accelerometer check's expected thrust);
+            None: the thrust follows the command at once.
     """
 
-    def __init__(self, cfg: FdirConfig, spec: SensorSpec):
+    def __init__(self, cfg: FdirConfig, spec: SensorSpec, engine: EngineResponse | None = None):
         self.cfg = cfg
         self.spec = spec
+        self.engine = engine or EngineResponse()
         self.events: list[FdirEvent] = []
         self.failed: set[str] = set()  # "imu.accel", "imu.gyro", "altimeter", "star_tracker"
         self.abort: FdirEvent | None = None
@@ -328,6 +350,10 @@ class HealthMonitor:
         self._acc_sum = [0.0, 0.0, 0.0, 0.0]  # running sums over the window: f_B (3), expected f_z
         self._thrust_expect_mps2 = 0.0  # commanded thrust / mass, along +z
         self._thrusting = False
+        # The nominal engine's thrust for the commands given (EngineResponse), advanced to each IMU sample.
+        self._cmd = (0.0, 1.0, 1.0)  # (thrust command [N], thrust scale [-], mass [kg]) in force
+        self._engine_N: float | None = None
+        self._engine_t_ns = 0
         self._lateral_run = 0
         self._axial_run = 0
         self.lateral_mean_B: tuple[int, float, float, float, int] | None = None  # (t, mean f_B (3), n), a full window
@@ -433,7 +459,8 @@ class HealthMonitor:
         self._rate_win.append((t / NS_PER_S, wx, wy, wz))
         if self._thrusting:
             fx, fy, fz = f_B.tolist()
-            self._acc_push(t, fx, fy, fz, self._thrust_expect_mps2)
+            _, scale, mass_kg = self._cmd
+            self._acc_push(t, fx, fy, fz, self._engine_thrust(t) * scale / mass_kg)
             self._check_accel(t)
         else:
             self._acc_clear()
@@ -461,6 +488,24 @@ class HealthMonitor:
             self._event(t_ns, IMU, "loss of data: IMU messages missing", "synthetic IMU from the thrust command",
                         once_key="gap")
         return gone
+
+    def _engine_thrust(self, t_ns: int) -> float:
+        """The nominal engine's thrust at ``t_ns`` [N]: the command in force since the last update
+        through the first-order lag, then the slew limit (the order the engine model applies)."""
+        cmd = self._cmd[0]
+        if self._engine_N is None:  # lit: burning at the first command
+            self._engine_N, self._engine_t_ns = cmd, t_ns
+            return cmd
+        dt = (t_ns - self._engine_t_ns) / NS_PER_S
+        if dt <= 0.0:
+            return self._engine_N
+        thrust = self._engine_N
+        tau = self.engine.time_constant_s
+        new = cmd + (thrust - cmd) * math.exp(-dt / tau) if tau > 0.0 else cmd
+        max_change = self.engine.slew_rate_Nps * dt
+        new = min(max(new, thrust - max_change), thrust + max_change)
+        self._engine_N, self._engine_t_ns = new, t_ns
+        return new
 
     def _acc_push(self, t: int, fx: float, fy: float, fz: float, expect: float) -> None:
         self._acc_win.append((t, fx, fy, fz, expect))
@@ -914,6 +959,12 @@ class HealthMonitor:
             self._vision_excluded_ns = None
             self._vision_hist.clear()
         self._thrust_expect_mps2 = thrust_cmd_N * thrust_scale / mass_kg if self._thrusting else 0.0
+        if self._thrusting:
+            if self._engine_N is not None:
+                self._engine_thrust(t_ns)  # the last command's response up to now
+            self._cmd = (thrust_cmd_N, thrust_scale, mass_kg)
+        else:
+            self._engine_N = None  # shut down (or on the ground): lit again at the next command
         p = self.spec.star_tracker_period_ns
         last = self._st_last.t_ns if self._st_last is not None else self._st_silent_since
         if last is not None and t_ns - last > self.cfg.gap_periods * p \

@@ -22,7 +22,7 @@ from bench.scenario import Scenario
 from bench.scenario.seeding import component_rng
 from gnc.control import VehicleParams, make_controller
 from gnc.estimator import DIM_REGIONAL, IDX_H, IDX_RR, make_estimator
-from gnc.fdir import COMPUTER, FdirEvent, HealthMonitor, SensorSpec, restart_estimate
+from gnc.fdir import COMPUTER, EngineResponse, FdirEvent, HealthMonitor, SensorSpec, restart_estimate
 from gnc.flight import FlightSoftware, OnboardKnowledge
 from gnc.guidance import make_guidance
 from gnc.hda import HazardAvoidance
@@ -92,6 +92,15 @@ def sensor_spec(scenario: Scenario) -> SensorSpec:
                       altimeter_max_range_m=s.altimeter.max_range_m)
 
 
+def engine_response(scenario: Scenario) -> EngineResponse:
+    """The nominal engine's throttle response, as the flight software knows it (the idealised vehicle's
+    engine follows its command at once)."""
+    if scenario.realism == "ideal":
+        return EngineResponse()
+    engine = scenario.nominal_lander().engine
+    return EngineResponse(time_constant_s=engine.time_constant_s, slew_rate_Nps=engine.slew_rate_Nps)
+
+
 def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.ndarray, t0_ns: int = 0,
                           q0_LB: np.ndarray | None = None, onboard_map: OnboardMap | None = None) -> FlightSoftware:
     """The flight computer of the run: onboard knowledge, configuration and the hand-over estimate.
@@ -124,8 +133,9 @@ def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.nda
             onboard_map = scenario_onboard_map(scenario)[0]
         map_nav = MapNavigator(onboard_map, scenario.map_nav, knowledge.K, knowledge.R_BC, knowledge.r_cam_B_m)
     hda = HazardAvoidance(scenario.hazard.hda) if scenario.hazard.avoidance == "on" else None
+    health = HealthMonitor(scenario.fdir, sensor_spec(scenario), engine_response(scenario))
     return FlightSoftware(guidance, controller, nav_filter, tracker, scenario.vision_nav, scenario.vision == "on",
-                          knowledge, map_nav, HealthMonitor(scenario.fdir, sensor_spec(scenario)), hda)
+                          knowledge, map_nav, health, hda)
 
 
 def restart_flight_software(scenario: Scenario, old: FlightSoftware, t_ns: int) -> FlightSoftware:

@@ -37,9 +37,10 @@ Checks (thresholds in :class:`FdirConfig`):
 * consistency between sensors: the gyro's mean rate over a star-tracker
   interval against the rate between two star-tracker fixes (a persistent
   difference: the gyro; an isolated jump: the star tracker), the
-  accelerometer against the thrust the flight software commands (a lateral
-  specific force, or an axial one that is not the commanded thrust's: reported
-  as ``accel_thrust``, the accelerometer or the engine);
+  accelerometer against the thrust the flight software commands, as the
+  nominal engine delivers it (:class:`EngineResponse`; a lateral specific
+  force, or an axial one that is not that thrust's: reported as
+  ``accel_thrust``, the accelerometer or the engine);
 * the filter's own consistency: its lateral accelerometer bias estimate beyond
   ``bias_plausible_sigmas`` of the specification and not read by the
   accelerometer (:meth:`HealthMonitor.bias_check`: re-initialised to the mean

@@ -30,6 +30,7 @@ import contextlib
 import hashlib
 import os
 import threading
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -66,8 +67,25 @@ def _array_digest(h: "hashlib._Hash", name: str, value: object) -> None:
         h.update(memoryview(arr.reshape(-1)).cast("B"))
 
 
-def _digests(model: mujoco.MjModel, width: int, height: int, with_textures: bool) -> tuple[bytes, bytes | None]:
-    """(digest of everything but the texture pixels, digest of everything or None)."""
+def arrays_digest(arrays: Sequence[np.ndarray]) -> bytes:
+    """A digest of arrays' dtypes, shapes and bytes, in order (e.g. the pixels a world writes into its
+    model's textures, for :class:`CameraRenderer`'s ``texture_key``)."""
+    h = hashlib.sha256()
+    for i, a in enumerate(arrays):
+        _array_digest(h, str(i), a)
+    return h.digest()
+
+
+def visual_digest(model: mujoco.MjModel, width: int, height: int, texture_key: bytes | None = None) -> bytes:
+    """A digest of what a render context built from ``model`` holds, and of the frame size.
+
+    Two models with the same digest give render contexts with the same textures,
+    heightfields, meshes, material bindings, fog, shadow and buffer settings.
+
+    Args:
+        texture_key: A digest of the texture pixels from whoever wrote them, used in place of
+            ``tex_data`` itself (63 MB for the default terrain: about 45 ms to hash); None hashes it.
+    """
     h = hashlib.sha256()
     h.update(f"{mujoco.__version__};{width}x{height};{int(FONT_SCALE)}".encode())
     names = sorted(a for a in dir(model) if a.startswith(_ASSET_PREFIXES)) + list(_MATERIAL_FIELDS)
@@ -83,20 +101,11 @@ def _digests(model: mujoco.MjModel, width: int, height: int, with_textures: bool
     planes = np.flatnonzero(model.geom_type == mujoco.mjtGeom.mjGEOM_PLANE)
     _array_digest(h, "plane_size", model.geom_size[planes])
     _array_digest(h, "plane_matid", model.geom_matid[planes])
-    shape_key = h.digest()
-    if not with_textures:
-        return shape_key, None
-    _array_digest(h, "tex_data", model.tex_data)  # 63 MB for the default terrain: about 45 ms
-    return shape_key, h.digest()
-
-
-def visual_digest(model: mujoco.MjModel, width: int, height: int) -> bytes:
-    """A digest of what a render context built from ``model`` holds, and of the frame size.
-
-    Two models with the same digest give render contexts with the same textures,
-    heightfields, meshes, material bindings, fog, shadow and buffer settings.
-    """
-    return _digests(model, width, height, True)[1]
+    if texture_key is None:
+        _array_digest(h, "tex_data", model.tex_data)
+    else:
+        h.update(b"texture_key" + texture_key)
+    return h.digest()
 
 
 class _SharedContext:
@@ -155,10 +164,7 @@ _LOCK = threading.Lock()
 
 def _acquire(model: mujoco.MjModel, width: int, height: int,
              texture_key: bytes | None) -> _SharedContext:
-    if texture_key is None:
-        key = visual_digest(model, width, height)
-    else:
-        key = hashlib.sha256(_digests(model, width, height, False)[0] + b"tex" + texture_key).digest()
+    key = visual_digest(model, width, height, texture_key)
     me = threading.get_ident()
     with _LOCK:
         if any(c.pid != os.getpid() for c in _CONTEXTS):

@@ -18,7 +18,6 @@ qacc/qpos/qvel are checked and :class:`PhysicsDivergedError` is raised
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import math
 import weakref
@@ -33,7 +32,7 @@ import mujoco  # noqa: E402  (the GL backend must be chosen first)
 
 from models.actuators import PropulsionModel, PropulsionOutput  # noqa: E402
 from models.camera import R_MJCAM_C, CameraConfig, intrinsics  # noqa: E402
-from models.render_context import CameraRenderer  # noqa: E402
+from models.render_context import CameraRenderer, arrays_digest  # noqa: E402
 from models.lander import (  # noqa: E402
     CONTACT_SOLREF,
     FOOTPAD_NAMES,
@@ -268,13 +267,9 @@ class World:
         (a terrain's arrays are read-only)."""
         key = _TEXTURE_KEYS.get(self.terrain)
         if key is None:
-            h = hashlib.sha256()
-            arrays = [self.terrain.albedo] + ([self.terrain.patch.albedo] if self.terrain.patch is not None else [])
-            for a in arrays:
-                a = np.ascontiguousarray(a)
-                h.update(f"{a.dtype.str}{a.shape};".encode())
-                h.update(memoryview(a.reshape(-1)).cast("B"))
-            key = _TEXTURE_KEYS[self.terrain] = h.digest()
+            patch = self.terrain.patch
+            key = arrays_digest([self.terrain.albedo] + ([patch.albedo] if patch is not None else []))
+            _TEXTURE_KEYS[self.terrain] = key
         return key
 
     def _set_clip_planes(self) -> None:

@@ -167,13 +167,17 @@ EXIT_NOT_LANDED = 3
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    if not args.no_video:  # the video's process forks from the workers' server: its imports overlap ours
+        from bench.campaign.workers import start_worker_server
+
+        start_worker_server(1)
     from bench.report.run_outputs import run_and_write
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {args.out!r} is a file; give a folder")
     scenario = load_scenario(args.scenario, args.overrides, args.preset)
-    summary, table = run_and_write(scenario, out, video=not args.no_video, progress=True)
+    summary, table = run_and_write(scenario, out, video=not args.no_video, progress=True, video_process=True)
     print(table)
     return 0 if summary["landed"] else EXIT_NOT_LANDED
 

@@ -66,6 +66,11 @@ PATCH_BASE_M = 0.01
 # to map flat ground at the sun's elevation to this fraction of the albedo.
 FLAT_GROUND_EXPOSURE = 0.9
 SHADOW_MAP_PX = 2048  # side of the shadow depth map when shadows are on [px]
+# What mjv_updateScene draws a frame from (the kinematics mj_forward leaves in mjData): the poses
+# of the bodies, geoms, sites, the camera and the lights, and the joint positions.
+VISUAL_STATE_FIELDS = ("qpos", "xpos", "xmat", "xquat", "xipos", "ximat", "geom_xpos", "geom_xmat",
+                       "site_xpos", "site_xmat", "cam_xpos", "cam_xmat", "light_xpos", "light_xdir",
+                       "subtree_com")
 AMBIENT_LIGHT = 0.04  # earthshine/scatter floor, keeps shadows from going fully black
 MAX_SUN_DIFFUSE = 4.0
 
@@ -558,6 +563,19 @@ class World:
         """Truth camera pose: R_LC (3, 3) (OpenCV camera frame to L) and r_CL_L (3,) [m]."""
         R_L_mj = self.data.cam_xmat[self._cam].reshape(3, 3)
         return R_L_mj @ R_MJCAM_C, self.data.cam_xpos[self._cam].copy()
+
+    def visual_state(self) -> tuple[np.ndarray, ...]:
+        """Copies of what a rendered frame is drawn from now: the positions and orientations of the
+        bodies, geoms, sites, cameras and lights (``VISUAL_STATE_FIELDS`` of ``mujoco.MjData``)."""
+        return tuple(getattr(self.data, name).copy() for name in VISUAL_STATE_FIELDS)
+
+    def set_visual_state(self, state: tuple[np.ndarray, ...]) -> None:
+        """Draw the next frames from ``state`` (another world's :meth:`visual_state`, same model).
+
+        Only the fields a frame is drawn from are set (its velocities, forces and contacts are
+        left as they were), so this is for a world that renders and never steps."""
+        for name, value in zip(VISUAL_STATE_FIELDS, state, strict=True):
+            getattr(self.data, name)[...] = value
 
     def render_signal(self) -> np.ndarray:
         """Noise-free grayscale camera image, (H, W) uint8 [DN].

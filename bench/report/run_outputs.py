@@ -13,10 +13,12 @@ renamed into place only at the end.
 from __future__ import annotations
 
 import json
+import multiprocessing
 from pathlib import Path
 
 from bench.report.io import atomic_write_text, json_safe
 from bench.report.report import CameraVideo, frame_caption, summary_table, write_plots, write_telemetry_parquet
+from bench.report.video_process import VideoProcess
 from bench.sim.run import RunResult, run
 from bench.scenario import NS_PER_S, Scenario, scenario_to_toml
 
@@ -27,14 +29,21 @@ PLOTS = "plots.png"
 VIDEO = "camera.mp4"
 
 
-def run_and_write(scenario: Scenario, out: Path, video: bool = True, progress: bool = False) -> tuple[dict, str]:
+def run_and_write(scenario: Scenario, out: Path, video: bool = True, progress: bool = False,
+                  video_process: bool = False) -> tuple[dict, str]:
     """Fly the scenario and write its files into ``out``.
+
+    Args:
+        video_process: Encode ``camera.mp4`` in a second process, which also renders the frames
+            only the video needs (:class:`~bench.report.video_process.VideoProcess`): the same
+            file, while the run flies on. Ignored in a daemon process (a campaign worker), which
+            may not start one.
 
     Returns:
         (summary dict as written to summary.json, the terminal summary table).
     """
     cam = scenario.camera
-    writer: CameraVideo | None = None  # opened at the first frame: a run refused at set-up writes nothing
+    writer: CameraVideo | VideoProcess | None = None  # opened at the first frame: a run refused at set-up writes nothing
     created = not out.exists()
 
     def sink(t_ns, frame, truth, tracks) -> None:
@@ -46,8 +55,12 @@ def run_and_write(scenario: Scenario, out: Path, video: bool = True, progress: b
             xy, prev = tracks.xy, tracks.prev_xy
         writer.add(frame, tracks_xy=xy, prev_xy=prev, text=frame_caption(t_ns / NS_PER_S, float(truth.r_BL_L[2])))
 
+    frame_sink = sink if video and cam.enabled else None
+    if frame_sink is not None and video_process and not multiprocessing.current_process().daemon:
+        writer = frame_sink = VideoProcess(scenario, out / VIDEO, fps=NS_PER_S / cam.period_ns,
+                                            size=(cam.width_px, cam.height_px))
     try:
-        result = run(scenario, frame_sink=sink if video and cam.enabled else None, progress=progress)
+        result = run(scenario, frame_sink=frame_sink, progress=progress)
         summary, outputs = write_run_outputs(scenario, result, out, writer)
     except BaseException:
         if writer is not None:
@@ -59,7 +72,7 @@ def run_and_write(scenario: Scenario, out: Path, video: bool = True, progress: b
 
 
 def write_run_outputs(scenario: Scenario, result: RunResult, out: Path,
-                      video: CameraVideo | None = None) -> tuple[dict, dict[str, Path]]:
+                      video: CameraVideo | VideoProcess | None = None) -> tuple[dict, dict[str, Path]]:
     """Write the files of a finished run (``video``: its open writer, closed here).
 
     Also used by a campaign worker that decides only after the run whether a
@@ -78,7 +91,7 @@ def write_run_outputs(scenario: Scenario, result: RunResult, out: Path,
                 criteria=summary["criteria"], touchdown=touchdown,
                 sun_elevation_deg=scenario.sun.elevation_deg, sun_azimuth_deg=scenario.sun.azimuth_deg)
     if video is not None:
-        path = video.close()
+        path = video.close()  # a video process has encoded while the plots were drawn here
         if path is not None:
             outputs["video"] = path
     # Last: a summary.json present means the run's files are complete.

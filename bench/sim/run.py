@@ -91,6 +91,25 @@ FrameSink = Callable[[int, np.ndarray, TruthState, "Tracks | None"], None]
 """Called with (t_ns, frame (H, W) uint8, truth, tracks or None) for every camera frame."""
 
 
+class RenderingFrameSink(Protocol):
+    """A frame sink that renders, elsewhere, the frames that only it consumes (``camera.mp4``'s video
+    process, :class:`bench.report.video_process.VideoProcess`).
+
+    The closed loop calls :meth:`start` once with its world, then, at every camera frame, either the
+    sink itself with a frame it rendered for the flight software, or :meth:`render_frame` for a frame
+    nobody on board consumes: the sink renders that one from the world's visual state, with camera
+    frame ``frame_index``'s own noise stream and ``exposure_gain``, so it gets the pixels the loop
+    would have rendered.
+    """
+
+    def __call__(self, t_ns: int, frame: np.ndarray, truth: TruthState, tracks: "Tracks | None") -> None: ...
+
+    def start(self, world: World) -> None: ...
+
+    def render_frame(self, t_ns: int, frame_index: int, world: World, exposure_gain: float, truth: TruthState,
+                     tracks: "Tracks | None") -> None: ...
+
+
 class Recorder(Protocol):
     """Receives everything the flight software is given, in the order given (``landbench record``).
 
@@ -192,14 +211,15 @@ class _Telemetry:
         return cols
 
 
-def run(scenario: Scenario, frame_sink: FrameSink | None = None, progress: bool = False,
+def run(scenario: Scenario, frame_sink: FrameSink | RenderingFrameSink | None = None, progress: bool = False,
         recorder: Recorder | None = None) -> RunResult:
     """Fly one landing.
 
     Args:
         scenario: The scenario (seed included); nothing else influences the result.
         frame_sink: Receives every camera frame (for ``camera.mp4``); frames are
-            rendered at the camera rate when ``camera.enabled``.
+            rendered at the camera rate when ``camera.enabled``. A
+            :class:`RenderingFrameSink` renders the frames that only it consumes.
         progress: Show a progress bar over simulated time (on a terminal).
         recorder: Receives every message given to the flight software (see
             :class:`Recorder`); it does not change the run.
@@ -235,7 +255,7 @@ def run(scenario: Scenario, frame_sink: FrameSink | None = None, progress: bool 
 
 
 def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuite,
-         frame_sink: FrameSink | None, progress: bool, setup_s: float,
+         frame_sink: FrameSink | RenderingFrameSink | None, progress: bool, setup_s: float,
          recorder: Recorder | None = None, maps: tuple | None = None, hazard: Any = None) -> RunResult:
     sim, cam, crit = scenario.sim, scenario.camera, scenario.landing
     dt_ns = sim.physics_dt_ns
@@ -284,6 +304,10 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
     bar = _progress_bar(sim.t_max_ns, progress)
     timing = {"render_s": 0.0, "vision_s": 0.0, "filter_s": 0.0}
     frames_rendered = 0
+    # A sink that renders the frames only it wants (see RenderingFrameSink) is shown the world first.
+    render_elsewhere = getattr(frame_sink, "render_frame", None)
+    if render_elsewhere is not None and cam.enabled:
+        frame_sink.start(world)
 
     t_ns = 0
     wall0 = time.perf_counter()
@@ -331,12 +355,13 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                 delivered = faults is None or (faults.frame_delivered(t_ns) and not down)
                 # Render only a frame that someone consumes: the video, a recording, or the tracker
                 # (above the cut-off). Each frame's noise is its own stream, so skipping changes nothing.
-                if cam.enabled and (frame_sink is not None or recorder is not None
-                                    or (tracker_truth is None and delivered and fsw.wants_image())
-                                    or (delivered and fsw.wants_map_frame(t_ns))):
+                on_board = (recorder is not None or (tracker_truth is None and delivered and fsw.wants_image())
+                            or (delivered and fsw.wants_map_frame(t_ns)))
+                video_only = frame_sink is not None and not on_board  # a frame for the video alone
+                gain = 1.0 if faults is None else faults.exposure_gain(t_ns)
+                if cam.enabled and (on_board or (video_only and render_elsewhere is None)):
                     t0 = time.perf_counter()
-                    frame = sensors.camera_frame_at(world, t_ns // cam.period_ns,
-                                                    *(() if faults is None else (faults.exposure_gain(t_ns),)))
+                    frame = sensors.camera_frame_at(world, t_ns // cam.period_ns, gain)
                     timing["render_s"] += time.perf_counter() - t0
                     frames_rendered += 1
                 t0 = time.perf_counter()
@@ -361,6 +386,8 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                     map_truth_log.append((t_ns, world.camera_pose()[1]))
                 if frame is not None and frame_sink is not None:
                     frame_sink(t_ns, frame, truth, tracks)
+                elif cam.enabled and video_only:  # rendered by the sink, from the world as it is now
+                    render_elsewhere(t_ns, t_ns // cam.period_ns, world, gain, truth, tracks)
             # Flight software at the control rate.
             if t_ns % periods["control"] == 0:
                 truth_nav = None

@@ -32,7 +32,7 @@ import mujoco  # noqa: E402  (the GL backend must be chosen first)
 
 from models.actuators import PropulsionModel, PropulsionOutput  # noqa: E402
 from models.camera import R_MJCAM_C, CameraConfig, intrinsics  # noqa: E402
-from models.render_context import CameraRenderer, arrays_digest  # noqa: E402
+from models.render_context import CameraRenderer, arrays_digest, visual_digest  # noqa: E402
 from models.lander import (  # noqa: E402
     CONTACT_SOLREF,
     FOOTPAD_NAMES,
@@ -276,6 +276,13 @@ class World:
             key = arrays_digest([self.terrain.albedo] + ([patch.albedo] if patch is not None else []))
             _TEXTURE_KEYS[self.terrain] = key
         return key
+
+    def render_digest(self) -> bytes:
+        """Digest of everything the camera's renderer uploads from this world (textures, heightfields,
+        meshes, the visual block) and of the frame size (:func:`models.render_context.visual_digest`): two
+        worlds with the same digest draw the same frame from the same visual state."""
+        cfg = self.camera_cfg
+        return visual_digest(self.model, cfg.width_px, cfg.height_px, self._texture_key())
 
     def _set_clip_planes(self) -> None:
         """Near/far planes in metres (MuJoCo stores them relative to the model extent)."""

@@ -18,7 +18,7 @@ GL context with the same detector noise (each frame's noise is its own stream: s
 after the landing, while the run draws its plots).
 
 The frames are the pixels the run would have rendered: the second world is checked against the
-run's (the digest of everything the renderer uploads, :func:`models.render_context.visual_digest`)
+run's (the digest of everything the renderer uploads, ``World.render_digest``)
 before a frame is written, and its scene is drawn from the run's own body, geom, site, camera and
 light poses, copied at the frame's time (``World.visual_state``).
 """
@@ -94,10 +94,7 @@ class VideoProcess:
     # --------------------------------------------------------------- the closed loop's side
     def start(self, world: Any) -> None:
         """The run's world: its renderer's digest, which the second world must match."""
-        from models.render_context import visual_digest
-
-        cfg = world.camera_cfg
-        self._post(("digest", visual_digest(world.model, cfg.width_px, cfg.height_px, world._texture_key())))
+        self._post(("digest", world.render_digest()))
 
     def __call__(self, t_ns: int, frame: np.ndarray, truth: Any, tracks: Any) -> None:
         """A frame the run rendered (for the flight software), to encode."""
@@ -190,13 +187,11 @@ def _serve(messages: Any, results: Any, scenario: Any, path: str, fps: float, si
         from bench.report.report import CameraVideo, frame_caption
         from bench.scenario import NS_PER_S
         from bench.sim.world_builder import build_sensors, build_terrain, build_world
-        from models.render_context import visual_digest
 
         # Built now, while the run flies its first frames: frames rendered here come below the vision cut-off.
         world = build_world(scenario, build_terrain(scenario))
         sensors = build_sensors(scenario)
-        cfg = world.camera_cfg
-        own = visual_digest(world.model, cfg.width_px, cfg.height_px, world._texture_key())
+        own = world.render_digest()
         while True:
             msg = inbox.get()
             if msg is None or msg[0] == "abort":  # stopped, with or without a word: leave nothing behind

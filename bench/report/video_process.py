@@ -112,7 +112,8 @@ class VideoProcess:
         """Wait for every frame to be encoded; the final path (None: no frame was written).
 
         Raises:
-            RuntimeError: The second process failed (its traceback is in the message).
+            The second process's own exception (its traceback in a note), or RuntimeError when it
+            stopped without one or sent nothing in ``RESULT_TIMEOUT_S``.
         """
         if not self._ended:
             self._post(("close",))

@@ -349,10 +349,10 @@ class HealthMonitor:
         self._gyro_n = 0
         self._acc_win: deque[tuple[int, float, float, float, float]] = deque()  # (t, f_B, expected f_z), thrusting
         self._acc_sum = [0.0, 0.0, 0.0, 0.0]  # running sums over the window: f_B (3), expected f_z
-        self._thrust_expect_mps2 = 0.0  # commanded thrust / mass, along +z
         self._thrusting = False
-        # The nominal engine's thrust for the commands given (EngineResponse), advanced to each IMU sample.
-        self._cmd = (0.0, 1.0, 1.0)  # (thrust command [N], thrust scale [-], mass [kg]) in force
+        # The command in force (while thrusting), and the nominal engine's thrust for the commands given
+        # (EngineResponse), advanced to each IMU sample.
+        self._cmd = (0.0, 1.0, 1.0)  # (thrust command [N], thrust scale [-], mass [kg])
         self._engine_N: float | None = None
         self._engine_t_ns = 0
         self._lateral_run = 0
@@ -468,7 +468,7 @@ class HealthMonitor:
         if not self.cfg.recovery or not ({"imu.accel", "imu.gyro"} & self.failed):
             return msg
         if "imu.accel" in self.failed:
-            f_B = np.array([0.0, 0.0, self._thrust_expect_mps2])
+            f_B = np.array([0.0, 0.0, self._command_accel_mps2()])
             self.last_imu_synthetic = True
         if "imu.gyro" in self.failed and self.st_rate_B is not None:
             w_B = self.st_rate_B
@@ -477,7 +477,7 @@ class HealthMonitor:
     def synthetic_imu(self, t_ns: int) -> ImuMessage:
         """An IMU sample made from the thrust command over the mass and the star tracker's rate."""
         w = self.st_rate_B if self.st_rate_B is not None else self.last_gyro_B
-        return ImuMessage(t_ns, np.array([0.0, 0.0, self._thrust_expect_mps2]), np.array(w, float))
+        return ImuMessage(t_ns, np.array([0.0, 0.0, self._command_accel_mps2()]), np.array(w, float))
 
     def imu_missing(self, t_ns: int) -> bool:
         """Whether the IMU has been silent beyond its gap (the caller then feeds :meth:`synthetic_imu`)."""
@@ -489,6 +489,13 @@ class HealthMonitor:
             self._event(t_ns, IMU, "loss of data: IMU messages missing", "synthetic IMU from the thrust command",
                         once_key="gap")
         return gone
+
+    def _command_accel_mps2(self) -> float:
+        """The commanded thrust over the mass, along +z [m/s^2] (0 when not thrusting)."""
+        if not self._thrusting:
+            return 0.0
+        thrust_cmd_N, scale, mass_kg = self._cmd
+        return thrust_cmd_N * scale / mass_kg
 
     def _engine_thrust(self, t_ns: int) -> float:
         """The nominal engine's thrust at ``t_ns`` [N]: the command in force since the last update
@@ -959,7 +966,6 @@ class HealthMonitor:
             self.failed.discard("vision")  # tried again; a new streak of rejections excludes it again
             self._vision_excluded_ns = None
             self._vision_hist.clear()
-        self._thrust_expect_mps2 = thrust_cmd_N * thrust_scale / mass_kg if self._thrusting else 0.0
         if self._thrusting:
             if self._engine_N is not None:
                 self._engine_thrust(t_ns)  # the last command's response up to now

@@ -566,6 +566,14 @@ def write_plots(
 
 
 # ==================================================================== video
+def track_overlay(tracks: Any) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """A frame's track overlay for :meth:`CameraVideo.add`: (``tracks_xy``, ``prev_xy``) of a
+    ``vision.tracks.Tracks``, or (None, None) when there are none."""
+    if tracks is None or not len(tracks):
+        return None, None
+    return tracks.xy, tracks.prev_xy
+
+
 def frame_caption(t_s: float, height_m: float | None = None) -> str:
     """The usual video caption, e.g. ``'t = 12.34 s  h = 56.7 m'``."""
     text = f"t = {t_s:.2f} s"

@@ -17,7 +17,8 @@ import multiprocessing
 from pathlib import Path
 
 from bench.report.io import atomic_write_text, json_safe
-from bench.report.report import CameraVideo, frame_caption, summary_table, write_plots, write_telemetry_parquet
+from bench.report.report import (CameraVideo, frame_caption, summary_table, track_overlay, write_plots,
+                                 write_telemetry_parquet)
 from bench.report.video_process import VideoProcess
 from bench.sim.run import RunResult, run
 from bench.scenario import NS_PER_S, Scenario, scenario_to_toml
@@ -50,9 +51,7 @@ def run_and_write(scenario: Scenario, out: Path, video: bool = True, progress: b
         nonlocal writer
         if writer is None:
             writer = CameraVideo(out / VIDEO, fps=NS_PER_S / cam.period_ns, size=(cam.width_px, cam.height_px))
-        xy = prev = None
-        if tracks is not None and len(tracks):
-            xy, prev = tracks.xy, tracks.prev_xy
+        xy, prev = track_overlay(tracks)
         writer.add(frame, tracks_xy=xy, prev_xy=prev, text=frame_caption(t_ns / NS_PER_S, float(truth.r_BL_L[2])))
 
     frame_sink = sink if video and cam.enabled else None

@@ -35,6 +35,8 @@ from typing import Any
 
 import numpy as np
 
+from bench.report.report import CameraVideo, frame_caption, track_overlay
+
 PIPE_BYTES = 1 << 20  # the run-to-process pipe's kernel buffer, where the platform allows it
 F_SETPIPE_SZ = getattr(fcntl, "F_SETPIPE_SZ", 1031)  # Linux's fcntl that sizes a pipe
 RESULT_TIMEOUT_S = 600.0  # the most the run waits for the process to finish its queue
@@ -47,12 +49,6 @@ def _widen_pipe(conn: Any) -> None:
         fcntl.fcntl(conn.fileno(), F_SETPIPE_SZ, PIPE_BYTES)
     except OSError:
         pass
-
-
-def _overlay(tracks: Any) -> tuple[np.ndarray | None, np.ndarray | None]:
-    if tracks is None or not len(tracks):
-        return None, None
-    return np.array(tracks.xy), np.array(tracks.prev_xy)
 
 
 class VideoProcess:
@@ -98,14 +94,14 @@ class VideoProcess:
 
     def __call__(self, t_ns: int, frame: np.ndarray, truth: Any, tracks: Any) -> None:
         """A frame the run rendered (for the flight software), to encode."""
-        self._post(("frame", t_ns, frame, float(truth.r_BL_L[2]), *_overlay(tracks)))
+        self._post(("frame", t_ns, frame, float(truth.r_BL_L[2]), *track_overlay(tracks)))
 
     def render_frame(self, t_ns: int, frame_index: int, world: Any, exposure_gain: float, truth: Any,
                      tracks: Any) -> None:
         """A frame for the video alone: rendered and corrupted in the second process from ``world``'s
         visual state now (camera frame ``frame_index``, its exposure gain), then encoded."""
         self._post(("render", t_ns, frame_index, exposure_gain, world.visual_state(),
-                    float(truth.r_BL_L[2]), *_overlay(tracks)))
+                    float(truth.r_BL_L[2]), *track_overlay(tracks)))
 
     # --------------------------------------------------------------------- the end
     def close(self) -> Path | None:
@@ -185,7 +181,6 @@ def _serve(messages: Any, results: Any, scenario: Any, path: str, fps: float, si
     threading.Thread(target=_read_into, args=(messages, inbox), daemon=True).start()
     video = world = None
     try:
-        from bench.report.report import CameraVideo, frame_caption
         from bench.scenario import NS_PER_S
         from bench.sim.world_builder import build_sensors, build_terrain, build_world
 

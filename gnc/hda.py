@@ -27,8 +27,9 @@ Steps of :meth:`HazardAvoidance.on_scan`:
    registered to the last one through the estimated motion (the estimated
    velocity and the gyro's relative rotation), not through the estimate at
    each tick, which a filter update can move by 10 cm between two ticks
-   (:meth:`HazardAvoidance._mosaic_points`); 4 flashes give about 2 returns
-   per post.
+   (:meth:`HazardAvoidance._mosaic_points`); 8 flashes (0.14 s at 50 Hz)
+   give about 4 returns per post: a steadier read of a rock's top than 4
+   (2 returns per post), fewer false alarms and fewer misses alike.
 1. **DEM in the estimated frame**: each ray's return point is placed through
    the filter's pose (estimated position, star-tracker attitude, the nominal
    mounting), never the truth: the navigation error enters as it would in
@@ -114,7 +115,7 @@ class HdaConfig(BaseModel):
     attitude_sigma_rad: float = Field(1e-4, ge=0.0, description="star tracker's attitude 1-sigma (specification) [rad]")
     nav_sigma_floor_m: float = Field(0.1, ge=0.0, description="floor of the navigation sigma of the margin [m]")
     flashes: int = Field(
-        4, ge=1, le=16, description="flashes per scan, one per control tick, mosaicked into one DEM: each flash "
+        8, ge=1, le=16, description="flashes per scan, one per control tick, mosaicked into one DEM: each flash "
                                     "samples the ground at another sub-pixel phase (the lander moves and turns "
                                     "between ticks), so a rock's top is read closer to it [-]")
     rescan: Literal["on", "off"] = Field(

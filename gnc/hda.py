@@ -29,7 +29,8 @@ Steps of :meth:`HazardAvoidance.on_scan`:
    each tick, which a filter update can move by 10 cm between two ticks
    (:meth:`HazardAvoidance._mosaic_points`); 8 flashes (0.14 s at 50 Hz)
    give about 4 returns per post: a steadier read of a rock's top than 4
-   (2 returns per post), fewer false alarms and fewer misses alike.
+   (2 returns per post), so fewer false alarms at the same detection rate
+   (README: eight flashes instead of four).
 1. **DEM in the estimated frame**: each ray's return point is placed through
    the filter's pose (estimated position, star-tracker attitude, the nominal
    mounting), never the truth: the navigation error enters as it would in

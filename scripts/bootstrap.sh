@@ -80,6 +80,8 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 if [ ! -f "$STAMP" ] || [ pyproject.toml -nt "$STAMP" ]; then
   "$VENV/bin/python" -m pip install -q --upgrade pip
-  "$VENV/bin/python" -m pip install -q -e '.[dev,ray,studies,geo]'  # ray: the tests run the Ray backend too; studies: G-FOLD, sweeps, Gymnasium; geo: GeoTIFF DEMs
+  # --no-compile, then compileall on every core: pip byte-compiles the installed packages in one process
+  "$VENV/bin/python" -m pip install -q --no-compile -e '.[dev,ray,studies,geo]'  # ray: the tests run the Ray backend too; studies: G-FOLD, sweeps, Gymnasium; geo: GeoTIFF DEMs
+  "$VENV/bin/python" -m compileall -q -j 0 "$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')" >/dev/null || true
   touch "$STAMP"
 fi

@@ -25,22 +25,48 @@ def _meets_criteria(s: dict) -> None:
     assert td["tilt_deg"] <= crit["tilt_max_deg"] and s["final_tilt_deg"] <= crit["tilt_max_deg"]
 
 
+class _CameraTicks:
+    """A rendering frame sink (``bench.sim.run.RenderingFrameSink``) that renders nothing: it notes each camera
+    frame, ``(t_ns, shape)`` for a frame the loop rendered for the tracker, ``(t_ns, None)`` for a frame only a
+    video would want (rendered elsewhere; ``tests/test_video_process.py`` checks those pixels)."""
+
+    def __init__(self):
+        self.frames: list[tuple[int, tuple[int, ...] | None]] = []
+        self.indices: list[int] = []
+
+    def start(self, world):
+        self.period_ns = world.camera_cfg.period_ns
+
+    def __call__(self, t_ns, frame, truth, tracks):
+        self.frames.append((t_ns, frame.shape))
+
+    def render_frame(self, t_ns, frame_index, world, exposure_gain, truth, tracks):
+        self.frames.append((t_ns, None))
+        self.indices.append(frame_index)
+        assert frame_index == t_ns // self.period_ns
+
+
 @pytest.fixture(scope="module")
 def default_nav_run():
     sc = load_scenario()
     assert (sc.nav, sc.tracks, sc.vision) == ("estimator", "vision", "on")  # the defaults
-    frames = []
-    result = run(sc, frame_sink=lambda t, f, truth, tracks: frames.append((t, f.shape)))
-    return SimpleNamespace(summary=result.summary, telemetry=result.telemetry, frames=frames)
+    sink = _CameraTicks()
+    result = run(sc, frame_sink=sink)
+    return SimpleNamespace(summary=result.summary, telemetry=result.telemetry, frames=sink.frames)
 
 
 def test_default_scenario_lands_on_vision_navigation(default_nav_run):
     s = default_nav_run.summary
     _meets_criteria(s)
     assert s["nav"]["vel_err_touchdown_mps"] <= 0.2, s["nav"]
-    # The camera rendered at its rate throughout (10 Hz), from touch-down to the end of the run too.
+    # Every camera frame reached the sink at the camera's rate (10 Hz), from touch-down to the end of the run
+    # too: rendered for the tracker above the cut-off, handed over to be rendered elsewhere below it.
     frames = default_nav_run.frames
-    assert len(frames) == int(s["sim_time_s"] * 10) + 1 and frames[0][1] == (256, 256)
+    assert len(frames) == int(s["sim_time_s"] * 10) + 1
+    assert [t for t, _ in frames] == [k * 100_000_000 for k in range(len(frames))]
+    rendered = [shape for _, shape in frames if shape is not None]
+    assert len(rendered) == s["vision"]["frames"] and set(rendered) == {(256, 256)}
+    assert all(shape is None for _, shape in frames[len(rendered):])  # below the cut-off, nothing on board
     v = s["vision"]
     assert v["frames"] > 300 and v["tracks_median"] >= 40 and v["measurements"] > 300
     # Consistent innovations are rejected by the 99.9 % gate about once in a thousand; a clean run

@@ -32,7 +32,6 @@ class _CameraTicks:
 
     def __init__(self):
         self.frames: list[tuple[int, tuple[int, ...] | None]] = []
-        self.indices: list[int] = []
 
     def start(self, world):
         self.period_ns = world.camera_cfg.period_ns
@@ -42,7 +41,6 @@ class _CameraTicks:
 
     def render_frame(self, t_ns, frame_index, world, exposure_gain, truth, tracks):
         self.frames.append((t_ns, None))
-        self.indices.append(frame_index)
         assert frame_index == t_ns // self.period_ns
 
 

@@ -56,9 +56,18 @@ limits *along the whole path*: thrust within ``[plan_thrust_min_frac *
 thrust_min_N, plan_thrust_max_frac * thrust_max_N]`` at the current mass, tilt
 within ``plan_tilt_frac`` times the altitude-dependent tilt limit at every
 point, and no dip of more than ``GATE_UNDERSHOOT_TOL_M`` below the gate
-before the gate. Among the feasible ones the least delta-v (``integral |a - g|
-dt``, a fuel proxy) is chosen; when none is feasible, the least tilt-violating
-path within the thrust and altitude limits (capping then enforces the tilt at
+before the gate; and the vehicle must be able to turn its thrust axis onto the
+path's first thrust direction in time: the rest-to-rest slew at the attitude
+control's angular acceleration (``limits.slew_accel_max_radps2``),
+``2 sqrt(angle / accel)``, within ``plan_slew_time_frac`` of the path's time to
+go. Without that check a late re-plan (a hazard divert at 100 m) could pick a
+9 s path whose first thrust direction lay 20 degrees from the attitude flown:
+the torque-limited attitude loop took 2-3 s to get there, the feedback then
+asked for more, and the vehicle reached the gate 14 m past the new site at
+4 m/s, too far to fly back before the propellant ran out. Among the feasible
+ones the least delta-v (``integral |a - g| dt``, a fuel proxy) is chosen; when
+none is feasible, the least tilt-violating path within the thrust and altitude
+limits, whatever its slew (capping then enforces the tilt at
 the price of a small miss at the gate, which the terminal phase flies out),
 else the least violating one. Then ``t_go = t_final - t`` counts down. For
 both laws the remaining path from a point on the planned path is the rest of
@@ -226,6 +235,12 @@ class GuidanceConfig(BaseModel):
         1.1, ge=1.0, le=3.0, description="planned paths keep thrust above this multiple of the minimum [-]"
     )
     plan_tilt_frac: float = Field(0.9, gt=0.0, le=1.0, description="fraction of the tilt limit a planned path may use [-]")
+    plan_slew_time_frac: float = Field(
+        0.15, gt=0.0, le=1.0,
+        description="a planned path's first thrust direction must be reachable from the current thrust axis by a "
+                    "rest-to-rest slew at the attitude control's angular acceleration within this fraction of the "
+                    "path's time to go [-]",
+    )
     terminal_position_bandwidth_radps: float = Field(
         0.5, gt=0.0, le=5.0, description="terminal horizontal position-hold natural frequency [rad/s]"
     )
@@ -280,12 +295,16 @@ class GuidanceLimits:
             :func:`gnc.control.guidance_limits`).
         isp_s: Engine specific impulse as the flight software knows it [s], for
             laws that model the mass flow (G-FOLD); None when not given.
+        slew_accel_max_radps2: The largest angular acceleration the attitude
+            control can give the thrust axis (RCS torque over the lateral
+            inertia) [rad/s^2], for the planner's slew check; None: no check.
     """
 
     thrust_min_N: float = 1500.0
     thrust_max_N: float = 7500.0
     tilt: TiltLimitConfig = field(default_factory=TiltLimitConfig)
     isp_s: float | None = None
+    slew_accel_max_radps2: float | None = None
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.thrust_max_N) and self.thrust_max_N > 0.0):
@@ -296,6 +315,9 @@ class GuidanceLimits:
             )
         if self.isp_s is not None and not (np.isfinite(self.isp_s) and self.isp_s > 0.0):
             raise ValueError(f"limits.isp_s = {self.isp_s!r}; allowed: a finite value > 0, or None")
+        a = self.slew_accel_max_radps2
+        if a is not None and not (np.isfinite(a) and a > 0.0):
+            raise ValueError(f"limits.slew_accel_max_radps2 = {a!r}; allowed: a finite value > 0, or None")
         if not isinstance(self.tilt, TiltLimitConfig):
             raise ValueError(f"limits.tilt = {self.tilt!r}; allowed: a TiltLimitConfig")
 
@@ -458,6 +480,18 @@ def cap_acceleration_L(
     return out, saturated
 
 
+def _thrust_axis_L(q_LB: Any) -> np.ndarray | None:
+    """Body +z (the thrust axis) in L from a (w, x, y, z) attitude, (3,) unit; None when not finite or zero."""
+    q = np.asarray(q_LB, float)
+    if q.shape != (4,) or not np.all(np.isfinite(q)):
+        return None
+    n2 = float(q @ q)
+    if not n2 > 0.0:
+        return None
+    w, x, y, z = (q / math.sqrt(n2)).tolist()
+    return np.array([2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)])
+
+
 # --------------------------------------------------------------------------- the interface
 class GuidanceLaw(ABC):
     """A guidance law: ``update(NavState, LandingTarget) -> GuidanceCommand``.
@@ -540,6 +574,7 @@ class GuidanceLaw(ABC):
         v_f_L: np.ndarray,
         t_go_s: np.ndarray,
         with_margins: bool,
+        z_B_L: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Check the law's paths to the gate for several candidate times to go.
 
@@ -552,12 +587,19 @@ class GuidanceLaw(ABC):
             t_go_s: Candidate times to go, (N,) [s].
             with_margins: Apply the planning margins (``plan_*_frac``); False
                 checks the hard limits.
+            z_B_L: The current thrust axis (body +z in L), (3,) unit, for the
+                slew check; None (or no ``limits.slew_accel_max_radps2``): no
+                slew check.
 
         Returns:
             ``(violation, delta_v)``: the worst normalised violation along each
-            path of the thrust, tilt and gate-altitude limits, (N, 3) [-]
-            (all <= 0: feasible), and each path's ``integral |a - g| dt``, (N,)
-            [m/s].
+            path of the thrust, tilt and gate-altitude limits and of the slew
+            to its first thrust direction, (N, 4) [-] (all <= 0: feasible), and
+            each path's ``integral |a - g| dt``, (N,) [m/s]. The slew is a
+            planning margin: the rest-to-rest slew time ``2 sqrt(angle /
+            slew_accel_max)`` from ``z_B_L`` to the path's first thrust
+            direction over ``plan_slew_time_frac`` times its time to go, minus
+            1; without margins (the hard limits) it is never violated (-1).
         """
         cfg, lim = self.cfg, self.limits
         T = np.asarray(t_go_s, float)[:, None]  # (N, 1)
@@ -584,11 +626,19 @@ class GuidanceLaw(ABC):
             (tilt - tilt_lim) / np.maximum(tilt_lim, np.deg2rad(1.0)),
             (r_f_L[2] - GATE_UNDERSHOOT_TOL_M - z) / GATE_UNDERSHOOT_TOL_M,
         ], axis=-1).max(axis=1)
+        slew = np.full((viol.shape[0], 1), -1.0)
+        if with_margins and z_B_L is not None and lim.slew_accel_max_radps2 is not None:
+            f0 = f[:, 0, :]  # each path's first specific force
+            cos = (f0 @ np.asarray(z_B_L, float)) / np.maximum(f_norm[:, 0], _EPS)
+            angle = np.arccos(np.clip(cos, -1.0, 1.0))
+            t_slew = 2.0 * np.sqrt(angle / lim.slew_accel_max_radps2)  # rest to rest, torque-limited
+            slew[:, 0] = t_slew / (cfg.plan_slew_time_frac * T[:, 0]) - 1.0
         delta_v = np.trapezoid(f_norm, s[..., 0], axis=1)
-        return viol, delta_v
+        return np.concatenate([viol, slew], axis=1), delta_v
 
     def plan_t_go(
-        self, r_L: np.ndarray, v_L: np.ndarray, mass_kg: float, r_f_L: np.ndarray, v_f_L: np.ndarray
+        self, r_L: np.ndarray, v_L: np.ndarray, mass_kg: float, r_f_L: np.ndarray, v_f_L: np.ndarray,
+        z_B_L: np.ndarray | None = None,
     ) -> tuple[float, float]:
         """Choose the time to the gate (see the module docstring).
 
@@ -598,6 +648,8 @@ class GuidanceLaw(ABC):
             mass_kg: Mass [kg].
             r_f_L: Gate position, (3,) [m].
             v_f_L: Gate velocity, (3,) [m/s].
+            z_B_L: The current thrust axis, (3,) unit, for the slew check
+                (:meth:`path_violation`); None: none.
 
         Returns:
             ``(t_go_s, violation)``: the least-delta-v candidate that is
@@ -608,7 +660,7 @@ class GuidanceLaw(ABC):
         """
         cfg = self.cfg
         cand = np.arange(cfg.t_go_min_s, cfg.t_go_max_s + 0.5 * T_GO_GRID_STEP_S, T_GO_GRID_STEP_S)
-        viol3, delta_v = self.path_violation(r_L, v_L, mass_kg, r_f_L, v_f_L, cand, with_margins=True)
+        viol3, delta_v = self.path_violation(r_L, v_L, mass_kg, r_f_L, v_f_L, cand, with_margins=True, z_B_L=z_B_L)
         viol = viol3.max(axis=1)
         ok = viol <= 0.0
         if ok.any():
@@ -639,8 +691,10 @@ class GuidanceLaw(ABC):
             self.t_final_ns = None  # re-plan for the new target
 
         if self.phase == PHASE_APPROACH:
+            planning = self.t_final_ns is None or t_ns - self._t_plan_ns >= REPLAN_MIN_INTERVAL_NS
+            z_B_L = _thrust_axis_L(nav.q_LB) if planning else None  # the thrust axis, for the slew check
             if self.t_final_ns is None:
-                self._plan(t_ns, r, v, m, r_f, v_f)
+                self._plan(t_ns, r, v, m, r_f, v_f, z_B_L)
             t_go = (self.t_final_ns - t_ns) / NS_PER_S
             if t_go <= 0.0 or r[2] <= r_f[2] - GATE_FLOOR_M:
                 self.phase = PHASE_TERMINAL
@@ -648,7 +702,7 @@ class GuidanceLaw(ABC):
                 a = self._open_loop_accel_L(t_ns, r, v, r_f, v_f, t_go)
             else:
                 if t_go > REPLAN_MIN_T_GO_S and t_ns - self._t_plan_ns >= REPLAN_MIN_INTERVAL_NS:
-                    t_go = self._maybe_replan(t_ns, r, v, m, r_f, v_f, t_go)
+                    t_go = self._maybe_replan(t_ns, r, v, m, r_f, v_f, t_go, z_B_L)
                 a = self.accel_L(r, v, r_f, v_f, t_go)
         if self.phase == PHASE_TERMINAL:
             a = self.terminal_accel_L(r, v, target_L)
@@ -666,8 +720,9 @@ class GuidanceLaw(ABC):
         s = (t_ns - t0_ns) / NS_PER_S
         return c0 + c1 * s + c2 * s * s
 
-    def _plan(self, t_ns: int, r: np.ndarray, v: np.ndarray, m: float, r_f: np.ndarray, v_f: np.ndarray) -> None:
-        t_go, viol = self.plan_t_go(r, v, m, r_f, v_f)
+    def _plan(self, t_ns: int, r: np.ndarray, v: np.ndarray, m: float, r_f: np.ndarray, v_f: np.ndarray,
+              z_B_L: np.ndarray | None = None) -> None:
+        t_go, viol = self.plan_t_go(r, v, m, r_f, v_f, z_B_L)
         self._adopt(t_ns, t_go, viol)
 
     def _adopt(self, t_ns: int, t_go: float, viol: float) -> None:
@@ -678,14 +733,15 @@ class GuidanceLaw(ABC):
         self.n_plans += 1
 
     def _maybe_replan(
-        self, t_ns: int, r: np.ndarray, v: np.ndarray, m: float, r_f: np.ndarray, v_f: np.ndarray, t_go: float
+        self, t_ns: int, r: np.ndarray, v: np.ndarray, m: float, r_f: np.ndarray, v_f: np.ndarray, t_go: float,
+        z_B_L: np.ndarray | None = None,
     ) -> float:
         """Re-plan when the remaining path breaks the hard limits and a better one exists; returns t_go [s]."""
         hard, _ = self.path_violation(r, v, m, r_f, v_f, np.array([t_go]), with_margins=False)
         if hard.max() <= 0.0:
             return t_go
-        current, _ = self.path_violation(r, v, m, r_f, v_f, np.array([t_go]), with_margins=True)
-        t_new, viol_new = self.plan_t_go(r, v, m, r_f, v_f)
+        current, _ = self.path_violation(r, v, m, r_f, v_f, np.array([t_go]), with_margins=True, z_B_L=z_B_L)
+        t_new, viol_new = self.plan_t_go(r, v, m, r_f, v_f, z_B_L)
         self._t_plan_ns = t_ns  # rate-limits the attempts, adopted or not
         if viol_new < current.max():
             self._adopt(t_ns, t_new, viol_new)

@@ -442,3 +442,70 @@ def test_lower_thrust_limits_replan_within_them(law):
     assert peak_thrust(cmd.t_go_s) <= lower.thrust_max_N
     with pytest.raises(ValueError, match="GuidanceLimits"):
         gd.set_limits({"thrust_max_N": 1.0})
+
+
+# --------------------------------------------------------------------------- the slew check
+def test_the_plan_leaves_time_to_slew_onto_its_first_thrust_direction():
+    """A late divert (about 100 m up, the new site 5 m away, the vehicle tilted the other way): the planner
+    must not pick a path whose first thrust direction the attitude control cannot reach in time. Checked
+    against an explicit loop over the candidates: the rest-to-rest slew time under the RCS's angular
+    acceleration, 2 sqrt(angle / accel), within plan_slew_time_frac of the time to go."""
+    vehicle = VehicleParams()
+    limits = Controller(vehicle=vehicle).guidance_limits()
+    accel = limits.slew_accel_max_radps2
+    assert accel == pytest.approx(vehicle.rcs_torque_max_Nm / max(vehicle.dry_inertia_B_kgm2[:2]))
+    gd = make_guidance({"law": "zem_zev"}, limits)
+    cfg = gd.cfg
+    r0, v0, mass = np.array([3.9, 3.7, 95.4]), np.array([1.4, -1.0, -12.3]), 1800.0
+    r_f, v_f = gd.gate_L(LandingTarget())
+    q = Rotation.from_rotvec(np.deg2rad(3.3) * np.array([0.6, -0.8, 0.0])).as_quat(scalar_first=True)
+    z_B = Rotation.from_quat(q, scalar_first=True).apply([0.0, 0.0, 1.0])
+
+    free, _ = gd.plan_t_go(r0, v0, mass, r_f, v_f)  # no attitude given: no slew check
+    t_go, viol = gd.plan_t_go(r0, v0, mass, r_f, v_f, z_B)
+    assert viol <= 0.0
+
+    grid = np.arange(cfg.t_go_min_s, cfg.t_go_max_s + 0.25, 0.5)
+    viol4, delta_v = gd.path_violation(r0, v0, mass, r_f, v_f, grid, with_margins=True)
+    slew_ok = []
+    for T in grid:
+        c0, _, _ = zem_zev_coeffs(r0, v0, r_f, v_f, T)
+        f0 = c0 - G_L
+        angle = np.arccos(np.clip(f0 @ z_B / np.linalg.norm(f0), -1.0, 1.0))
+        slew_ok.append(2.0 * np.sqrt(angle / accel) <= cfg.plan_slew_time_frac * T)
+    slew_ok = np.array(slew_ok)
+    other_ok = np.all(viol4[:, :3] <= 0.0, axis=1)
+    expected = grid[np.argmin(np.where(other_ok & slew_ok, delta_v, np.inf))]
+    assert t_go == pytest.approx(expected)
+    # The check binds here: the least-delta-v path of the other limits starts with a slew it has no time for.
+    assert not slew_ok[np.flatnonzero(grid == free)[0]] and free < t_go
+    # Upright and already pointing along the free plan's first direction: that plan is kept.
+    c0, _, _ = zem_zev_coeffs(r0, v0, r_f, v_f, free)
+    f0 = c0 - G_L
+    assert gd.plan_t_go(r0, v0, mass, r_f, v_f, f0 / np.linalg.norm(f0))[0] == pytest.approx(free)
+    # The hard limits (the re-plan trigger) carry no slew term.
+    hard, _ = gd.path_violation(r0, v0, mass, r_f, v_f, grid, with_margins=False, z_B_L=z_B)
+    assert np.all(hard[:, 3] == -1.0)
+
+
+def test_the_slew_check_uses_the_attitude_of_the_navigation_state():
+    # The law reads the thrust axis from nav.q_LB at a plan: pointing along the free plan's first thrust
+    # direction it flies that plan; tilted 20 degrees the other way it plans a longer approach.
+    limits = Controller(vehicle=VehicleParams()).guidance_limits()
+    r0, v0, mass = np.array([3.9, 3.7, 95.4]), np.array([1.4, -1.0, -12.3]), 1800.0
+    probe = make_guidance({"law": "zem_zev"}, limits)
+    r_f, v_f = probe.gate_L(LandingTarget())
+    free, _ = probe.plan_t_go(r0, v0, mass, r_f, v_f)
+    c0, _, _ = zem_zev_coeffs(r0, v0, r_f, v_f, free)
+    u = (c0 - G_L) / np.linalg.norm(c0 - G_L)
+    axis = np.cross([0.0, 0.0, 1.0], u)
+    onto = Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.arcsin(np.linalg.norm(axis)))
+    away = Rotation.from_rotvec(-axis / np.linalg.norm(axis) * np.deg2rad(20.0))
+    np.testing.assert_allclose(onto.apply([0.0, 0.0, 1.0]), u, atol=1e-12)
+    t_go = {}
+    for name, rot in (("onto", onto), ("away", away)):
+        gd = make_guidance({"law": "zem_zev"}, limits)
+        t_go[name] = gd.update(nav_at(0.0, r0, v0, mass, rot.as_quat(scalar_first=True)), LandingTarget()).t_go_s
+    assert t_go["onto"] == pytest.approx(free) and t_go["away"] > free + 1.0
+    with pytest.raises(ValueError, match="slew_accel_max_radps2"):
+        GuidanceLimits(slew_accel_max_radps2=0.0)

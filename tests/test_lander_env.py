@@ -8,7 +8,7 @@ import pytest
 gym = pytest.importorskip("gymnasium")
 
 from bench.studies.lander_env import ENV_ID, PHASES, LanderEnv  # noqa: E402
-from gnc.guidance import GuidanceConfig, GuidanceLimits, ZemZevGuidance, LandingTarget  # noqa: E402
+from gnc.guidance import GuidanceConfig, ZemZevGuidance, LandingTarget  # noqa: E402
 from gnc.navstate import NavState  # noqa: E402
 from tests.conftest import SMALL_SET  # noqa: E402
 
@@ -34,9 +34,16 @@ def test_a_zem_zev_driven_episode_lands_as_the_built_in_loop_does():
     # in the loop alike). The env must fly exactly the loop's landing.
     from bench.sim.run import run
 
+    from bench.sim.flight_build import onboard_knowledge
+    from gnc.control import make_controller
+
     env = LanderEnv(overrides=SMALL_SET)
-    law = ZemZevGuidance(GuidanceConfig(), GuidanceLimits())
     obs, info = env.reset(seed=4)
+    # The agent plans within the limits the built-in law gets: the nominal vehicle's thrust range, tilt
+    # schedule and slew acceleration (the planner's slew check reads the attitude in the observation).
+    knowledge = onboard_knowledge(env.scenario)
+    law = ZemZevGuidance(GuidanceConfig(), make_controller(env.scenario.control, knowledge.vehicle).guidance_limits())
+    assert law.limits.slew_accel_max_radps2 is not None
     total, steps, phases = 0.0, 0, set()
     while True:
         phases.add(int(obs["phase"]))

@@ -59,7 +59,7 @@ from gnc.guidance import LUNAR_GRAVITY_MPS2, GuidanceCommand, GuidanceLimits, Ti
 from gnc.messages import N_LEGS, ContactMessage
 from gnc.navstate import NavState
 from gnc.numeric import clip_float, cross3, max_abs3, norm
-from gnc.quat import quat_error, quat_from_elements
+from gnc.quat import body_z_L, quat_error, quat_from_elements, unit_quaternion
 
 # Propellant modelled as a uniform sphere: I = SPHERE_INERTIA_FACTOR * m * r^2.
 SPHERE_INERTIA_FACTOR = 0.4
@@ -409,10 +409,9 @@ class Controller:
         altitude = float(np.asarray(nav.r_BL_L, float)[2])
         a_cmd = np.asarray(cmd.a_cmd_L, float)
         z_B_L = None
-        q = _unit_quaternion(nav.q_LB)  # normalised once: the thrust projection and the attitude loop use it
+        q = unit_quaternion(nav.q_LB)  # normalised once: the thrust projection and the attitude loop use it
         if self.cfg.thrust_projection == "body_axis" and q is not None:
-            w, x, y, z = q.tolist()
-            z_B_L = np.array([2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)])
+            z_B_L = body_z_L(q)
         if cmd.valid and np.all(np.isfinite(a_cmd)) and np.isfinite(mass) and np.isfinite(altitude):
             self._thrust_hold_N, z_cmd_L = thrust_vector_command(
                 a_cmd, self.g_L, mass, altitude, self.vehicle, self.cfg.tilt, z_B_L
@@ -431,21 +430,6 @@ class Controller:
         torque = np.array([clip_float(t, -torque_max, torque_max) for t in torque.tolist()])
         thrust = clip_float(float(self._thrust_hold_N), self.vehicle.thrust_min_N, self.vehicle.thrust_max_N)
         return ActuatorCommand(thrust, torque, True, t_ns, self._q_cmd_hold.copy())
-
-
-def _unit_quaternion(q: np.ndarray) -> np.ndarray | None:
-    """The normalised quaternion, (4,), or None when it is non-finite, zero or not a 4-vector."""
-    q = np.asarray(q, float)
-    if q.shape != (4,):
-        return None
-    w, x, y, z = q.tolist()
-    if not (math.isfinite(w) and math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
-        return None
-    scale = max(abs(w), abs(x), abs(y), abs(z))
-    if scale == 0.0:
-        return None
-    q = q / scale
-    return q / norm(q)
 
 
 def make_controller(

@@ -113,6 +113,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 from gnc.config import validate_options, validated_config
 from gnc.navstate import NavState
 from gnc.numeric import clip_float, norm
+from gnc.quat import body_z_L, unit_quaternion
 
 NS_PER_S = 1_000_000_000
 LUNAR_GRAVITY_MPS2 = 1.62
@@ -481,15 +482,9 @@ def cap_acceleration_L(
 
 
 def _thrust_axis_L(q_LB: Any) -> np.ndarray | None:
-    """Body +z (the thrust axis) in L from a (w, x, y, z) attitude, (3,) unit; None when not finite or zero."""
-    q = np.asarray(q_LB, float)
-    if q.shape != (4,) or not np.all(np.isfinite(q)):
-        return None
-    n2 = float(q @ q)
-    if not n2 > 0.0:
-        return None
-    w, x, y, z = (q / math.sqrt(n2)).tolist()
-    return np.array([2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)])
+    """Body +z (the thrust axis) in L from a (w, x, y, z) attitude, (3,) unit; None when it is not a usable quaternion."""
+    q = unit_quaternion(q_LB)
+    return None if q is None else body_z_L(q)
 
 
 # --------------------------------------------------------------------------- the interface
@@ -691,10 +686,8 @@ class GuidanceLaw(ABC):
             self.t_final_ns = None  # re-plan for the new target
 
         if self.phase == PHASE_APPROACH:
-            planning = self.t_final_ns is None or t_ns - self._t_plan_ns >= REPLAN_MIN_INTERVAL_NS
-            z_B_L = _thrust_axis_L(nav.q_LB) if planning else None  # the thrust axis, for the slew check
             if self.t_final_ns is None:
-                self._plan(t_ns, r, v, m, r_f, v_f, z_B_L)
+                self._plan(t_ns, r, v, m, r_f, v_f, _thrust_axis_L(nav.q_LB))
             t_go = (self.t_final_ns - t_ns) / NS_PER_S
             if t_go <= 0.0 or r[2] <= r_f[2] - GATE_FLOOR_M:
                 self.phase = PHASE_TERMINAL
@@ -702,7 +695,7 @@ class GuidanceLaw(ABC):
                 a = self._open_loop_accel_L(t_ns, r, v, r_f, v_f, t_go)
             else:
                 if t_go > REPLAN_MIN_T_GO_S and t_ns - self._t_plan_ns >= REPLAN_MIN_INTERVAL_NS:
-                    t_go = self._maybe_replan(t_ns, r, v, m, r_f, v_f, t_go, z_B_L)
+                    t_go = self._maybe_replan(t_ns, r, v, m, r_f, v_f, t_go, _thrust_axis_L(nav.q_LB))
                 a = self.accel_L(r, v, r_f, v_f, t_go)
         if self.phase == PHASE_TERMINAL:
             a = self.terminal_accel_L(r, v, target_L)

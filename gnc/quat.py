@@ -14,12 +14,35 @@ import math
 
 import numpy as np
 
+from gnc.numeric import norm
+
 
 def quat_normalize(q: np.ndarray) -> np.ndarray:
     """``q / |q|``, (4,)."""
     w, x, y, z = (float(c) for c in q)
     n = math.sqrt(w * w + x * x + y * y + z * z)
     return np.array([w / n, x / n, y / n, z / n])
+
+
+def unit_quaternion(q: np.ndarray) -> np.ndarray | None:
+    """The normalised quaternion, (4,), or None when it is non-finite, zero or not a 4-vector."""
+    q = np.asarray(q, float)
+    if q.shape != (4,):
+        return None
+    w, x, y, z = q.tolist()
+    if not (math.isfinite(w) and math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        return None
+    scale = max(abs(w), abs(x), abs(y), abs(z))
+    if scale == 0.0:
+        return None
+    q = q / scale
+    return q / norm(q)
+
+
+def body_z_L(q: np.ndarray) -> np.ndarray:
+    """Body +z in L of a unit ``q_LB``, (3,): ``Rotation.from_quat(q, scalar_first=True).apply([0, 0, 1])``."""
+    w, x, y, z = q.tolist()
+    return np.array([2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)])
 
 
 def quat_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from gnc.quat import quat_conjugate, quat_error, quat_from_matrix, quat_multiply, quat_normalize
+from gnc.quat import (body_z_L, quat_conjugate, quat_error, quat_from_matrix, quat_multiply, quat_normalize,
+                      unit_quaternion)
 
 N = 2000
 
@@ -25,6 +26,14 @@ def test_multiply_matches_scipy_composition(rng):
         scalar_first=True)
     got = np.array([quat_multiply(a, b) for a, b in zip(p, q)])
     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-14)
+
+
+def test_body_z_of_a_normalised_quaternion_matches_scipy(rng):
+    q = rng.normal(size=(N, 4)) * rng.choice([1e-150, 1.0, 1e150], size=(N, 1))  # not unit, some extreme scales
+    expected = Rotation.from_quat(q, scalar_first=True).apply([0.0, 0.0, 1.0])
+    np.testing.assert_allclose(np.array([body_z_L(unit_quaternion(a)) for a in q]), expected, rtol=0, atol=1e-14)
+    for bad in (np.zeros(4), np.array([np.nan, 0.0, 0.0, 1.0]), np.array([np.inf, 0.0, 0.0, 1.0]), np.ones(3)):
+        assert unit_quaternion(bad) is None
 
 
 def test_conjugate_matches_scipy_inverse(rng):

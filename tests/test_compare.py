@@ -222,6 +222,40 @@ def test_identical_inputs_give_zero_differences_and_exit_0(pair, tmp_path, capsy
     assert _stdout_lines(capsys)[-1] == "all 2 gates passed"
 
 
+LLVMPIPE = "llvmpipe (LLVM 15.0.6, 256 bits)"
+H100 = "NVIDIA H100 80GB HBM3/PCIe/SSE2"
+
+
+def test_a_renderer_or_mujoco_version_that_differs_between_the_sides_is_noted(synth, tmp_path, capsys):
+    # The rows as a campaign writes them (summary.json's platform, flattened); the CPU is no note's business.
+    def platform(rows, renderer, mujoco, cpu):
+        return [{**r, "platform_gl_renderer": renderer, "platform_mujoco": mujoco, "platform_cpu": cpu} for r in rows]
+
+    def notes(base_rows, cand_rows, name):
+        b = write_campaign(tmp_path / f"{name}-base", base_rows)
+        c = write_campaign(tmp_path / f"{name}-cand", cand_rows)
+        return cmp.compare_campaigns(b, c)["platform_notes"], b, c
+
+    same, _, _ = notes(platform(synth["base"], LLVMPIPE, "4.0.0", "Xeon"),
+                       platform(synth["cand"], LLVMPIPE, "4.0.0", "EPYC"), "same")
+    assert same == []
+    no_camera, _, _ = notes(platform(synth["base"], None, "4.0.0", "Xeon"),
+                            platform(synth["cand"], H100, "4.0.0", "Xeon"), "camera-less")
+    assert no_camera == []  # one side has no renderer: nothing to compare
+    both, b, c = notes(platform(synth["base"], LLVMPIPE, "3.3.0", "Xeon"),
+                       platform(synth["cand"], H100, "4.0.0", "Xeon"), "both")
+    assert len(both) == 2
+    assert both[0].startswith(f"BASE rendered its camera frames with {LLVMPIPE}, CAND with {H100}: ")
+    assert both[1].startswith("BASE ran MuJoCo 3.3.0, CAND MuJoCo 4.0.0: ")
+    # The notes reach the terminal (under the header line) and the HTML report; the comparison still runs.
+    out = tmp_path / "cmp"
+    assert main(["compare", str(b), str(c), "--out", str(out)]) == 0
+    lines = _stdout_lines(capsys)
+    assert lines[1] == f"  note: {both[0]}" and lines[2] == f"  note: {both[1]}"
+    html = (out / "report.html").read_text()
+    assert html.count('class="note platform-note"') == 2 and H100 in html
+
+
 def _unpair(kind: str, base: Path, cand: Path, synth) -> None:
     if kind == "seed":
         shutil.rmtree(cand)

@@ -35,7 +35,12 @@ Output: :func:`compare_campaigns` returns one JSON-ready dict (schema
       interval of the mean, seeded so that the output is deterministic), the
       Wilcoxon signed-rank p-value (1 and ``identical`` when every difference
       is 0), and the Holm-corrected p-value over all metrics with a p-value;
-    * ``gates`` and ``passed``: each gate's numbers and outcome.
+    * ``gates`` and ``passed``: each gate's numbers and outcome;
+    * ``platform_notes``: one line for each platform entry of the rows that
+      differs between the sides and moves results (:data:`PLATFORM_NOTES`:
+      the GL renderer, which draws other pixels, so every vision figure moves
+      with it; the MuJoCo version). Reported, never refused: a note says the
+      comparison mixes a platform change into the change under test.
 
 :func:`write_compare` writes it as ``DIR/compare.json`` atomically;
 :func:`format_compare` is the terminal table; the HTML report is drawn from the
@@ -593,6 +598,34 @@ def _success(base_ok: np.ndarray, cand_ok: np.ndarray) -> dict[str, Any]:
 
 
 # ================================================================== compare
+# Row entries (``summary.json``'s ``platform``, flattened) that change results when they differ between the
+# sides: what each side did, and what that moves. The CPU is not among them: the loop is deterministic on
+# any processor.
+PLATFORM_NOTES = {
+    "platform_gl_renderer": ("BASE rendered its camera frames with {b}, CAND with {c}",
+                             "a renderer draws other pixels, so the frames and every vision-dependent figure move with "
+                             "the renderer as well as with the change; run both on the same renderer (one machine, or "
+                             "MUJOCO_GL and the GL driver alike)"),
+    "platform_mujoco": ("BASE ran MuJoCo {b}, CAND MuJoCo {c}",
+                        "the physics may differ between MuJoCo versions as well as by the change; run both with the "
+                        "same version"),
+}
+
+
+def platform_notes(base_rows: Sequence[Mapping[str, Any]], cand_rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """One line per :data:`PLATFORM_NOTES` entry whose values differ between BASE and CAND.
+
+    Only entries present on both sides count (a campaign without a camera has no renderer).
+    """
+    notes = []
+    for key, (what, why) in PLATFORM_NOTES.items():
+        b = sorted({str(r[key]) for r in base_rows if r.get(key) is not None})
+        c = sorted({str(r[key]) for r in cand_rows if r.get(key) is not None})
+        if b and c and b != c:
+            notes.append(f"{what.format(b=' / '.join(b), c=' / '.join(c))}: {why}")
+    return notes
+
+
 def compare_inputs(base: PairedInput, cand: PairedInput, gates: Sequence[str | Gate] = (),
                    replay_root: str | Path = "replay") -> dict[str, Any]:
     """Compare two paired inputs of any kind; see the module docstring for the result.
@@ -645,6 +678,7 @@ def compare_inputs(base: PairedInput, cand: PairedInput, gates: Sequence[str | G
                      "percentile": "p95: numpy linear interpolation over the paired cases"},
         "success": success, "flipped": flipped, "metrics": metrics,
         "gates": gate_results, "passed": all(g["passed"] for g in gate_results),
+        "platform_notes": platform_notes(base.rows, cand.rows),
         "values": paired_values(base.rows, cand.rows, names),
     }
     if replay:
@@ -706,6 +740,7 @@ def format_compare(doc: Mapping[str, Any], written: str | Path | None = None) ->
     replay = doc.get("kind") == "replay"
     unit = "paired sequences (open-loop replays)" if replay else "paired cases"
     lines = [f"compare: BASE {doc['base']['path']} vs CAND {doc['cand']['path']}: {doc['n_cases']} {unit}"]
+    lines += [f"  note: {n}" for n in doc.get("platform_notes") or ()]
     if s is None:
         lines.append("  success rate: not applicable to open-loop replays")
     for name in (("base", "cand") if s is not None else ()):

@@ -11,7 +11,8 @@ atomically by :func:`write_compare_report`) that opens in a browser with no
 network at all: plotly.js is embedded inline (no ``<script src>``, no CDN,
 no web font). It holds:
 
-* the verdict line (gates passed or failed) and the inputs;
+* the verdict line (gates passed or failed), the inputs and the platform notes
+  (``platform_notes``: a renderer or MuJoCo version that differs between the sides);
 * campaigns: each side's success rate with its Wilson 95 % interval, the
   exact McNemar test, and the plain statement of whether the campaign is large
   enough to resolve the difference (e.g. 95/100 landed: Wilson 88.8-97.8 %);

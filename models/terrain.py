@@ -182,8 +182,16 @@ class TerrainConfig(BaseModel):
     )
     bake_cast_shadows: Literal["none", "residual", "full"] = Field(
         "residual",
-        description="cast shadows baked into the texture: none; from the fine detail only; "
+        description="cast shadows baked into the texture: none; from the fine detail only (with "
+        "relief_shading='texture', the whole relief: nothing is left to the renderer); "
         "from the full fine DEM (use when the renderer draws no shadows itself)",
+    )
+    relief_shading: Literal["renderer", "texture"] = Field(
+        "renderer",
+        description="who shades the relief the geometry carries: 'renderer', the sun light on the heightfield "
+        "(MuJoCo shades it flat per triangle; the texture carries the finer relief's shading); 'texture', the "
+        "whole fine DEM's shading baked into the texture and the terrain drawn unlit: no facets, so "
+        "camera.multisampling=0 keeps the frames trackable at half the render time",
     )
 
     dem_path: pathlib.Path | None = Field(
@@ -300,6 +308,9 @@ class Terrain:
             shading for the generation sun is baked in.
         craters: (k, 3) float64 [x_m, y_m, diameter_m] of the stamped craters.
         boulders: (j, 3) float64 [x_m, y_m, diameter_m] of the stamped boulders.
+        patch: The landing-site patch, or None.
+        relief_shaded: True when ``albedo`` (and the patch's) carries the shading of the whole relief
+            (``TerrainConfig.relief_shading = "texture"``): the world then draws the terrain unlit.
 
     The arrays are made read-only.
     """
@@ -310,6 +321,7 @@ class Terrain:
     craters: np.ndarray
     boulders: np.ndarray
     patch: "TerrainPatch | None" = None
+    relief_shaded: bool = False
 
     def __post_init__(self) -> None:
         h = self.height_m
@@ -1059,10 +1071,14 @@ def generate_terrain(
     datum_m = height[(n - 1) // 2, (n - 1) // 2]
     height -= datum_m
     fine -= datum_m
-    # What the geometry cannot carry: the fine DEM minus a smooth low-pass at the
-    # geometry scale (smooth, so the texture shows no trace of the vertex grid).
-    residual = _gaussian_lowpass(fine, RESIDUAL_LOWPASS_SIGMA_SPACINGS * spacing_m / texel_m)
-    np.subtract(fine, residual, out=residual)
+    # What the renderer does not shade: with relief_shading="renderer" the fine DEM minus a smooth
+    # low-pass at the geometry scale (smooth, so the texture shows no trace of the vertex grid);
+    # with "texture" the whole fine DEM (the terrain is drawn unlit).
+    if cfg.relief_shading == "texture":
+        residual = fine.copy()
+    else:
+        residual = _gaussian_lowpass(fine, RESIDUAL_LOWPASS_SIGMA_SPACINGS * spacing_m / texel_m)
+        np.subtract(fine, residual, out=residual)
     # Each (m, m) array is freed as soon as it is spent: at m = 4096 each is
     # 67 MB, and this function sets a campaign worker's peak memory.
     caster = None
@@ -1070,7 +1086,7 @@ def generate_terrain(
         caster = residual if cfg.bake_cast_shadows == "residual" else fine
     del fine
 
-    # Baked shading of the residual.
+    # Baked shading of the residual (the whole relief with relief_shading="texture").
     shade = _relative_shading(residual, texel_m, sun, cfg.photometric_function)
     np.minimum(shade, SHADE_MAX, out=shade)
     del residual
@@ -1088,13 +1104,14 @@ def generate_terrain(
     np.clip(dn, 0.0, UINT8_MAX, out=dn)
     texture = np.rint(dn, out=dn).astype(np.uint8)
     del dn, albedo_rel, shade
+    shaded = cfg.relief_shading == "texture"
     terrain = Terrain(height_m=height.astype(np.float32, copy=False), size_m=float(size_m), albedo=texture,
-                      craters=craters.astype(np.float64), boulders=boulders.astype(np.float64))
+                      craters=craters.astype(np.float64), boulders=boulders.astype(np.float64), relief_shaded=shaded)
     if cfg.patch_size_m <= 0:
         return terrain
     patch = _make_patch(terrain, cfg, sun, rng_patch)
     return Terrain(height_m=terrain.height_m, size_m=terrain.size_m, albedo=terrain.albedo,
-                   craters=terrain.craters, boulders=terrain.boulders, patch=patch)
+                   craters=terrain.craters, boulders=terrain.boulders, patch=patch, relief_shaded=shaded)
 
 
 @dataclass(frozen=True, eq=False)

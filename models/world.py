@@ -117,6 +117,12 @@ def world_mjcf(terrain: Terrain, lander: LanderConfig, camera: CameraConfig, sun
     z_range = max(float(np.ptp(terrain.height_m)), 1e-3)
     sun_dir = sun.direction_L()
     diffuse = min(FLAT_GROUND_EXPOSURE / sun_dir[2], MAX_SUN_DIFFUSE)
+    ambient = AMBIENT_LIGHT
+    # The terrain's material: lit by the sun, or (a texture that carries the whole relief's shading)
+    # unlit, drawn at the brightness the sun gives flat ground (no light at all: nothing else is in view).
+    emission = 0.0
+    if terrain.relief_shaded:
+        emission, diffuse, ambient = FLAT_GROUND_EXPOSURE + AMBIENT_LIGHT, 0.0, 0.0
     shadow = "true" if sun.shadows else "false"
     # Without shadows, no shadow map: MuJoCo would still allocate it in every GL context.
     shadow_px = SHADOW_MAP_PX if sun.shadows else 0
@@ -129,7 +135,7 @@ def world_mjcf(terrain: Terrain, lander: LanderConfig, camera: CameraConfig, sun
         patch_assets = f"""
     <hfield name="patch" nrow="{pt.height_m.shape[0]}" ncol="{pt.height_m.shape[1]}" size="{p_half} {p_half} {p_range} {PATCH_BASE_M}"/>
     <texture name="patch_albedo" type="2d" builtin="flat" width="{p_cols}" height="{p_rows}" rgb1="0.5 0.5 0.5"/>
-    <material name="patch_regolith" texture="patch_albedo" specular="0" shininess="0" reflectance="0" rgba="1 1 1 1"/>"""
+    <material name="patch_regolith" texture="patch_albedo" specular="0" shininess="0" reflectance="0" emission="{emission}" rgba="1 1 1 1"/>"""
         # Visual only (no contacts): coplanar with the terrain, lifted a hair to win the depth test,
         # and listed first so it is drawn first: the terrain's fragments under it then fail the
         # early depth test instead of being shaded and overdrawn (halves the fill cost there).
@@ -144,17 +150,17 @@ def world_mjcf(terrain: Terrain, lander: LanderConfig, camera: CameraConfig, sun
   <visual>
     <global offwidth="{offw}" offheight="{offh}"/>
     <headlight active="0" ambient="0 0 0" diffuse="0 0 0" specular="0 0 0"/>
-    <quality shadowsize="{shadow_px}"/>
+    <quality shadowsize="{shadow_px}" offsamples="{camera.multisampling}"/>
   </visual>
   <asset>
     <hfield name="terrain" nrow="{n_rows}" ncol="{n_cols}" size="{half} {half} {z_range} {HFIELD_BASE_M}"/>
     <texture name="albedo" type="2d" builtin="flat" width="{tex_cols}" height="{tex_rows}" rgb1="0.5 0.5 0.5"/>
-    <material name="regolith" texture="albedo" specular="0" shininess="0" reflectance="0" rgba="1 1 1 1"/>{patch_assets}
+    <material name="regolith" texture="albedo" specular="0" shininess="0" reflectance="0" emission="{emission}" rgba="1 1 1 1"/>{patch_assets}
   </asset>
   <worldbody>
     <light name="sun" directional="true" castshadow="{shadow}" pos="0 0 1000"
            dir="{-sun_dir[0]} {-sun_dir[1]} {-sun_dir[2]}"
-           diffuse="{diffuse} {diffuse} {diffuse}" ambient="{AMBIENT_LIGHT} {AMBIENT_LIGHT} {AMBIENT_LIGHT}"
+           diffuse="{diffuse} {diffuse} {diffuse}" ambient="{ambient} {ambient} {ambient}"
            specular="0 0 0"/>
 {patch_geom}
     <geom name="terrain" type="hfield" hfield="terrain" material="regolith" group="{TERRAIN_GEOM_GROUP}"

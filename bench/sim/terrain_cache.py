@@ -167,12 +167,14 @@ def _decode_terrain(header: dict, arrays: dict[str, np.ndarray]) -> Terrain:
         patch = TerrainPatch(height_m=arrays["patch_height_m"], size_m=float(header["patch_size_m"]),
                              albedo=arrays["patch_albedo"])
     return Terrain(height_m=arrays["height_m"], size_m=float(header["size_m"]), albedo=arrays["albedo"],
-                   craters=arrays["craters"], boulders=arrays["boulders"], patch=patch)
+                   craters=arrays["craters"], boulders=arrays["boulders"], patch=patch,
+                   relief_shaded=bool(header.get("relief_shaded", False)))
 
 
 def _encode_terrain(terrain: Terrain) -> tuple[dict[str, np.ndarray], dict]:
     return _arrays(terrain), {"size_m": terrain.size_m,
-                              "patch_size_m": terrain.patch.size_m if terrain.patch is not None else None}
+                              "patch_size_m": terrain.patch.size_m if terrain.patch is not None else None,
+                              "relief_shaded": terrain.relief_shaded}
 
 
 def _load_decoded(path: Path, key: str, decode):

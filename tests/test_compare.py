@@ -222,6 +222,15 @@ def test_identical_inputs_give_zero_differences_and_exit_0(pair, tmp_path, capsy
     assert _stdout_lines(capsys)[-1] == "all 2 gates passed"
 
 
+def test_timings_are_not_metrics_and_do_not_tell_two_runs_of_a_case_apart(synth):
+    # The hazard scans' wall-clock timings (summary hazard_scan.compute_s, flattened) measure the machine.
+    base = [{**r, "hazard_scan_compute_s_dem_s": 0.10 + 0.001 * i} for i, r in enumerate(synth["base"])]
+    cand = [{**r, "hazard_scan_compute_s_dem_s": 0.20 + 0.001 * i} for i, r in enumerate(synth["base"])]
+    assert "hazard_scan_compute_s_dem_s" not in cmp.metric_names(base, cand)
+    assert [mc.landing_values(r) for r in base] == [mc.landing_values(r) for r in cand]
+    assert mc.is_run_dependent("case_wall_time_s") and not mc.is_run_dependent("touchdown_miss_distance_m")
+
+
 LLVMPIPE = "llvmpipe (LLVM 15.0.6, 256 bits)"
 H100 = "NVIDIA H100 80GB HBM3/PCIe/SSE2"
 

@@ -73,6 +73,13 @@ CASES_PER_WORKER = 20
 # two runs of the same case, so comparisons (workers, backends, replay) skip them.
 RUN_DEPENDENT_KEYS = ("wall_time_s", "setup_time_s", "realtime_factor", "case_wall_time_s", "case_peak_rss_mb",
                       "case_worker_pid")
+# ... and every entry of a flattened ``compute_s`` block (the hazard scans' wall-clock timings).
+RUN_DEPENDENT_INFIX = "_compute_s_"
+
+
+def is_run_dependent(key: str) -> bool:
+    """True for a row entry that measures the machine, not the landing (:data:`RUN_DEPENDENT_KEYS`, timings)."""
+    return key in RUN_DEPENDENT_KEYS or RUN_DEPENDENT_INFIX in key
 
 
 def case_scenario(base: Scenario, campaign_seed: int, n_cases: int, index: int) -> tuple[Scenario, dict[str, Any]]:
@@ -611,7 +618,7 @@ def landing_values(row: dict[str, Any]) -> dict[str, Any]:
     Two runs of the same case, whatever the backend, the number of workers or
     a replay, must agree on everything this returns.
     """
-    return {k: v for k, v in row.items() if k not in RUN_DEPENDENT_KEYS}
+    return {k: v for k, v in row.items() if not is_run_dependent(k)}
 
 
 def read_rows(out: Path, runs: int) -> list[dict[str, Any]]:

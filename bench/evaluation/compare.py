@@ -28,7 +28,7 @@ Output: :func:`compare_campaigns` returns one JSON-ready dict (schema
       ``landbench mc --replay`` command of both sides;
     * ``metrics``: for every numeric per-case metric present on both sides
       (not the identifiers ``case``/``seed``, the dispersions ``disp_*`` or
-      the machine-dependent ``mc.RUN_DEPENDENT_KEYS``), over the cases with a
+      the machine-dependent entries, ``mc.is_run_dependent``), over the cases with a
       finite value on both sides (``n_used``; the others are dropped,
       ``n_dropped``): each side's mean, median, p95 and max, the paired
       difference CAND - BASE (mean, median, a paired BCa bootstrap 95 %
@@ -552,7 +552,7 @@ def metric_names(base_rows: Sequence[Mapping[str, Any]], cand_rows: Sequence[Map
         keys: list[str] = []
         for r in rows:
             keys += [k for k in r if k not in keys]
-        return [k for k in keys if k not in IDENTIFIER_KEYS and k not in mc.RUN_DEPENDENT_KEYS
+        return [k for k in keys if k not in IDENTIFIER_KEYS and not mc.is_run_dependent(k)
                 and not k.startswith(DISPERSION_PREFIX) and np.isfinite(column(rows, k)).any()]
 
     cand = set(numeric(cand_rows))

@@ -695,7 +695,7 @@ class GuidanceLaw(ABC):
                 a = self._open_loop_accel_L(t_ns, r, v, r_f, v_f, t_go)
             else:
                 if t_go > REPLAN_MIN_T_GO_S and t_ns - self._t_plan_ns >= REPLAN_MIN_INTERVAL_NS:
-                    t_go = self._maybe_replan(t_ns, r, v, m, r_f, v_f, t_go, _thrust_axis_L(nav.q_LB))
+                    t_go = self._maybe_replan(t_ns, r, v, m, r_f, v_f, t_go, nav.q_LB)
                 a = self.accel_L(r, v, r_f, v_f, t_go)
         if self.phase == PHASE_TERMINAL:
             a = self.terminal_accel_L(r, v, target_L)
@@ -727,12 +727,15 @@ class GuidanceLaw(ABC):
 
     def _maybe_replan(
         self, t_ns: int, r: np.ndarray, v: np.ndarray, m: float, r_f: np.ndarray, v_f: np.ndarray, t_go: float,
-        z_B_L: np.ndarray | None = None,
+        q_LB: Any = None,
     ) -> float:
-        """Re-plan when the remaining path breaks the hard limits and a better one exists; returns t_go [s]."""
+        """Re-plan when the remaining path breaks the hard limits and a better one exists; returns t_go [s].
+
+        ``q_LB``: the attitude, whose thrust axis the slew check reads (only when a re-plan is weighed)."""
         hard, _ = self.path_violation(r, v, m, r_f, v_f, np.array([t_go]), with_margins=False)
         if hard.max() <= 0.0:
             return t_go
+        z_B_L = None if q_LB is None else _thrust_axis_L(q_LB)
         current, _ = self.path_violation(r, v, m, r_f, v_f, np.array([t_go]), with_margins=True, z_B_L=z_B_L)
         t_new, viol_new = self.plan_t_go(r, v, m, r_f, v_f, z_B_L)
         self._t_plan_ns = t_ns  # rate-limits the attempts, adopted or not

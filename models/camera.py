@@ -38,16 +38,25 @@ class CameraConfig(BaseModel):
     fovy_deg: float = Field(60.0, gt=1.0, lt=170.0, description="vertical field of view [deg]")
     period_ns: int = Field(100_000_000, gt=0, description="frame period [ns] (default 10 Hz)")
     enabled: bool = Field(True, description="render frames in the loop")
-    multisampling: Literal[0, 4] = Field(
-        4, description="samples per pixel of the off-screen render (MuJoCo's offsamples): 4 antialiases the "
-        "edges of the heightfield's flat-shaded triangles; 0 renders one sample per pixel in about half the "
-        "time, for a terrain with relief_shading='texture', which has no such edges")
+    multisampling: Literal["auto", 0, 4] = Field(
+        "auto", description="samples per pixel of the off-screen render (MuJoCo's offsamples): 4 antialiases the "
+        "edges of the heightfield's flat-shaded triangles (terrain.relief_shading='renderer'); 0 renders one "
+        "sample per pixel in about half the time, for a terrain shaded in its texture (relief_shading='texture', "
+        "the default), which has no such edges; 'auto' (default) picks 4 or 0 by the terrain's relief_shading")
     read_noise_dn: float = Field(1.0, ge=0, description="read noise, 1-sigma [DN]")
     gain_e_per_dn: float = Field(
         40.0, gt=0, description="conversion gain [e-/DN]; shot noise is Poisson in electrons"
     )
     shot_noise: bool = Field(True, description="apply Poisson shot noise")
     near_m: float = Field(0.5, gt=0, description="near clipping distance [m]")
+
+
+def offscreen_samples(cfg: CameraConfig, relief_shaded: bool) -> int:
+    """MuJoCo's ``offsamples`` for this camera over a terrain: ``cfg.multisampling``, or when it is "auto",
+    0 over a terrain shaded in its texture (``relief_shaded``) and 4 over one the renderer shades."""
+    if cfg.multisampling == "auto":
+        return 0 if relief_shaded else 4
+    return int(cfg.multisampling)
 
 
 def intrinsics(cfg: CameraConfig) -> np.ndarray:

@@ -187,11 +187,11 @@ class TerrainConfig(BaseModel):
         "from the full fine DEM (use when the renderer draws no shadows itself)",
     )
     relief_shading: Literal["renderer", "texture"] = Field(
-        "renderer",
+        "texture",
         description="who shades the relief the geometry carries: 'renderer', the sun light on the heightfield "
         "(MuJoCo shades it flat per triangle; the texture carries the finer relief's shading); 'texture', the "
-        "whole fine DEM's shading baked into the texture and the terrain drawn unlit: no facets, so "
-        "camera.multisampling=0 keeps the frames trackable at half the render time",
+        "whole fine DEM's shading baked into the texture and the terrain drawn unlit (the default): no facets, so "
+        "one sample per pixel (camera.multisampling='auto' or 0) keeps the frames trackable at half the render time",
     )
 
     dem_path: pathlib.Path | None = Field(

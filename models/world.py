@@ -31,7 +31,7 @@ ensure_gl_backend()
 import mujoco  # noqa: E402  (the GL backend must be chosen first)
 
 from models.actuators import PropulsionModel, PropulsionOutput  # noqa: E402
-from models.camera import R_MJCAM_C, CameraConfig, intrinsics  # noqa: E402
+from models.camera import R_MJCAM_C, CameraConfig, intrinsics, offscreen_samples  # noqa: E402
 from models.render_context import CameraRenderer, arrays_digest, visual_digest  # noqa: E402
 from models.lander import (  # noqa: E402
     CONTACT_SOLREF,
@@ -150,7 +150,7 @@ def world_mjcf(terrain: Terrain, lander: LanderConfig, camera: CameraConfig, sun
   <visual>
     <global offwidth="{offw}" offheight="{offh}"/>
     <headlight active="0" ambient="0 0 0" diffuse="0 0 0" specular="0 0 0"/>
-    <quality shadowsize="{shadow_px}" offsamples="{camera.multisampling}"/>
+    <quality shadowsize="{shadow_px}" offsamples="{offscreen_samples(camera, terrain.relief_shaded)}"/>
   </visual>
   <asset>
     <hfield name="terrain" nrow="{n_rows}" ncol="{n_cols}" size="{half} {half} {z_range} {HFIELD_BASE_M}"/>

@@ -16,6 +16,7 @@ from bench.sim.world_builder import build_terrain, build_world, generate_scenari
 from tests.conftest import SMALL_SET
 
 TEXTURE = 'terrain.relief_shading="texture"'
+RENDERER = 'terrain.relief_shading="renderer"'
 HIGH_SUN = ["sun.elevation_deg=60.0", "sun.azimuth_deg=90.0"]  # few cast shadows: the shading alone
 
 
@@ -36,8 +37,8 @@ def _lommel_seeliger_of_the_geometry(terrain, el_deg: float, az_deg: float, text
 
 def test_the_texture_carries_the_shading_of_the_relief_the_geometry_carries():
     sets = [*SMALL_SET, *HIGH_SUN, "terrain.patch_size_m=0.0"]
-    lit = generate_scenario_terrain(load_scenario(None, sets))
-    baked = generate_scenario_terrain(load_scenario(None, [*sets, TEXTURE]))
+    lit = generate_scenario_terrain(load_scenario(None, [*sets, RENDERER]))
+    baked = generate_scenario_terrain(load_scenario(None, sets))  # the default shading
     assert not lit.relief_shaded and baked.relief_shaded
     np.testing.assert_array_equal(lit.height_m, baked.height_m)  # the same ground, only its texture differs
     # The same albedo and fine shading in both: their ratio is the coarse relief's shading.
@@ -100,3 +101,25 @@ def test_the_terrain_cache_keeps_the_mode(tmp_path):
     terrain_cache.store(path, "key", terrain)
     back = terrain_cache.load(path, "key")
     assert back.relief_shaded and back.albedo.tobytes() == terrain.albedo.tobytes()
+
+
+def test_the_default_camera_samples_once_over_a_texture_shaded_terrain_and_four_times_otherwise():
+    """camera.multisampling = "auto" (the default) follows the terrain; a number given is kept."""
+    import dataclasses
+    import re
+
+    from models.world import world_mjcf
+    from tests.conftest import make_terrain
+
+    def offsamples(*sets: str) -> int:
+        sc = load_scenario(None, [*SMALL_SET, "terrain.patch_size_m=0.0", *sets])
+        xml = world_mjcf(dataclasses.replace(make_terrain(np.zeros((9, 9)), 64.0, texture_px=16),
+                                           relief_shaded=sc.terrain.relief_shading == "texture"),
+                         sc.lander, sc.camera, sc.sun, sc.sim.physics_dt_ns / 1e9, sc.sim.gravity_mps2)
+        return int(re.search(r'offsamples="(\d+)"', xml).group(1))
+
+    assert load_scenario(None).terrain.relief_shading == "texture"
+    assert offsamples() == 0
+    assert offsamples(RENDERER) == 4
+    assert offsamples(RENDERER, "camera.multisampling=0") == 0
+    assert offsamples("camera.multisampling=4") == 4

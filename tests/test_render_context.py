@@ -87,6 +87,24 @@ def test_another_terrain_takes_over_the_idle_gl_context_with_its_own_assets():
     assert k0 != k1 and k2 == k0  # rebuilt for B, and for A again
 
 
+def test_a_terrain_cache_miss_frees_the_idle_context_first(monkeypatch, tmp_path):
+    """A reused campaign worker keeps its last case's GL context idle (about 120 MB with llvmpipe);
+    build_terrain frees it when it must generate a terrain, not on a cache hit."""
+    from bench.sim import world_builder
+
+    calls = []
+    monkeypatch.setattr(world_builder, "free_shared_contexts", lambda: calls.append(1) or 0)
+    monkeypatch.setenv("LANDBENCH_CACHE_DIR", str(tmp_path))
+    world_builder.clear_terrain_cache()
+    sc = _scenario("terrain.seed=4242")
+    build_terrain(sc)  # generated
+    assert calls == [1]
+    world_builder.clear_terrain_cache()
+    build_terrain(sc)  # from the disk cache
+    assert calls == [1]
+    world_builder.clear_terrain_cache()
+
+
 def test_the_key_covers_heights_texture_pixels_and_frame_size():
     sc = _scenario()
     with build_world(sc) as world:

@@ -72,6 +72,15 @@ def onboard_map_from_product(product: OrbitalProduct, cfg: OrbitalMapConfig,
                       georef_sigma_m=float(cfg.georef_sigma_m), dem_sigma_m=float(cfg.dem_noise_m))
 
 
+def _free_idle_render_contexts() -> None:
+    """Free an idle render context (a reused worker's last case's, about 120 MB) before a surface is
+    generated (see :func:`bench.sim.world_builder.build_terrain`), if this process has rendered at all."""
+    import sys
+
+    if "models.render_context" in sys.modules:
+        sys.modules["models.render_context"].free_shared_contexts()
+
+
 def build_onboard_map(terrain_cfg: TerrainConfig, terrain_seed: int, map_cfg: OrbitalMapConfig, seed: int,
                       surface: Surface | None = None) -> tuple[OnboardMap, MapTruth]:
     """Make the run's onboard map.
@@ -92,6 +101,8 @@ def build_onboard_map(terrain_cfg: TerrainConfig, terrain_seed: int, map_cfg: Or
     shift, rng_noise = draw_map_shift(map_cfg, seed)
 
     def generate() -> OrbitalProduct:
+        if surface is None:
+            _free_idle_render_contexts()  # the surface's arrays need the memory
         ground = surface if surface is not None else generate_surface(terrain_cfg,
                                                                       component_rng(terrain_seed, "terrain"))
         return render_orbital_map(ground, map_cfg, shift, rng_noise, photometric=terrain_cfg.photometric_function)

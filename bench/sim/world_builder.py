@@ -19,6 +19,7 @@ from bench.scenario.seeding import component_rng, component_seed
 from bench.sim.terrain_cache import cached_terrain
 from models.camera import apply_detector_noise
 from models.faults import FaultInjector, terrain_step_heights
+from models.render_context import free_shared_contexts
 from models.sensors import AltimeterModel, ImuModel, StarTrackerModel
 from models.terrain import Terrain, generate_terrain
 from models.world import World
@@ -90,8 +91,15 @@ def _build_terrain(scenario: Scenario) -> Terrain:
         if terrain is not None:
             _terrain_cache.move_to_end(key)
             return terrain
+    def generate() -> Terrain:
+        # A terrain to generate is one no idle render context holds: free the idle GL context (about
+        # 120 MB with llvmpipe, which a reused campaign worker keeps from its last case) before the
+        # generator's temporary arrays, so that the worker peaks about as a fresh process would.
+        free_shared_contexts()
+        return generate_scenario_terrain(scenario)
+
     terrain = cached_terrain(scenario.terrain, scenario.terrain_seed(), float(scenario.sun.elevation_deg),
-                             float(scenario.sun.azimuth_deg), lambda: generate_scenario_terrain(scenario))
+                             float(scenario.sun.azimuth_deg), generate)
     with _terrain_cache_lock:
         _terrain_cache[key] = terrain
         _terrain_cache.move_to_end(key)

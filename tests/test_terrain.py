@@ -265,8 +265,8 @@ def test_default_texture_has_detail_everywhere_but_in_cast_shadows(default_terra
 
 
 def test_a_renderer_shaded_texture_has_detail_everywhere():
-    """With relief_shading="renderer" the texture carries the fine detail's shading only (the renderer
-    shades the rest): detail everywhere, shadows of the coarse relief included."""
+    """With relief_shading="renderer" the texture carries the fine detail's shading and shadows only (the
+    renderer shades the coarse relief, without cast shadows): detail everywhere."""
     t, cfg = make(seed=7, relief_shading="renderer"), TerrainConfig(relief_shading="renderer")
     assert not t.relief_shaded
     assert 110 <= t.albedo.mean() <= 140

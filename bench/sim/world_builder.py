@@ -91,6 +91,7 @@ def _build_terrain(scenario: Scenario) -> Terrain:
         if terrain is not None:
             _terrain_cache.move_to_end(key)
             return terrain
+
     def generate() -> Terrain:
         # A terrain to generate is one no idle render context holds: free the idle GL context (about
         # 120 MB with llvmpipe, which a reused campaign worker keeps from its last case) before the

@@ -74,9 +74,12 @@ def test_another_terrain_takes_over_the_idle_gl_context_with_its_own_assets():
     """Terrain A, B, A again (a campaign's cases): the one GL context is rebuilt with each
     world's assets, and every frame is what a fresh MuJoCo renderer draws."""
     scenarios = [_scenario(), _scenario("terrain.seed=12345"), _scenario()]
+    # The terrains first: one generated between two worlds (a cold terrain cache) frees the idle
+    # context instead (test_a_terrain_cache_miss_frees_the_idle_context_first).
+    terrains = [build_terrain(sc) for sc in scenarios]
     seen = []
-    for sc in scenarios:
-        with build_world(sc) as w:
+    for sc, terrain in zip(scenarios, terrains):
+        with build_world(sc, terrain) as w:
             for altitude_m, dx_m in ((300.0, 0.0), (40.0, 5.0)):
                 _pose(w, altitude_m, dx_m)
                 np.testing.assert_array_equal(w.render_signal(), _reference_frame(w))

@@ -77,6 +77,7 @@ from gnc.guidance import PHASE_TERMINAL
 from gnc.messages import AltimeterMessage, AttitudeMessage, ContactMessage, ImageMessage, ImuMessage
 from gnc.navstate import NavState
 from models.camera import R_BC
+from models.render_context import free_shared_contexts
 from vision.tracks import Tracks
 from models.lander import LanderConfig, com_position_B, footpad_positions_B, static_tipover_deg, support_margin_m
 from models.terrain import Terrain
@@ -239,14 +240,17 @@ def run(scenario: Scenario, frame_sink: FrameSink | RenderingFrameSink | None = 
         # Made first: its regenerated surface (about 300 MB while it lasts) is freed before the terrain,
         # the world and its GL context exist, so that the two do not add up in the case's peak memory.
         maps = scenario_onboard_map(scenario)
-    terrain = build_terrain(scenario)
-    world = build_world(scenario, terrain)
-    sensors = build_sensors(scenario)
     hazard = None
     if scenario.hazard.scored:  # the fine truth ground (and the lidar that sees it)
         from bench.sim.hazard_truth import HazardTruth
 
+        # Before the terrain and the world, for the same reason: its texel field's FFT (several hundred
+        # MB while it lasts) is done before a GL context exists (a reused worker's idle one freed).
+        free_shared_contexts()
         hazard = HazardTruth(scenario)
+    terrain = build_terrain(scenario)
+    world = build_world(scenario, terrain)
+    sensors = build_sensors(scenario)
     setup_s = time.perf_counter() - t_setup
     try:
         return _fly(scenario, terrain, world, sensors, frame_sink, progress, setup_s, recorder, maps, hazard)

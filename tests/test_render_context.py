@@ -203,3 +203,34 @@ def test_a_world_dropped_without_close_gives_its_context_back():
     del w
     gc.collect()
     assert ctx.users == 0 and ctx in rc._CONTEXTS  # idle, kept for the next world
+
+
+def test_a_scored_run_makes_its_fine_ground_before_the_terrain_with_no_idle_context(monkeypatch):
+    """The hazard truth's texel field (an FFT of several hundred MB while it lasts) is made first, after
+    freeing an idle render context, so that it never adds to a live GL context in a reused worker."""
+    import bench.sim.hazard_truth as hazard_truth
+    import bench.sim.run as run_module
+
+    order = []
+
+    class Stop(Exception):
+        pass
+
+    class FakeHazardTruth:
+        def __init__(self, scenario):
+            order.append("hazard truth")
+
+    def fake_build_terrain(scenario):
+        order.append("terrain")
+        raise Stop
+
+    monkeypatch.setattr(run_module, "free_shared_contexts", lambda: order.append("free idle context") or 0)
+    monkeypatch.setattr(hazard_truth, "HazardTruth", FakeHazardTruth)
+    monkeypatch.setattr(run_module, "build_terrain", fake_build_terrain)
+    with pytest.raises(Stop):
+        run_module.run(_scenario('hazard.scoring="on"'))
+    assert order == ["free idle context", "hazard truth", "terrain"]
+    order.clear()
+    with pytest.raises(Stop):
+        run_module.run(_scenario())  # unscored: nothing of the kind
+    assert order == ["terrain"]

@@ -47,6 +47,7 @@ How it is built:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import pathlib
 from collections.abc import Callable
@@ -1110,8 +1111,7 @@ def generate_terrain(
     if cfg.patch_size_m <= 0:
         return terrain
     patch = _make_patch(terrain, cfg, sun, rng_patch)
-    return Terrain(height_m=terrain.height_m, size_m=terrain.size_m, albedo=terrain.albedo,
-                   craters=terrain.craters, boulders=terrain.boulders, patch=patch, relief_shaded=shaded)
+    return dataclasses.replace(terrain, patch=patch)
 
 
 @dataclass(frozen=True, eq=False)

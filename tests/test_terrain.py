@@ -239,6 +239,19 @@ def local_std(img: np.ndarray, win: int) -> np.ndarray:
 STD_FLOOR_DN = 3.0  # well above uint8 quantisation noise (0.29 DN)
 
 
+def _check_texture(t: Terrain, cfg: TerrainConfig) -> np.ndarray:
+    """Shape, dtype, brightness and clipping of a texture, and detail everywhere in the target area (the
+    central 32 m x 32 m, 128 texels, seen at ~30 m altitude); returns the 8x8 blocks' DN standard deviations."""
+    assert t.albedo.dtype == np.uint8 and t.albedo.shape == (cfg.texture_px, cfg.texture_px)
+    assert t.height_m.dtype == np.float32 and t.height_m.shape == (cfg.geometry_px, cfg.geometry_px)
+    assert 110 <= t.albedo.mean() <= 140
+    assert np.mean(t.albedo == 255) < 0.005 and np.mean(t.albedo == 0) < 0.005
+    c, half = cfg.texture_px // 2, 64
+    s_target = local_std(t.albedo[c - half:c + half, c - half:c + half], 8)
+    assert np.mean(s_target > STD_FLOOR_DN) >= 0.99
+    return local_std(t.albedo, 8)
+
+
 def test_default_texture_has_detail_everywhere_but_in_cast_shadows(default_terrain):
     """The default texture carries the whole relief's shading and cast shadows (relief_shading="texture"):
     it has detail wherever the sun reaches, which is told from the physical surface regenerated without
@@ -247,21 +260,13 @@ def test_default_texture_has_detail_everywhere_but_in_cast_shadows(default_terra
 
     t, cfg = default_terrain, TerrainConfig()
     assert cfg.relief_shading == "texture" and t.relief_shaded
-    assert t.albedo.dtype == np.uint8 and t.albedo.shape == (cfg.texture_px, cfg.texture_px)
-    assert t.height_m.dtype == np.float32 and t.height_m.shape == (cfg.geometry_px, cfg.geometry_px)
-    assert 110 <= t.albedo.mean() <= 140
-    assert np.mean(t.albedo == 255) < 0.005 and np.mean(t.albedo == 0) < 0.005
-    s = local_std(t.albedo, 8)
+    s = _check_texture(t, cfg)
     surface = generate_surface(cfg, np.random.default_rng(7))
     lit = _lit_fraction(surface.height_m, surface.size_m / cfg.texture_px, _sun_vector(SUN_EL_DEG, SUN_AZ_DEG))
     m = lit.shape[0] // 8 * 8
     sunlit = lit[:m, :m].reshape(m // 8, 8, m // 8, 8).min(axis=(1, 3)) > 0.99  # blocks wholly in the sun
     assert sunlit.mean() > 0.8  # the mask is not degenerate: most of the ground is lit at 30 deg
     assert np.mean(s[sunlit] > STD_FLOOR_DN) >= 0.99
-    # Target area: the central 32 m x 32 m (128 texels), seen at ~30 m altitude.
-    c, half = cfg.texture_px // 2, 64
-    s_target = local_std(t.albedo[c - half:c + half, c - half:c + half], 8)
-    assert np.mean(s_target > STD_FLOOR_DN) >= 0.99
 
 
 def test_a_renderer_shaded_texture_has_detail_everywhere():
@@ -269,13 +274,8 @@ def test_a_renderer_shaded_texture_has_detail_everywhere():
     renderer shades the coarse relief, without cast shadows): detail everywhere."""
     t, cfg = make(seed=7, relief_shading="renderer"), TerrainConfig(relief_shading="renderer")
     assert not t.relief_shaded
-    assert 110 <= t.albedo.mean() <= 140
-    assert np.mean(t.albedo == 255) < 0.005 and np.mean(t.albedo == 0) < 0.005
-    s = local_std(t.albedo, 8)
+    s = _check_texture(t, cfg)
     assert np.mean(s > STD_FLOOR_DN) >= 0.99
-    c, half = cfg.texture_px // 2, 64
-    s_target = local_std(t.albedo[c - half:c + half, c - half:c + half], 8)
-    assert np.mean(s_target > STD_FLOOR_DN) >= 0.99
 
 
 def test_texture_has_detail_with_a_high_sun():

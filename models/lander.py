@@ -27,6 +27,11 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 TERRAIN_GEOM_GROUP = 0
 LANDER_GEOM_GROUP = 1
 PATCH_GEOM_GROUP = 2  # the visual landing-site texture patch (coplanar with the terrain)
+# The camera's drawing of a texture-shaded terrain (models.world.terrain_tiles): visual-only mesh tiles,
+# in a group of their own (default renderers and mj_ray never see them); a tile out of the camera's view
+# is moved to the hidden group for that frame.
+TERRAIN_TILE_GEOM_GROUP = 4
+HIDDEN_TILE_GEOM_GROUP = 5
 
 FOOTPAD_NAMES = ("foot_fl", "foot_fr", "foot_rl", "foot_rr")
 

@@ -28,9 +28,11 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import math
 import os
 import threading
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -41,6 +43,7 @@ import mujoco  # noqa: E402  (the GL backend must be chosen first)
 
 # MuJoCo's Python Renderer's defaults, kept so the frames are the same.
 MAX_GEOM = 10000
+CULL_MARGIN = 0.02  # widening of the view pyramid's half-angle tangents when culling geoms (CameraRenderer)
 FONT_SCALE = mujoco.mjtFontScale.mjFONTSCALE_150
 
 # Model arrays mjr_makeContext (and mjr_render's use of the context) depend on.
@@ -214,6 +217,25 @@ def free_shared_contexts() -> int:
     return n
 
 
+@dataclass(frozen=True)
+class CulledGeoms:
+    """Geoms a :class:`CameraRenderer` draws only in frames whose view they may reach.
+
+    Attributes:
+        geom_ids: (K,) the geoms (static: their bounding boxes do not move).
+        corners: (K, 8, 3) the corners of each geom's bounding box in the world frame [m].
+        group: The geom group they are drawn in (the renderer shows it).
+        hidden_group: The group a geom is moved to for a frame it cannot appear in (the renderer hides it).
+        replaces_group: A group the renderer hides because these geoms draw what it holds.
+    """
+
+    geom_ids: np.ndarray
+    corners: np.ndarray
+    group: int
+    hidden_group: int
+    replaces_group: int
+
+
 class CameraRenderer:
     """Renders one model's camera through a shared render context.
 
@@ -228,9 +250,14 @@ class CameraRenderer:
         texture_key: A digest of the model's texture pixels (``tex_data``) from whoever wrote
             them (the world: its terrain's albedo), so that 63 MB need not be hashed for every
             world; None hashes ``tex_data`` itself.
+        culled: Geoms drawn only when their bounding box may be in the camera's view (the
+            terrain's tiles): before each frame, those wholly outside one side of the view
+            pyramid are moved to their hidden group (``model.geom_group``, which nothing but
+            drawing reads for them). The frame is the same as with all of them drawn.
     """
 
-    def __init__(self, model: mujoco.MjModel, width: int, height: int, texture_key: bytes | None = None):
+    def __init__(self, model: mujoco.MjModel, width: int, height: int, texture_key: bytes | None = None,
+                 culled: CulledGeoms | None = None):
         if width > model.vis.global_.offwidth or height > model.vis.global_.offheight:
             raise ValueError(f"a {width}x{height} frame does not fit the model's off-screen buffer "
                              f"({model.vis.global_.offwidth}x{model.vis.global_.offheight})")
@@ -242,12 +269,35 @@ class CameraRenderer:
         self._camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
         self._rect = mujoco.MjrRect(0, 0, width, height)
         self._rgb = np.empty((height, width, 3), np.uint8)
+        self._culled = culled
+        if culled is not None:
+            self._option.geomgroup[culled.replaces_group] = 0
+            self._option.geomgroup[culled.group] = 1
+            self._option.geomgroup[culled.hidden_group] = 0
+            self._aspect = width / height  # MuJoCo's view: fovy vertical, the frame's aspect horizontal
+
+    def _cull(self, data: mujoco.MjData, camera_id: int) -> None:
+        """Move the culled geoms wholly outside the camera's view pyramid to their hidden group."""
+        c = self._culled
+        # The view pyramid's half-angle tangents, widened by CULL_MARGIN: a geom is left out only when clearly outside.
+        tan_y = math.tan(math.radians(float(self._model.cam_fovy[camera_id])) / 2.0) * (1.0 + CULL_MARGIN)
+        tan_x = tan_y * self._aspect
+        # Box corners in the camera frame (x right, y up, looking along -z); depth along the view.
+        v = (c.corners - data.cam_xpos[camera_id]) @ data.cam_xmat[camera_id].reshape(3, 3)
+        x, y, depth = v[..., 0], v[..., 1], -v[..., 2]
+        # The pyramid is the intersection of four half-spaces through the camera's centre; a box whose
+        # corners all lie outside one of them lies outside it (behind the camera included).
+        out = ((x > tan_x * depth).all(axis=1) | (x < -tan_x * depth).all(axis=1)
+               | (y > tan_y * depth).all(axis=1) | (y < -tan_y * depth).all(axis=1))
+        self._model.geom_group[c.geom_ids] = np.where(out, c.hidden_group, c.group)
 
     def render_green(self, data: mujoco.MjData, camera_id: int) -> np.ndarray:
         """The frame's green channel, (H, W) uint8, image row 0 at the top."""
         if self._ctx is None:
             raise RuntimeError("render called after close")
         self._camera.fixedcamid = camera_id
+        if self._culled is not None:
+            self._cull(data, camera_id)
         mujoco.mjv_updateScene(self._model, data, self._option, None, self._camera,
                                mujoco.mjtCatBit.mjCAT_ALL.value, self._scene)
         with self._ctx.current():

@@ -22,11 +22,19 @@ def _scenario(*extra: str):
 
 
 def _reference_frame(world) -> np.ndarray:
-    """The frame through a fresh ``mujoco.Renderer`` (its own GL and render contexts)."""
+    """The frame through a fresh ``mujoco.Renderer`` (its own GL and render contexts), of the same
+    scene: a texture-shaded terrain's tiles, all of them (tests/test_terrain_tiles.py holds the
+    camera's culling to the same pixels, and the tiles to the heightfield's)."""
     cfg = world.camera_cfg
     r = mujoco.Renderer(world.model, cfg.height_px, cfg.width_px)
+    option = mujoco.MjvOption()
+    tiles = world._camera_tiles
+    if tiles is not None:
+        world.model.geom_group[tiles.geom_ids] = tiles.group
+        option.geomgroup[tiles.replaces_group] = 0
+        option.geomgroup[tiles.group] = 1
     try:
-        r.update_scene(world.data, camera=world._cam)
+        r.update_scene(world.data, camera=world._cam, scene_option=option)
         return r.render()[:, :, 1].copy()
     finally:
         r.close()

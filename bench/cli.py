@@ -166,24 +166,24 @@ def cmd_vision_figures(args: argparse.Namespace) -> int:
 EXIT_NOT_LANDED = 3
 
 
-def _start_video_server() -> None:
-    """A run with a video: its second process (``VideoProcess``) forks from the workers' server, started
-    now so that the server's imports overlap this process's own."""
+def _start_helper_server() -> None:
+    """A run's second processes (``VideoProcess``, ``PlotProcess``) fork from the workers' server,
+    started now so that the server's imports overlap this process's own."""
     from bench.campaign.workers import start_worker_server
 
     start_worker_server(1)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    if not args.no_video:
-        _start_video_server()
+    _start_helper_server()
     from bench.report.run_outputs import run_and_write
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {args.out!r} is a file; give a folder")
     scenario = load_scenario(args.scenario, args.overrides, args.preset)
-    summary, table = run_and_write(scenario, out, video=not args.no_video, progress=True, video_process=True)
+    summary, table = run_and_write(scenario, out, video=not args.no_video, progress=True, video_process=True,
+                                   plot_process=True)
     print(table)
     return 0 if summary["landed"] else EXIT_NOT_LANDED
 
@@ -310,7 +310,7 @@ def cmd_faults(args: argparse.Namespace) -> int:
 
 
 def _mc_replay(directory: Path, case: int, out: Path) -> int:
-    _start_video_server()
+    _start_helper_server()
     from bench.campaign import mc
     from bench.report.run_outputs import run_and_write
 
@@ -319,7 +319,7 @@ def _mc_replay(directory: Path, case: int, out: Path) -> int:
         raise ValueError(f"--case {case}: the campaign has cases 0..{meta['runs'] - 1}")
     base = load_scenario(directory / mc.BASE_SCENARIO)
     scenario, _ = mc.case_scenario(base, meta["campaign_seed"], meta["runs"], case)
-    summary, table = run_and_write(scenario, out, video=True, progress=True, video_process=True)
+    summary, table = run_and_write(scenario, out, video=True, progress=True, video_process=True, plot_process=True)
     print(table)
     return 0 if summary["landed"] else EXIT_NOT_LANDED
 

@@ -341,6 +341,12 @@ class Terrain:
         for arr in (self.height_m, self.albedo, self.craters, self.boulders):
             arr.setflags(write=False)
 
+    def geometry_only(self) -> "Terrain":
+        """The same ground without its textures (a 1-texel albedo, no patch): enough for what reads
+        only the geometry (``surface_height``, ``hillshade``, ``spacing_m``), and cheap to send to
+        another process. The patch is coplanar with the coarse surface: no geometry is lost."""
+        return dataclasses.replace(self, albedo=np.zeros((1, 1), np.uint8), patch=None)
+
     @property
     def spacing_m(self) -> float:
         """Vertex spacing of ``height_m`` [m]."""

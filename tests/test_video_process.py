@@ -1,4 +1,7 @@
-"""camera.mp4 from a second process (bench/report/video_process.py): the same file, nothing left behind."""
+"""camera.mp4 from a second process (bench/report/video_process.py): the same file, nothing left behind.
+
+plots.png from its own second process (bench/report/plot_process.py) is checked here too, on the same
+two runs; its failures in tests/test_plot_process.py."""
 
 from __future__ import annotations
 
@@ -20,16 +23,17 @@ ACROSS_CUTOFF = [*SMALL_SET, "initial.r_BL_L_m=[0.0, 0.0, 36.0]", "initial.v_BL_
 WALL = ("wall_time_s", "setup_time_s", "realtime_factor", "time_split_s")
 
 
-def test_the_video_process_writes_the_same_file_as_the_run_itself(tmp_path):
+def test_the_video_and_plot_processes_write_the_same_files_as_the_run_itself(tmp_path):
     sc = load_scenario(None, ACROSS_CUTOFF)
     here, there = tmp_path / "here", tmp_path / "there"
-    s_here, _ = ro.run_and_write(sc, here, video_process=False)
-    s_there, _ = ro.run_and_write(sc, there, video_process=True)
+    s_here, _ = ro.run_and_write(sc, here, video_process=False, plot_process=False)
+    s_there, _ = ro.run_and_write(sc, there, video_process=True, plot_process=True)
     # The second process rendered the frames below the cut-off (the run rendered only its tracker's) ...
     n_here, n_there = s_here["time_split_s"]["frames_rendered"], s_there["time_split_s"]["frames_rendered"]
     assert 0 < n_there < n_here
     # ... and the video is the same bytes, the landing the same.
     assert (there / "camera.mp4").read_bytes() == (here / "camera.mp4").read_bytes()
+    assert (there / "plots.png").read_bytes() == (here / "plots.png").read_bytes()  # drawn by the plot process
     assert {k: v for k, v in s_there.items() if k not in WALL} == {k: v for k, v in s_here.items() if k not in WALL}
     assert json.loads((there / "summary.json").read_text())["outcome"] == s_here["outcome"]
     assert not [p.name for p in there.iterdir() if p.name.startswith(".")]  # no temporary file left

@@ -19,6 +19,7 @@ from pathlib import Path
 from bench.report.io import atomic_write_text, json_safe
 from bench.report.report import (CameraVideo, frame_caption, summary_table, track_overlay, write_plots,
                                  write_telemetry_parquet)
+from bench.report.plot_process import PlotProcess
 from bench.report.video_process import VideoProcess
 from bench.sim.run import RunResult, run
 from bench.scenario import NS_PER_S, Scenario, scenario_to_toml
@@ -31,7 +32,7 @@ VIDEO = "camera.mp4"
 
 
 def run_and_write(scenario: Scenario, out: Path, video: bool = True, progress: bool = False,
-                  video_process: bool = False) -> tuple[dict, str]:
+                  video_process: bool = False, plot_process: bool = False) -> tuple[dict, str]:
     """Fly the scenario and write its files into ``out``.
 
     Args:
@@ -39,6 +40,9 @@ def run_and_write(scenario: Scenario, out: Path, video: bool = True, progress: b
             only the video needs (:class:`~bench.report.video_process.VideoProcess`): the same
             file, while the run flies on. Ignored in a daemon process (a campaign worker), which
             may not start one.
+        plot_process: Draw ``plots.png`` in a second process made ready while the run flies
+            (:class:`~bench.report.plot_process.PlotProcess`): the same file. Ignored in a daemon
+            process, as ``video_process``.
 
     Returns:
         (summary dict as written to summary.json, the terminal summary table).
@@ -55,13 +59,17 @@ def run_and_write(scenario: Scenario, out: Path, video: bool = True, progress: b
         writer.add(frame, tracks_xy=xy, prev_xy=prev, text=frame_caption(t_ns / NS_PER_S, float(truth.r_BL_L[2])))
 
     frame_sink = sink if video and cam.enabled else None
-    if frame_sink is not None and video_process and not multiprocessing.current_process().daemon:
-        writer = frame_sink = VideoProcess(scenario, out / VIDEO, fps=NS_PER_S / cam.period_ns,
-                                            size=(cam.width_px, cam.height_px))
+    helpers = not multiprocessing.current_process().daemon
+    plotter = PlotProcess() if plot_process and helpers else None
     try:
+        if frame_sink is not None and video_process and helpers:
+            writer = frame_sink = VideoProcess(scenario, out / VIDEO, fps=NS_PER_S / cam.period_ns,
+                                                size=(cam.width_px, cam.height_px))
         result = run(scenario, frame_sink=frame_sink, progress=progress)
-        summary, outputs = write_run_outputs(scenario, result, out, writer)
+        summary, outputs = write_run_outputs(scenario, result, out, writer, plotter)
     except BaseException:
+        if plotter is not None:
+            plotter.abort()
         if writer is not None:
             writer.abort()  # no half-written video left behind, whatever failed
         if created and out.is_dir() and not any(out.iterdir()):
@@ -71,8 +79,10 @@ def run_and_write(scenario: Scenario, out: Path, video: bool = True, progress: b
 
 
 def write_run_outputs(scenario: Scenario, result: RunResult, out: Path,
-                      video: CameraVideo | VideoProcess | None = None) -> tuple[dict, dict[str, Path]]:
-    """Write the files of a finished run (``video``: its open writer, closed here).
+                      video: CameraVideo | VideoProcess | None = None,
+                      plotter: PlotProcess | None = None) -> tuple[dict, dict[str, Path]]:
+    """Write the files of a finished run (``video``: its open writer, closed here; ``plotter``: the
+    process that draws ``plots.png``, else it is drawn here).
 
     Also used by a campaign worker that decides only after the run whether a
     case's files are kept (``--retention failed``).
@@ -82,17 +92,23 @@ def write_run_outputs(scenario: Scenario, result: RunResult, out: Path,
     """
     summary = json_safe(result.summary)
     outputs = {"scenario": out / SCENARIO, "summary": out / SUMMARY, "telemetry": out / TELEMETRY, "plots": out / PLOTS}
+    touchdown = summary["touchdown"] if summary["touchdown"]["t_s"] is not None else None
+    plot_args = dict(title=f"{scenario.name}: seed {scenario.seed}, {scenario.guidance.law} guidance -> "
+                           f"{summary['outcome']}",
+                     criteria=summary["criteria"], touchdown=touchdown,
+                     sun_elevation_deg=scenario.sun.elevation_deg, sun_azimuth_deg=scenario.sun.azimuth_deg)
+    if plotter is not None:  # first: it draws while the files below are written
+        plotter.draw(result.telemetry, result.terrain, outputs["plots"], **plot_args)
     atomic_write_text(outputs["scenario"], scenario_to_toml(scenario))
     write_telemetry_parquet(result.telemetry, outputs["telemetry"])
-    touchdown = summary["touchdown"] if summary["touchdown"]["t_s"] is not None else None
-    write_plots(result.telemetry, result.terrain, outputs["plots"],
-                title=f"{scenario.name}: seed {scenario.seed}, {scenario.guidance.law} guidance -> {summary['outcome']}",
-                criteria=summary["criteria"], touchdown=touchdown,
-                sun_elevation_deg=scenario.sun.elevation_deg, sun_azimuth_deg=scenario.sun.azimuth_deg)
+    if plotter is None:
+        write_plots(result.telemetry, result.terrain, outputs["plots"], **plot_args)
     if video is not None:
-        path = video.close()  # a video process has encoded while the plots were drawn here
+        path = video.close()  # a video process has encoded while the plots were drawn
         if path is not None:
             outputs["video"] = path
+    if plotter is not None:
+        plotter.result()
     # Last: a summary.json present means the run's files are complete.
     atomic_write_text(outputs["summary"], json.dumps(summary, indent=2) + "\n")
     return summary, outputs

@@ -25,8 +25,6 @@ light poses, copied at the frame's time (``World.visual_state``).
 
 from __future__ import annotations
 
-import fcntl
-import pickle
 import queue
 import threading
 import traceback
@@ -35,23 +33,11 @@ from typing import Any
 
 import numpy as np
 
+from bench.report.child_process import ChildProcess, picklable
 from bench.report.report import CameraVideo, frame_caption, track_overlay
 
-PIPE_BYTES = 1 << 20  # the run-to-process pipe's kernel buffer, where the platform allows it
-F_SETPIPE_SZ = getattr(fcntl, "F_SETPIPE_SZ", 1031)  # Linux's fcntl that sizes a pipe
-RESULT_TIMEOUT_S = 600.0  # the most the run waits for the process to finish its queue
-STOP_TIMEOUT_S = 10.0  # for an aborted process to delete its temporary file and stop
 
-
-def _widen_pipe(conn: Any) -> None:
-    """Make a pipe's kernel buffer ``PIPE_BYTES`` where the platform allows (else keep its default)."""
-    try:
-        fcntl.fcntl(conn.fileno(), F_SETPIPE_SZ, PIPE_BYTES)
-    except OSError:
-        pass
-
-
-class VideoProcess:
+class VideoProcess(ChildProcess):
     """The run's frame sink for ``camera.mp4``, in a second process (see the module docstring).
 
     The closed loop calls :meth:`start` once with its world, then at every camera frame either
@@ -66,42 +52,23 @@ class VideoProcess:
     """
 
     def __init__(self, scenario: Any, path: Path, fps: float, size: tuple[int, int]) -> None:
-        from bench.campaign.workers import worker_context
-
-        ctx = worker_context()
-        self._results, result_end = ctx.Pipe(duplex=False)
-        message_end, self._send = ctx.Pipe(duplex=False)
-        _widen_pipe(self._send)
-        self._proc = ctx.Process(target=_serve, args=(message_end, result_end, scenario, str(path), fps, size),
-                                 name="landbench-video", daemon=True)
-        self._proc.start()
-        message_end.close()
-        result_end.close()
-        self._path: Path | None = None
-        self._ended = False
-
-    def _post(self, msg: tuple) -> None:
-        try:
-            self._send.send(msg)
-        except OSError:  # it has stopped (a broken pipe): raise its reason
-            self._finish()
-            raise RuntimeError("camera video: the video process stopped early") from None
+        super().__init__(_serve, (scenario, str(path), fps, size), role="video", label="camera video")
 
     # --------------------------------------------------------------- the closed loop's side
     def start(self, world: Any) -> None:
         """The run's world: its renderer's digest, which the second world must match."""
-        self._post(("digest", world.render_digest()))
+        self.post(("digest", world.render_digest()))
 
     def __call__(self, t_ns: int, frame: np.ndarray, truth: Any, tracks: Any) -> None:
         """A frame the run rendered (for the flight software), to encode."""
-        self._post(("frame", t_ns, frame, float(truth.r_BL_L[2]), *track_overlay(tracks)))
+        self.post(("frame", t_ns, frame, float(truth.r_BL_L[2]), *track_overlay(tracks)))
 
     def render_frame(self, t_ns: int, frame_index: int, world: Any, exposure_gain: float, truth: Any,
                      tracks: Any) -> None:
         """A frame for the video alone: rendered and corrupted in the second process from ``world``'s
         visual state now (camera frame ``frame_index``, its exposure gain), then encoded."""
-        self._post(("render", t_ns, frame_index, exposure_gain, world.visual_state(),
-                    float(truth.r_BL_L[2]), *track_overlay(tracks)))
+        self.post(("render", t_ns, frame_index, exposure_gain, world.visual_state(),
+                   float(truth.r_BL_L[2]), *track_overlay(tracks)))
 
     # --------------------------------------------------------------------- the end
     def close(self) -> Path | None:
@@ -109,61 +76,14 @@ class VideoProcess:
 
         Raises:
             The second process's own exception (its traceback in a note), or RuntimeError when it
-            stopped without one or sent nothing in ``RESULT_TIMEOUT_S``.
+            stopped without one or sent nothing in time.
         """
         if not self._ended:
-            self._post(("close",))
-            self._finish()
-        return self._path
+            self.post(("close",))
+        value = self.finish()
+        return None if value is None else Path(value)
 
-    def _finish(self) -> None:
-        """Stop sending, collect the process's result, and raise its error if it failed."""
-        if self._ended:
-            return
-        self._ended = True
-        self._send.close()
-        try:
-            if not self._results.poll(RESULT_TIMEOUT_S):
-                raise RuntimeError(f"camera video: the video process sent no result in {RESULT_TIMEOUT_S:.0f} s")
-            status, value = self._results.recv()
-        except EOFError:
-            status, value = "error", (None, f"it ended (exit code {self._proc.exitcode}) with no result")
-        finally:
-            self._stop()
-        if status != "ok":
-            exc, text = value
-            if exc is None:
-                raise RuntimeError(f"camera video: the video process failed: {text}")
-            exc.add_note(f"(raised in the video process)\n{text}")
-            raise exc  # its own type: the command reports an unwritable folder as it always did
-        self._path = None if value is None else Path(value)
-
-    def abort(self) -> None:
-        """Stop the second process; its temporary file is deleted, the final path not touched."""
-        if self._ended:
-            return
-        self._ended = True
-        try:
-            self._send.send(("abort",))
-        except OSError:
-            pass
-        self._send.close()
-        self._stop()
-
-    def _stop(self) -> None:
-        self._proc.join(timeout=STOP_TIMEOUT_S)
-        if self._proc.is_alive():
-            self._proc.terminate()
-            self._proc.join()
-        self._results.close()
-
-
-def _picklable(exc: BaseException) -> bool:
-    try:
-        pickle.loads(pickle.dumps(exc))
-    except Exception:  # noqa: BLE001 - any failure means: send its text only
-        return False
-    return True
+    # abort() (ChildProcess): its temporary file is deleted, the final path not touched.
 
 
 def _read_into(conn: Any, inbox: queue.SimpleQueue) -> None:
@@ -216,7 +136,7 @@ def _serve(messages: Any, results: Any, scenario: Any, path: str, fps: float, si
     except BaseException as exc:  # noqa: BLE001 - reported to the run, which raises it
         if video is not None:
             video.abort()
-        results.send(("error", (exc if _picklable(exc) else None, traceback.format_exc())))
+        results.send(("error", (exc if picklable(exc) else None, traceback.format_exc())))
     finally:
         if world is not None:
             world.close()

@@ -1,0 +1,127 @@
+"""A helper process of one run: forked from the campaign workers' fork server, fed through a pipe.
+
+``landbench run`` hands two jobs to such processes so that they run on the second core, off the
+closed loop's path: ``camera.mp4`` (:mod:`bench.report.video_process`) and ``plots.png``
+(:mod:`bench.report.plot_process`). Both follow the same protocol, kept here once:
+
+- the run sends tuples through a one-way pipe (its kernel buffer widened where the platform allows, so
+  that a message rarely waits for the reader);
+- the process answers once, through a second pipe: ``("ok", value)`` or ``("error", (exception or
+  None, traceback text))``; an ``("abort",)`` message, or the run's end of the pipe closing, stops it
+  with nothing left behind;
+- :meth:`ChildProcess.finish` waits for that answer and raises the process's own exception (its
+  traceback in a note), so the command reports a failure there as it would one in the run itself.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import pickle
+from typing import Any, Callable
+
+PIPE_BYTES = 1 << 20  # the run-to-process pipe's kernel buffer, where the platform allows it
+F_SETPIPE_SZ = getattr(fcntl, "F_SETPIPE_SZ", 1031)  # Linux's fcntl that sizes a pipe
+RESULT_TIMEOUT_S = 600.0  # the most the run waits for the process's answer
+STOP_TIMEOUT_S = 10.0  # for an aborted process to clean up and stop
+
+
+def _widen_pipe(conn: Any) -> None:
+    """Make a pipe's kernel buffer ``PIPE_BYTES`` where the platform allows (else keep its default)."""
+    try:
+        fcntl.fcntl(conn.fileno(), F_SETPIPE_SZ, PIPE_BYTES)
+    except OSError:
+        pass
+
+
+def picklable(exc: BaseException) -> bool:
+    """Whether ``exc`` survives the trip to the run (else only its text is sent)."""
+    try:
+        pickle.loads(pickle.dumps(exc))
+    except Exception:  # noqa: BLE001 - any failure means: send its text only
+        return False
+    return True
+
+
+class ChildProcess:
+    """The run's side of a helper process (see the module docstring).
+
+    Args:
+        target: The process's body, called as ``target(messages, results, *args)`` with the two pipe
+            ends it reads and answers through.
+        args: Its further arguments (pickled to it).
+        role: What it makes, in its name and messages ("video": the process ``landbench-video``,
+            errors "<label>: the video process failed: ...").
+        label: The output it is for, first in its error messages ("camera video").
+    """
+
+    def __init__(self, target: Callable[..., None], args: tuple, role: str, label: str) -> None:
+        from bench.campaign.workers import worker_context
+
+        ctx = worker_context()
+        self._results, result_end = ctx.Pipe(duplex=False)
+        message_end, self._send = ctx.Pipe(duplex=False)
+        _widen_pipe(self._send)
+        self._proc = ctx.Process(target=target, args=(message_end, result_end, *args), name=f"landbench-{role}",
+                                 daemon=True)
+        self._proc.start()
+        message_end.close()
+        result_end.close()
+        self._what = f"{label}: the {role} process"
+        self._role = role
+        self._ended = False
+        self._value: Any = None
+
+    def post(self, msg: tuple) -> None:
+        """Send one message; a process that has stopped raises its reason here."""
+        try:
+            self._send.send(msg)
+        except OSError:  # it has stopped (a broken pipe): raise its reason
+            self.finish()
+            raise RuntimeError(f"{self._what} stopped early") from None
+
+    def finish(self) -> Any:
+        """Stop sending, wait for the process's answer and return its value.
+
+        Raises:
+            The process's own exception (its traceback in a note), or RuntimeError when it stopped
+            without one or sent nothing in ``RESULT_TIMEOUT_S``.
+        """
+        if self._ended:
+            return self._value
+        self._ended = True
+        self._send.close()
+        try:
+            if not self._results.poll(RESULT_TIMEOUT_S):
+                raise RuntimeError(f"{self._what} sent no result in {RESULT_TIMEOUT_S:.0f} s")
+            status, value = self._results.recv()
+        except EOFError:
+            status, value = "error", (None, f"it ended (exit code {self._proc.exitcode}) with no result")
+        finally:
+            self._stop()
+        if status != "ok":
+            exc, text = value
+            if exc is None:
+                raise RuntimeError(f"{self._what} failed: {text}")
+            exc.add_note(f"(raised in the {self._role} process)\n{text}")
+            raise exc  # its own type: the command reports an unwritable folder as it always did
+        self._value = value
+        return value
+
+    def abort(self) -> None:
+        """Stop the process; it leaves nothing behind."""
+        if self._ended:
+            return
+        self._ended = True
+        try:
+            self._send.send(("abort",))
+        except OSError:
+            pass
+        self._send.close()
+        self._stop()
+
+    def _stop(self) -> None:
+        self._proc.join(timeout=STOP_TIMEOUT_S)
+        if self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join()
+        self._results.close()

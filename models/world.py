@@ -255,6 +255,22 @@ def world_mjcf(terrain: Terrain, lander: LanderConfig, camera: CameraConfig, sun
 </mujoco>"""
 
 
+GL_VENDOR, GL_RENDERER, GL_VERSION = 0x1F00, 0x1F01, 0x1F02  # glGetString's names (OpenGL 1.0)
+
+
+def _gl_get_string():
+    """``glGetString`` of the GL library MuJoCo's context runs on, as a fresh ctypes function.
+
+    Taken from PyOpenGL's platform object (imported with MuJoCo's EGL or OSMesa context), not from
+    ``OpenGL.GL``, whose import costs about 0.1 s at the end of every run for three strings.
+    """
+    import ctypes
+
+    from OpenGL import platform  # PyOpenGL, MuJoCo's own dependency for EGL and OSMesa
+
+    return ctypes.CFUNCTYPE(ctypes.c_char_p, ctypes.c_uint)(("glGetString", platform.PLATFORM.GL))
+
+
 class World:
     """MuJoCo truth world with propulsion, truth signals and rendering.
 
@@ -709,12 +725,10 @@ class World:
             probe: When nothing has been rendered yet, read them from a small bare context of
                 the same backend (no scene, no textures) instead of returning None.
         """
-        from OpenGL import GL  # PyOpenGL, MuJoCo's own dependency for EGL and OSMesa
-
         def strings() -> dict[str, str]:
-            return {name: GL.glGetString(code).decode("utf-8", "replace")
-                    for name, code in (("vendor", GL.GL_VENDOR), ("renderer", GL.GL_RENDERER),
-                                       ("version", GL.GL_VERSION))}
+            get_string = _gl_get_string()
+            return {name: get_string(code).decode("utf-8", "replace")
+                    for name, code in (("vendor", GL_VENDOR), ("renderer", GL_RENDERER), ("version", GL_VERSION))}
 
         if self._renderer is not None:
             with self._renderer.current():

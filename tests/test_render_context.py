@@ -242,3 +242,19 @@ def test_a_scored_run_makes_its_fine_ground_before_the_terrain_with_no_idle_cont
     with pytest.raises(Stop):
         run_module.run(_scenario())  # unscored: nothing of the kind
     assert order == ["terrain"]
+
+
+def test_gl_info_reads_the_strings_of_the_cameras_context():
+    """Against PyOpenGL's own glGetString in the same context (World.gl_info calls the GL library directly)."""
+    from OpenGL import GL
+
+    with build_world(_scenario()) as world:
+        assert world.gl_info() is None  # nothing rendered, no probe
+        probed = world.gl_info(probe=True)
+        world.render_signal()
+        info = world.gl_info()
+        with world._renderer.current():
+            expected = {name: GL.glGetString(code).decode() for name, code in (
+                ("vendor", GL.GL_VENDOR), ("renderer", GL.GL_RENDERER), ("version", GL.GL_VERSION))}
+    assert info == expected == probed
+    assert all(expected.values())

@@ -25,9 +25,12 @@ POSES = [(-60.0, 40.0, 400.0, 0.0), (-60.0, 40.0, 120.0, 0.0), (10.0, -5.0, 30.0
          (-60.0, 40.0, 80.0, 35.0), (30.0, 60.0, 200.0, -50.0)]  # looking across the ground
 
 
-@pytest.fixture(scope="module")
-def world():
-    sc = load_scenario(None, SMALL_SET)  # texture-shaded by default; 65 posts over 512 m: 4 x 4 tiles
+@pytest.fixture(scope="module", params=["square", "wide"])
+def world(request):
+    # Texture-shaded by default; 65 posts over 512 m: 4 x 4 tiles. "wide": a 4:1 frame and another field of
+    # view, so the view pyramid's horizontal half-angle (fovy's, times the aspect) is tested too.
+    wide = ["camera.width_px=192", "camera.height_px=48", "camera.fovy_deg=25.0"] if request.param == "wide" else []
+    sc = load_scenario(None, [*SMALL_SET, *wide])
     w = build_world(sc, build_terrain(sc))
     yield w
     w.close()

@@ -73,3 +73,32 @@ def test_the_geometry_only_terrain_keeps_what_the_plots_read():
     np.testing.assert_array_equal(light.surface_height(*xy), terrain.surface_height(*xy))
     np.testing.assert_array_equal(light.hillshade(30.0, 120.0), terrain.hillshade(30.0, 120.0))
     assert light.spacing_m == terrain.spacing_m
+
+
+def test_a_failed_plot_leaves_no_video_and_stops_both_processes(tmp_path, monkeypatch):
+    """As when the run draws the plots itself (tests/test_video_process.py): nothing half-written stays."""
+    from bench.report.video_process import VideoProcess
+    from bench.scenario import load_scenario
+    from tests.test_video_process import ACROSS_CUTOFF
+
+    made = []
+
+    class Recorded(VideoProcess):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            made.append(self)
+
+    class Broken(PlotProcess):
+        def draw(self, telemetry, terrain, path, **kwargs):
+            super().draw({k: v for k, v in telemetry.items() if k != "mass_kg"}, terrain, path, **kwargs)
+            made.append(self)
+
+    monkeypatch.setattr(ro, "VideoProcess", Recorded)
+    monkeypatch.setattr(ro, "PlotProcess", Broken)
+    out = tmp_path / "run"
+    with pytest.raises(ValueError, match="mass_kg"):
+        ro.run_and_write(load_scenario(None, [*ACROSS_CUTOFF, "sim.t_max_ns=5_000_000_000"]), out,
+                         video_process=True, plot_process=True)
+    assert len(made) == 2 and not any(p._proc.is_alive() for p in made)
+    assert not any(p.suffix in (".mp4", ".png", ".tmp") or ".mp4." in p.name for p in out.iterdir())
+    assert not (out / "summary.json").exists()

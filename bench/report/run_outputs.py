@@ -103,12 +103,12 @@ def write_run_outputs(scenario: Scenario, result: RunResult, out: Path,
     write_telemetry_parquet(result.telemetry, outputs["telemetry"])
     if plotter is None:
         write_plots(result.telemetry, result.terrain, outputs["plots"], **plot_args)
+    else:
+        plotter.result()  # before the video is closed: a failed plot leaves no video behind either
     if video is not None:
         path = video.close()  # a video process has encoded while the plots were drawn
         if path is not None:
             outputs["video"] = path
-    if plotter is not None:
-        plotter.result()
     # Last: a summary.json present means the run's files are complete.
     atomic_write_text(outputs["summary"], json.dumps(summary, indent=2) + "\n")
     return summary, outputs

@@ -17,14 +17,18 @@ from bench.sim.world_builder import build_terrain, build_world
 from tests.conftest import SMALL_SET
 
 # Vision on from 36 m: the frames above the 30 m cut-off are rendered by the run for its tracker,
-# those below only for the video (by the second process); a 128² camera keeps it short (about 20 s flown).
+# those below only for the video (by the second process); a 128² camera keeps it short (61 s to touchdown).
 ACROSS_CUTOFF = [*SMALL_SET, "initial.r_BL_L_m=[0.0, 0.0, 36.0]", "initial.v_BL_L_mps=[0.0, 0.0, -2.0]",
                  "camera.width_px=128", "camera.height_px=128", "landing.settle_s=1.0"]
 WALL = ("wall_time_s", "setup_time_s", "realtime_factor", "time_split_s")
 
 
-def test_the_video_and_plot_processes_write_the_same_files_as_the_run_itself(tmp_path):
-    sc = load_scenario(None, ACROSS_CUTOFF)
+@pytest.mark.parametrize("flown", [
+    pytest.param(["sim.t_max_ns=15_000_000_000"], id="first-15-s"),  # 36 m down to about 25 m
+    pytest.param([], id="to-touchdown", marks=pytest.mark.slow),  # 61 s flown: make test-slow
+])
+def test_the_video_and_plot_processes_write_the_same_files_as_the_run_itself(tmp_path, flown):
+    sc = load_scenario(None, [*ACROSS_CUTOFF, *flown])
     here, there = tmp_path / "here", tmp_path / "there"
     s_here, _ = ro.run_and_write(sc, here, video_process=False, plot_process=False)
     s_there, _ = ro.run_and_write(sc, there, video_process=True, plot_process=True)

@@ -31,6 +31,21 @@ def flat_terrain() -> Terrain:
     return make_terrain(np.zeros((33, 33)), 256.0)
 
 
+def record_instances(monkeypatch, module, name: str) -> list:
+    """Replace the class ``module.name`` (for the test's duration) by a subclass that records each
+    instance it makes; returns the list they are appended to."""
+    made = []
+    base = getattr(module, name)
+
+    class Recorded(base):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            made.append(self)
+
+    monkeypatch.setattr(module, name, Recorded)
+    return made
+
+
 def damage_file(path, damage: str, flip_at: float = 0.5) -> None:
     """Damage a disk-cache entry in place, as a crash or bit rot would: ``"truncate"`` (to half its
     length), ``"flip"`` (one bit at ``flip_at`` of its length), ``"garbage"`` (other bytes) or ``"empty"``."""

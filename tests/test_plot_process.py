@@ -10,7 +10,7 @@ import pytest
 import bench.report.run_outputs as ro
 from bench.report.plot_process import PlotProcess
 from bench.report.report import PLOT_REQUIRED_COLUMNS
-from tests.conftest import make_terrain
+from tests.conftest import make_terrain, record_instances
 
 
 def _telemetry(n: int = 50) -> dict[str, np.ndarray]:
@@ -45,17 +45,11 @@ def test_its_error_is_raised_in_the_run_and_nothing_is_written(tmp_path):
 
 
 def test_a_run_that_fails_stops_its_plot_process(tmp_path, monkeypatch):
-    made = []
-
-    class Recorded(PlotProcess):
-        def __init__(self):
-            super().__init__()
-            made.append(self)
+    made = record_instances(monkeypatch, ro, "PlotProcess")
 
     def failing_run(*args, **kwargs):
         raise RuntimeError("diverged")
 
-    monkeypatch.setattr(ro, "PlotProcess", Recorded)
     monkeypatch.setattr(ro, "run", failing_run)
     from bench.scenario import load_scenario
 
@@ -77,28 +71,19 @@ def test_the_geometry_only_terrain_keeps_what_the_plots_read():
 
 def test_a_failed_plot_leaves_no_video_and_stops_both_processes(tmp_path, monkeypatch):
     """As when the run draws the plots itself (tests/test_video_process.py): nothing half-written stays."""
-    from bench.report.video_process import VideoProcess
     from bench.scenario import load_scenario
     from tests.test_video_process import ACROSS_CUTOFF
-
-    made = []
-
-    class Recorded(VideoProcess):
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, **kwargs)
-            made.append(self)
 
     class Broken(PlotProcess):
         def draw(self, telemetry, terrain, path, **kwargs):
             super().draw({k: v for k, v in telemetry.items() if k != "mass_kg"}, terrain, path, **kwargs)
-            made.append(self)
 
-    monkeypatch.setattr(ro, "VideoProcess", Recorded)
     monkeypatch.setattr(ro, "PlotProcess", Broken)
+    plots, videos = record_instances(monkeypatch, ro, "PlotProcess"), record_instances(monkeypatch, ro, "VideoProcess")
     out = tmp_path / "run"
     with pytest.raises(ValueError, match="mass_kg"):
         ro.run_and_write(load_scenario(None, [*ACROSS_CUTOFF, "sim.t_max_ns=5_000_000_000"]), out,
                          video_process=True, plot_process=True)
-    assert len(made) == 2 and not any(p._proc.is_alive() for p in made)
+    assert len(plots) == len(videos) == 1 and not any(p._proc.is_alive() for p in plots + videos)
     assert not any(p.suffix in (".mp4", ".png", ".tmp") or ".mp4." in p.name for p in out.iterdir())
     assert not (out / "summary.json").exists()

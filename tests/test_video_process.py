@@ -14,7 +14,7 @@ import bench.report.run_outputs as ro
 from bench.report.video_process import VideoProcess
 from bench.scenario import load_scenario
 from bench.sim.world_builder import build_terrain, build_world
-from tests.conftest import SMALL_SET
+from tests.conftest import SMALL_SET, record_instances
 
 # Vision on from 36 m: the frames above the 30 m cut-off are rendered by the run for its tracker,
 # those below only for the video (by the second process); a 128² camera keeps it short (61 s to touchdown).
@@ -44,17 +44,11 @@ def test_the_video_and_plot_processes_write_the_same_files_as_the_run_itself(tmp
 
 
 def test_a_failure_after_the_run_leaves_no_video_and_stops_the_process(tmp_path, monkeypatch):
-    made = []
-
-    class Recorded(VideoProcess):
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, **kwargs)
-            made.append(self)
+    made = record_instances(monkeypatch, ro, "VideoProcess")
 
     def broken_plots(*args, **kwargs):
         raise RuntimeError("disk full")
 
-    monkeypatch.setattr(ro, "VideoProcess", Recorded)
     monkeypatch.setattr(ro, "write_plots", broken_plots)
     out = tmp_path / "run"
     # The first 5 s are enough (36 m down to 29 m: frames from the run and from the second process).

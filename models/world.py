@@ -110,6 +110,13 @@ class TruthState:
     propellant_kg: float
 
 
+def hfield_z_range_m(height_m: np.ndarray) -> float:
+    """A heightfield's vertical size in the MJCF (``size`` z) for these heights [m]: their span, at
+    least 1 mm. One function for the terrain's and the patch's heightfields and the terrain's tiles,
+    whose vertices must be the heightfield's own (NumPy's ``ptp`` of float32 heights rounds to float32)."""
+    return max(float(np.ptp(height_m)), 1e-3)
+
+
 TERRAIN_TILE_CELLS = 16  # grid cells along a side of a terrain tile (8 x 8 tiles on the default 129-post grid)
 
 
@@ -148,7 +155,7 @@ def terrain_tiles(terrain: Terrain, cells: int = TERRAIN_TILE_CELLS) -> TerrainT
     h = terrain.height_m.astype(np.float64)
     n_rows, n_cols = h.shape
     half = f32(terrain.size_m / 2.0)
-    z_range = max(float(np.ptp(h)), 1e-3)
+    z_range = hfield_z_range_m(terrain.height_m)  # the heightfield's size z, as world_mjcf writes it
     base = float(h.min())
     # As mjr_uploadHField draws them: float32 grid coordinates, heights data * size_z on the geom at `base`.
     data = ((h - base) / z_range).astype(f32)
@@ -193,7 +200,7 @@ def world_mjcf(terrain: Terrain, lander: LanderConfig, camera: CameraConfig, sun
     n_rows, n_cols = terrain.height_m.shape
     tex_rows, tex_cols = terrain.albedo.shape
     half = terrain.size_m / 2.0
-    z_range = max(float(np.ptp(terrain.height_m)), 1e-3)
+    z_range = hfield_z_range_m(terrain.height_m)
     sun_dir = sun.direction_L()
     diffuse = min(FLAT_GROUND_EXPOSURE / sun_dir[2], MAX_SUN_DIFFUSE)
     ambient = AMBIENT_LIGHT
@@ -209,7 +216,7 @@ def world_mjcf(terrain: Terrain, lander: LanderConfig, camera: CameraConfig, sun
     if terrain.patch is not None:
         pt = terrain.patch
         p_half = pt.size_m / 2.0
-        p_range = max(float(np.ptp(pt.height_m)), 1e-3)
+        p_range = hfield_z_range_m(pt.height_m)
         p_rows, p_cols = pt.albedo.shape
         patch_assets = f"""
     <hfield name="patch" nrow="{pt.height_m.shape[0]}" ncol="{pt.height_m.shape[1]}" size="{p_half} {p_half} {p_range} {PATCH_BASE_M}"/>

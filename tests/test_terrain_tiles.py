@@ -112,3 +112,29 @@ def test_a_renderer_shaded_terrain_is_drawn_from_its_heightfield():
         assert not any(w.model.geom(i).name.startswith("terrain_tile") for i in range(w.model.ngeom))
     finally:
         w.close()
+
+
+def test_the_tiles_heights_are_the_heightfields_own_vertices():
+    """Against what MuJoCo draws: each heightfield vertex at ``hfield_data * size_z`` in float32 on the geom's
+    base (mjr_uploadHField), from the model's own stored data. Where the float32 heights' span rounds
+    (NumPy's ptp in float32), the tiles must use that same size z (random heights, 20 in 30 such grids)."""
+    import re
+
+    from models.world import terrain_tiles
+    from tests.conftest import make_terrain
+
+    sc = load_scenario(None, SMALL_SET)
+    for seed in range(4):
+        terrain = make_terrain(np.random.default_rng(seed).normal(0.0, 10.0, (65, 65)), 256.0)
+        world = build_world(sc, terrain)
+        try:
+            m = world.model
+            hid = m.hfield("terrain").id
+            data = m.hfield_data[m.hfield_adr[hid]:m.hfield_adr[hid] + m.hfield_nrow[hid] * m.hfield_ncol[hid]]
+            drawn = (data.astype(np.float32) * np.float32(m.hfield_size[hid, 2])).astype(np.float64)
+            drawn = set((drawn + m.geom_pos[m.geom("terrain").id, 2]).tolist())
+        finally:
+            world.close()
+        tiles = {float(v) for text in re.findall(r'vertex="([^"]*)"', terrain_tiles(terrain).assets)
+                 for v in text.split()[2::3]}
+        assert tiles == drawn, seed

@@ -235,6 +235,12 @@ class CulledGeoms:
     hidden_group: int
     replaces_group: int
 
+    def show_in(self, option: mujoco.MjvOption) -> None:
+        """Set ``option`` to draw these geoms' group instead of the group they replace (hidden ones not)."""
+        option.geomgroup[self.replaces_group] = 0
+        option.geomgroup[self.group] = 1
+        option.geomgroup[self.hidden_group] = 0
+
 
 class CameraRenderer:
     """Renders one model's camera through a shared render context.
@@ -271,9 +277,7 @@ class CameraRenderer:
         self._rgb = np.empty((height, width, 3), np.uint8)
         self._culled = culled
         if culled is not None:
-            self._option.geomgroup[culled.replaces_group] = 0
-            self._option.geomgroup[culled.group] = 1
-            self._option.geomgroup[culled.hidden_group] = 0
+            culled.show_in(self._option)
             self._aspect = width / height  # MuJoCo's view: fovy vertical, the frame's aspect horizontal
 
     def _cull(self, data: mujoco.MjData, camera_id: int) -> None:

@@ -31,8 +31,7 @@ def _reference_frame(world) -> np.ndarray:
     tiles = world._camera_tiles
     if tiles is not None:
         world.model.geom_group[tiles.geom_ids] = tiles.group
-        option.geomgroup[tiles.replaces_group] = 0
-        option.geomgroup[tiles.group] = 1
+        tiles.show_in(option)
     try:
         r.update_scene(world.data, camera=world._cam, scene_option=option)
         return r.render()[:, :, 1].copy()

@@ -46,7 +46,8 @@ def _pose(world, x: float, y: float, above_m: float, tilt_deg: float) -> None:
     mujoco.mj_forward(m, d)
 
 
-def _hfield_frame(world, renderer: CameraRenderer) -> np.ndarray:
+def _frame_through(world, renderer: CameraRenderer) -> np.ndarray:
+    """The frame of `world`'s camera drawn through another renderer (heightfield, or every tile)."""
     return renderer.render_green(world.data, world._cam).copy()
 
 
@@ -74,7 +75,7 @@ def test_the_tiles_draw_what_the_heightfield_draws(world):
         for pose in POSES:
             _pose(world, *pose)
             tiled = world.render_signal().copy()
-            reference = _hfield_frame(world, plain)
+            reference = _frame_through(world, plain)
             diff = np.abs(tiled.astype(int) - reference)
             assert reference.std() > 5.0, pose  # a textured view, not an empty one
             assert diff.max() <= 1, pose
@@ -96,7 +97,7 @@ def test_culling_leaves_every_frame_as_it_is_and_draws_fewer_tiles(world):
             _pose(world, *pose)
             culled = world.render_signal().copy()
             hidden.append(int((world.model.geom_group[tiles.geom_ids] == HIDDEN_TILE_GEOM_GROUP).sum()))
-            np.testing.assert_array_equal(culled, _hfield_frame(world, uncull), err_msg=str(pose))
+            np.testing.assert_array_equal(culled, _frame_through(world, uncull), err_msg=str(pose))
     finally:
         uncull.close()
     # The culling does something: low over the ground most tiles are left out, high up fewer.

@@ -138,6 +138,8 @@ GATE_FLOOR_M = 2.0 * GATE_UNDERSHOOT_TOL_M
 APOLLO_GATE_ACCEL_L = np.zeros(3)
 # Denominators below this are treated as zero.
 _EPS = 1e-9
+_PLAN_SIGMA = np.linspace(0.0, 1.0, PLAN_SAMPLES)  # the sampled fractions of a path's time to go
+_ONE_DEG_RAD = float(np.deg2rad(1.0))
 
 
 # --------------------------------------------------------------------------- configuration
@@ -570,7 +572,8 @@ class GuidanceLaw(ABC):
         t_go_s: np.ndarray,
         with_margins: bool,
         z_B_L: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:
+        want_delta_v: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """Check the law's paths to the gate for several candidate times to go.
 
         Args:
@@ -585,6 +588,8 @@ class GuidanceLaw(ABC):
             z_B_L: The current thrust axis (body +z in L), (3,) unit, for the
                 slew check; None (or no ``limits.slew_accel_max_radps2``): no
                 slew check.
+            want_delta_v: Compute the paths' delta-v (False: None is returned
+                for it; the re-plan check reads only the violations).
 
         Returns:
             ``(violation, delta_v)``: the worst normalised violation along each
@@ -599,15 +604,20 @@ class GuidanceLaw(ABC):
         cfg, lim = self.cfg, self.limits
         T = np.asarray(t_go_s, float)[:, None]  # (N, 1)
         c0, c1, c2 = self.coeffs(r_L[None, :], v_L[None, :], r_f_L[None, :], v_f_L[None, :], T)  # (N, 3)
-        sigma = np.linspace(0.0, 1.0, PLAN_SAMPLES)
-        s = (T * sigma)[:, :, None]  # (N, M, 1)
-        a = c0[:, None, :] + c1[:, None, :] * s + c2[:, None, :] * s * s
+        s = T * _PLAN_SIGMA  # (N, M) [s]
+        # Per axis on (N, M) arrays, each operation as the (N, M, 3) expression in the comment above it
+        # (the same products and sums in the same order, so the same bits: tested against it).
+        # a = c0 + c1 s + c2 s s;  f = a - g   (the specific force along the path)
+        g_x, g_y, g_z = self.g_L.tolist()
+        f_x = c0[:, 0:1] + c1[:, 0:1] * s + c2[:, 0:1] * s * s - g_x
+        f_y = c0[:, 1:2] + c1[:, 1:2] * s + c2[:, 1:2] * s * s - g_y
+        f_z = c0[:, 2:3] + c1[:, 2:3] * s + c2[:, 2:3] * s * s - g_z
         z = (
-            r_L[2] + v_L[2] * s[..., 0] + c0[:, None, 2] * s[..., 0] ** 2 / 2.0
-            + c1[:, None, 2] * s[..., 0] ** 3 / 6.0 + c2[:, None, 2] * s[..., 0] ** 4 / 12.0
+            r_L[2] + v_L[2] * s + c0[:, 2:3] * s ** 2 / 2.0
+            + c1[:, 2:3] * s ** 3 / 6.0 + c2[:, 2:3] * s ** 4 / 12.0
         )  # (N, M)
-        f = a - self.g_L  # specific force along the path
-        f_norm = np.linalg.norm(f, axis=-1)
+        h2 = f_x * f_x + f_y * f_y  # np.linalg.norm(f, axis=-1)**2 sums x, y, z in this order
+        f_norm = np.sqrt(h2 + f_z * f_z)
         max_frac = cfg.plan_thrust_max_frac if with_margins else 1.0
         min_frac = cfg.plan_thrust_min_frac if with_margins else 1.0
         tilt_frac = cfg.plan_tilt_frac if with_margins else 1.0
@@ -615,21 +625,22 @@ class GuidanceLaw(ABC):
         f_min = min_frac * lim.thrust_min_N / mass_kg
         target_z = r_f_L[2] - cfg.gate_altitude_m
         tilt_lim = tilt_frac * np.asarray(lim.tilt.tilt_max_rad(z - target_z))
-        tilt = np.arctan2(np.linalg.norm(f[..., :2], axis=-1), f[..., 2])
-        viol = np.stack([
-            np.maximum(f_norm / f_max - 1.0, 1.0 - f_norm / max(f_min, _EPS)),
-            (tilt - tilt_lim) / np.maximum(tilt_lim, np.deg2rad(1.0)),
-            (r_f_L[2] - GATE_UNDERSHOOT_TOL_M - z) / GATE_UNDERSHOOT_TOL_M,
-        ], axis=-1).max(axis=1)
-        slew = np.full((viol.shape[0], 1), -1.0)
+        tilt = np.arctan2(np.sqrt(h2), f_z)
+        out = np.empty((T.shape[0], 4))
+        out[:, 0] = np.maximum(f_norm / f_max - 1.0, 1.0 - f_norm / max(f_min, _EPS)).max(axis=1)
+        out[:, 1] = ((tilt - tilt_lim) / np.maximum(tilt_lim, _ONE_DEG_RAD)).max(axis=1)
+        out[:, 2] = ((r_f_L[2] - GATE_UNDERSHOOT_TOL_M - z) / GATE_UNDERSHOOT_TOL_M).max(axis=1)
+        out[:, 3] = -1.0
         if with_margins and z_B_L is not None and lim.slew_accel_max_radps2 is not None:
-            f0 = f[:, 0, :]  # each path's first specific force
+            f0 = np.stack([f_x[:, 0], f_y[:, 0], f_z[:, 0]], axis=1)  # each path's first specific force
             cos = (f0 @ np.asarray(z_B_L, float)) / np.maximum(f_norm[:, 0], _EPS)
             angle = np.arccos(np.clip(cos, -1.0, 1.0))
             t_slew = 2.0 * np.sqrt(angle / lim.slew_accel_max_radps2)  # rest to rest, torque-limited
-            slew[:, 0] = t_slew / (cfg.plan_slew_time_frac * T[:, 0]) - 1.0
-        delta_v = np.trapezoid(f_norm, s[..., 0], axis=1)
-        return np.concatenate([viol, slew], axis=1), delta_v
+            out[:, 3] = t_slew / (cfg.plan_slew_time_frac * T[:, 0]) - 1.0
+        if not want_delta_v:
+            return out, None
+        delta_v = np.trapezoid(f_norm, s, axis=1)
+        return out, delta_v
 
     def plan_t_go(
         self, r_L: np.ndarray, v_L: np.ndarray, mass_kg: float, r_f_L: np.ndarray, v_f_L: np.ndarray,
@@ -732,11 +743,12 @@ class GuidanceLaw(ABC):
         """Re-plan when the remaining path breaks the hard limits and a better one exists; returns t_go [s].
 
         ``q_LB``: the attitude, whose thrust axis the slew check reads (only when a re-plan is weighed)."""
-        hard, _ = self.path_violation(r, v, m, r_f, v_f, np.array([t_go]), with_margins=False)
+        hard, _ = self.path_violation(r, v, m, r_f, v_f, np.array([t_go]), with_margins=False, want_delta_v=False)
         if hard.max() <= 0.0:
             return t_go
         z_B_L = None if q_LB is None else _thrust_axis_L(q_LB)
-        current, _ = self.path_violation(r, v, m, r_f, v_f, np.array([t_go]), with_margins=True, z_B_L=z_B_L)
+        current, _ = self.path_violation(r, v, m, r_f, v_f, np.array([t_go]), with_margins=True, z_B_L=z_B_L,
+                                         want_delta_v=False)
         t_new, viol_new = self.plan_t_go(r, v, m, r_f, v_f, z_B_L)
         self._t_plan_ns = t_ns  # rate-limits the attempts, adopted or not
         if viol_new < current.max():

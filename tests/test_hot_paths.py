@@ -501,3 +501,64 @@ def test_guidance_scalar_paths_match_the_array_reference():
     for _ in range(3000):
         r, v, target = rng.normal(0.0, 5.0, 3) * rng.choice([0.1, 1.0, 10.0]), rng.normal(0.0, 1.0, 3), rng.normal(0, 2, 3)
         assert _same(law.terminal_accel_L(r, v, target), ref_terminal(r, v, target))
+
+
+def _ref_path_violation(law, r_L, v_L, mass_kg, r_f_L, v_f_L, t_go_s, with_margins, z_B_L=None):
+    """GuidanceLaw.path_violation as it was written on (N, M, 3) arrays (the reference)."""
+    from gnc.guidance import _EPS, GATE_UNDERSHOOT_TOL_M, PLAN_SAMPLES
+
+    cfg, lim = law.cfg, law.limits
+    T = np.asarray(t_go_s, float)[:, None]
+    c0, c1, c2 = law.coeffs(r_L[None, :], v_L[None, :], r_f_L[None, :], v_f_L[None, :], T)
+    sigma = np.linspace(0.0, 1.0, PLAN_SAMPLES)
+    s = (T * sigma)[:, :, None]
+    a = c0[:, None, :] + c1[:, None, :] * s + c2[:, None, :] * s * s
+    z = (r_L[2] + v_L[2] * s[..., 0] + c0[:, None, 2] * s[..., 0] ** 2 / 2.0
+         + c1[:, None, 2] * s[..., 0] ** 3 / 6.0 + c2[:, None, 2] * s[..., 0] ** 4 / 12.0)
+    f = a - law.g_L
+    f_norm = np.linalg.norm(f, axis=-1)
+    max_frac = cfg.plan_thrust_max_frac if with_margins else 1.0
+    min_frac = cfg.plan_thrust_min_frac if with_margins else 1.0
+    tilt_frac = cfg.plan_tilt_frac if with_margins else 1.0
+    f_max = max_frac * lim.thrust_max_N / mass_kg
+    f_min = min_frac * lim.thrust_min_N / mass_kg
+    tilt_lim = tilt_frac * np.asarray(lim.tilt.tilt_max_rad(z - (r_f_L[2] - cfg.gate_altitude_m)))
+    tilt = np.arctan2(np.linalg.norm(f[..., :2], axis=-1), f[..., 2])
+    viol = np.stack([
+        np.maximum(f_norm / f_max - 1.0, 1.0 - f_norm / max(f_min, _EPS)),
+        (tilt - tilt_lim) / np.maximum(tilt_lim, np.deg2rad(1.0)),
+        (r_f_L[2] - GATE_UNDERSHOOT_TOL_M - z) / GATE_UNDERSHOOT_TOL_M,
+    ], axis=-1).max(axis=1)
+    slew = np.full((viol.shape[0], 1), -1.0)
+    if with_margins and z_B_L is not None and lim.slew_accel_max_radps2 is not None:
+        f0 = f[:, 0, :]
+        cos = (f0 @ np.asarray(z_B_L, float)) / np.maximum(f_norm[:, 0], _EPS)
+        angle = np.arccos(np.clip(cos, -1.0, 1.0))
+        slew[:, 0] = 2.0 * np.sqrt(angle / lim.slew_accel_max_radps2) / (cfg.plan_slew_time_frac * T[:, 0]) - 1.0
+    return np.concatenate([viol, slew], axis=1), np.trapezoid(f_norm, s[..., 0], axis=1)
+
+
+@pytest.mark.parametrize("law_name", ["apollo", "zem_zev"])
+def test_path_violation_matches_the_array_reference(law_name):
+    """The planner's path check, per axis on (N, M) arrays, against the (N, M, 3) form it replaced:
+    the re-plan check (one time to go, hard limits) and the planning grid (margins, slew)."""
+    from gnc.control import ControlConfig, VehicleParams, guidance_limits
+    from gnc.guidance import make_guidance
+
+    law = make_guidance({"law": law_name}, guidance_limits(VehicleParams(), ControlConfig()))
+    rng = np.random.default_rng(5)
+    grid = np.arange(law.cfg.t_go_min_s, law.cfg.t_go_max_s + 0.25, 0.5)
+    for i in range(600):
+        r = rng.normal([0.0, 0.0, 300.0], [300.0, 300.0, 200.0])
+        v = rng.normal([0.0, 0.0, -20.0], [15.0, 15.0, 15.0])
+        r_f, v_f = np.array([0.0, 0.0, 30.0]) + rng.normal(0.0, 5.0, 3), np.array([0.0, 0.0, -1.0])
+        mass = float(rng.uniform(1500.0, 2100.0))
+        z_B = rng.normal(0.0, 0.3, 3) + [0.0, 0.0, 1.0]
+        t_go = grid if i % 10 == 0 else np.array([rng.uniform(1.0, 90.0)])
+        for margins, axis in ((False, None), (True, None), (True, z_B)):
+            viol, dv = law.path_violation(r, v, mass, r_f, v_f, t_go, with_margins=margins, z_B_L=axis)
+            want_viol, want_dv = _ref_path_violation(law, r, v, mass, r_f, v_f, t_go, margins, axis)
+            assert _same(viol, want_viol) and _same(dv, want_dv)
+            alone, none = law.path_violation(r, v, mass, r_f, v_f, t_go, with_margins=margins, z_B_L=axis,
+                                             want_delta_v=False)
+            assert _same(alone, want_viol) and none is None

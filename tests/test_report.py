@@ -14,8 +14,11 @@ import pytest
 from bench.report.report import (
     CHECK_FAIL,
     CHECK_OK,
+    PLOT_COLUMNS_NAV,
+    PLOT_COLUMNS_PLAIN,
     CameraVideo,
     frame_caption,
+    plot_canvas,
     read_telemetry_parquet,
     summary_table,
     write_plots,
@@ -137,6 +140,24 @@ def test_plots_written(tmp_path, terrain, nav):
     assert 900 <= h <= 1100 and 1300 <= w <= 1500
     assert img.std() > 10  # not blank
     assert [p.name for p in tmp_path.iterdir()] == ["plots.png"]
+
+
+@pytest.mark.parametrize("nav", [False, True])
+def test_plots_on_a_canvas_made_ahead_are_the_same_file(tmp_path, terrain, nav):
+    """The plot process makes the empty panels and their ticks before the telemetry arrives: the same
+    PNG, byte for byte; a canvas of the other layout is not used (its panels would not fit)."""
+    kwargs = dict(title="synthetic descent", criteria=CRITERIA, touchdown={"t_s": 9.8})
+    tel = descent_telemetry(nav=nav)
+    fresh = write_plots(tel, terrain, tmp_path / "fresh.png", **kwargs).read_bytes()
+    ahead = write_plots(tel, terrain, tmp_path / "ahead.png", canvas=plot_canvas(nav), **kwargs).read_bytes()
+    ticked = plot_canvas(nav, ticks=10)
+    assert all(len(ax.xaxis.majorTicks) >= 10 for ax in ticked.axes)
+    ahead_ticks = write_plots(tel, terrain, tmp_path / "ticks.png", canvas=ticked, **kwargs).read_bytes()
+    other = plot_canvas(not nav)
+    wrong = write_plots(tel, terrain, tmp_path / "wrong.png", canvas=other, **kwargs).read_bytes()
+    assert ahead == fresh and ahead_ticks == fresh and wrong == fresh
+    assert not any(ax.has_data() for ax in other.axes)  # left as it was
+    assert len(plot_canvas(True).axes) == 3 * PLOT_COLUMNS_NAV and len(plot_canvas(False).axes) == 3 * PLOT_COLUMNS_PLAIN
 
 
 def test_plots_tolerate_no_touchdown_and_nan(tmp_path, terrain):

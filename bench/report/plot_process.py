@@ -11,8 +11,9 @@ In ``landbench run`` the plots were drawn after the landing, in the run's own pr
 start: importing matplotlib and loading its fonts and text machinery took about as long as drawing
 the twelve panels (1.5–2.3 s in all, against about 1.0 s warm). Here a process forked from the
 campaign workers' fork server imports matplotlib and draws a small figure of the same kinds of
-artists while the run flies (on the second core, which the closed loop leaves partly idle), then
-waits; at the end it draws the run's figure warm while the run writes its other files and the video
+artists while the run flies (on the second core, which the closed loop leaves partly idle), makes
+the run figure's empty panels and their ticks (:func:`~bench.report.report.plot_canvas`), then waits; at the end it
+draws the run's figure warm while the run writes its other files and the video
 process finishes.
 """
 
@@ -26,6 +27,9 @@ from typing import Any, Mapping
 import numpy as np
 
 from bench.report.child_process import ChildProcess, picklable
+
+
+TICKS_AHEAD = 10  # major ticks made ahead on each axis of the run's figure (its axes have 4 to 9)
 
 
 class PlotProcess(ChildProcess):
@@ -78,14 +82,16 @@ def warm_up() -> None:
 def _serve(messages: Any, results: Any) -> None:
     """The second process: warm up, then draw the one figure it is sent."""
     try:
-        from bench.report.report import write_plots
+        from bench.report.report import plot_canvas, write_plots
 
         warm_up()
+        # The empty panels and their ticks: a run's telemetry has the navigation errors (else a new one is made).
+        canvas = plot_canvas(nav=True, ticks=TICKS_AHEAD)
         msg = messages.recv()
         if msg[0] == "abort":
             return
         _, telemetry, terrain, path, kwargs = msg
-        results.send(("ok", str(write_plots(telemetry, terrain, path, **kwargs))))
+        results.send(("ok", str(write_plots(telemetry, terrain, path, canvas=canvas, **kwargs))))
     except EOFError:  # the run stopped without a word: leave nothing behind
         pass
     except BaseException as exc:  # noqa: BLE001 - reported to the run, which raises it

@@ -220,6 +220,11 @@ def guidance_limits(vehicle: VehicleParams, cfg: ControlConfig) -> GuidanceLimit
 
 
 # --------------------------------------------------------------------------- stages
+def _finite(a: np.ndarray) -> bool:
+    """``bool(np.all(np.isfinite(a)))`` of a small float array, element by element on floats."""
+    return all(map(math.isfinite, a.ravel().tolist()))
+
+
 def thrust_vector_command(
     a_cmd_L: np.ndarray,
     g_L: np.ndarray,
@@ -257,7 +262,7 @@ def thrust_vector_command(
         u[:2] *= tan_max * u[2] / uh_norm
     u_norm = norm(u)
     along = u_norm if z_B_L is None else max(float(u @ z_B_L), 0.0)
-    thrust = float(np.clip(mass_kg * scale * along / vehicle.thrust_scale, vehicle.thrust_min_N, vehicle.thrust_max_N))
+    thrust = clip_float(float(mass_kg * scale * along / vehicle.thrust_scale), vehicle.thrust_min_N, vehicle.thrust_max_N)
     return thrust, u / u_norm
 
 
@@ -400,34 +405,36 @@ class Controller:
             The actuator command, within every actuator limit.
         """
         t_ns = int(nav.t_ns)
-        if contact is not None and int(np.count_nonzero(np.asarray(contact.legs, bool))) >= self.cfg.legs_for_engine_cut:
+        if contact is not None and sum(map(bool, contact.legs)) >= self.cfg.legs_for_engine_cut:
             self.engine_cut = True
         if self.engine_cut:
             return ActuatorCommand(0.0, np.zeros(3), False, t_ns, self._q_cmd_hold.copy())
 
-        mass = float(nav.mass_kg) if np.isfinite(nav.mass_kg) and nav.mass_kg > 0.0 else float("nan")
+        # The finiteness checks on floats (math.isfinite of each element: np.all(np.isfinite(...))).
+        mass = float(nav.mass_kg)
+        if not (math.isfinite(mass) and mass > 0.0):
+            mass = math.nan
         altitude = float(np.asarray(nav.r_BL_L, float)[2])
         a_cmd = np.asarray(cmd.a_cmd_L, float)
         z_B_L = None
         q = unit_quaternion(nav.q_LB)  # normalised once: the thrust projection and the attitude loop use it
         if self.cfg.thrust_projection == "body_axis" and q is not None:
             z_B_L = body_z_L(q)
-        if cmd.valid and np.all(np.isfinite(a_cmd)) and np.isfinite(mass) and np.isfinite(altitude):
+        if cmd.valid and _finite(a_cmd) and math.isfinite(mass) and math.isfinite(altitude):
             self._thrust_hold_N, z_cmd_L = thrust_vector_command(
                 a_cmd, self.g_L, mass, altitude, self.vehicle, self.cfg.tilt, z_B_L
             )
             self._q_cmd_hold = attitude_command_LB(z_cmd_L, self.yaw_rad)
 
         omega = np.asarray(nav.omega_B, float)
-        if q is not None and np.all(np.isfinite(omega)):
-            inertia = self.vehicle.inertia_B_kgm2(mass if np.isfinite(mass) else self.vehicle.dry_mass_kg)
-            torque = attitude_torque_B(q, omega, self._q_cmd_hold, inertia, self.cfg, self.vehicle.rcs_torque_max_Nm)
-        else:
-            torque = np.zeros(3)
-        if not np.all(np.isfinite(torque)):  # cannot happen with finite inputs; never emit NaN
-            torque = np.zeros(3)
         torque_max = self.vehicle.rcs_torque_max_Nm
-        torque = np.array([clip_float(t, -torque_max, torque_max) for t in torque.tolist()])
+        torque = (0.0, 0.0, 0.0)
+        if q is not None and _finite(omega):
+            inertia = self.vehicle.inertia_B_kgm2(mass if math.isfinite(mass) else self.vehicle.dry_mass_kg)
+            tau = attitude_torque_B(q, omega, self._q_cmd_hold, inertia, self.cfg, torque_max).tolist()
+            if all(map(math.isfinite, tau)):  # cannot fail with finite inputs; never emit NaN
+                torque = tau
+        torque = np.array([clip_float(t, -torque_max, torque_max) for t in torque])
         thrust = clip_float(float(self._thrust_hold_N), self.vehicle.thrust_min_N, self.vehicle.thrust_max_N)
         return ActuatorCommand(thrust, torque, True, t_ns, self._q_cmd_hold.copy())
 

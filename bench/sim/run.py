@@ -830,19 +830,22 @@ def _row(t_ns, truth, act, cmd, legs, imu, alt, st, thrust_max, thrust_delivered
     tel.nees_e.append(e)
     tel.nees_P.append(P[:9, :9].copy())
     vm = fsw.vision.last
+    # Arrays go in as lists of Python floats: unpacking an array makes a NumPy scalar of each element,
+    # several times slower; the columns (np.array of each) hold the same float64 values.
     return (
-        t_ns / NS_PER_S, *truth.r_BL_L, *truth.v_BL_L, *truth.q_LB, *truth.omega_B,
-        truth.mass_kg, truth.propellant_kg, tilt_deg(truth.q_LB),
-        act.thrust_N, thrust_delivered, thrust_delivered / thrust_max, *act.torque_B_Nm,
-        *act.q_LB_cmd, *cmd.a_cmd_L, cmd.t_go_s, act.engine_on, phase, int(legs.sum()),
+        t_ns / NS_PER_S, *truth.r_BL_L.tolist(), *truth.v_BL_L.tolist(), *truth.q_LB.tolist(),
+        *truth.omega_B.tolist(), truth.mass_kg, truth.propellant_kg, tilt_deg(truth.q_LB),
+        act.thrust_N, thrust_delivered, thrust_delivered / thrust_max, *act.torque_B_Nm.tolist(),
+        *act.q_LB_cmd.tolist(), *np.asarray(cmd.a_cmd_L, float).tolist(), cmd.t_go_s, act.engine_on, phase,
+        int(legs.sum()),
         *(imu.f_B if imu is not None else nan3), *(imu.omega_B if imu is not None else nan3),
         alt.range_m if alt is not None else math.nan, bool(alt.valid) if alt is not None else False,
         *(st.q_LB if st is not None else (math.nan,) * 4),
-        *x[IDX_R], *x[IDX_V], *e[:6], *sig, *e[6:9], fsw.mass_kg,
+        *x[IDX_R].tolist(), *x[IDX_V].tolist(), *e[:6].tolist(), *sig.tolist(), *e[6:9].tolist(), fsw.mass_kg,
         len(fsw.vision.last_tracks) if fsw.vision.last_tracks is not None else 0,
         fsw.vision.measurements, fsw.vision.rejected,
         *(vm.v_L if vm is not None else (math.nan,) * 2),
-        applied.thrust_N, *applied.torque_B_Nm,
+        applied.thrust_N, *np.asarray(applied.torque_B_Nm, float).tolist(),
     )
 
 

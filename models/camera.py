@@ -75,7 +75,17 @@ def intrinsics(cfg: CameraConfig) -> np.ndarray:
     )
 
 
-def apply_detector_noise(signal_dn: np.ndarray, cfg: CameraConfig, rng: np.random.Generator) -> np.ndarray:
+def detector_normal(shape: tuple[int, int], cfg: CameraConfig, rng: np.random.Generator) -> np.ndarray | None:
+    """The standard normal draws :func:`apply_detector_noise` takes from ``rng`` for a frame of ``shape``
+    (None: the configuration adds no noise, and nothing is drawn). Drawn ahead (while the frame is
+    rendered) and passed as its ``normal``, they give the same frame."""
+    if cfg.shot_noise or cfg.read_noise_dn > 0:
+        return rng.standard_normal(shape, dtype=np.float32)
+    return None
+
+
+def apply_detector_noise(signal_dn: np.ndarray, cfg: CameraConfig, rng: np.random.Generator | None,
+                         normal: np.ndarray | None = None) -> np.ndarray:
     """Add shot and read noise and quantise to uint8.
 
     Shot noise is Poisson in electrons, variance ``S / gain`` in DN^2. At the
@@ -88,7 +98,8 @@ def apply_detector_noise(signal_dn: np.ndarray, cfg: CameraConfig, rng: np.rando
     Args:
         signal_dn: Noise-free image, (H, W) in DN [0, 255].
         cfg: Camera configuration (gain and read noise).
-        rng: The camera's own random stream.
+        rng: The camera's own random stream (unused when ``normal`` is given).
+        normal: The frame's draws, taken ahead from the stream by :func:`detector_normal`.
 
     Returns:
         Noisy frame, (H, W) uint8.
@@ -100,5 +111,5 @@ def apply_detector_noise(signal_dn: np.ndarray, cfg: CameraConfig, rng: np.rando
     if cfg.read_noise_dn > 0:
         var += np.float32(cfg.read_noise_dn**2)
     if cfg.shot_noise or cfg.read_noise_dn > 0:
-        img += np.sqrt(var) * rng.standard_normal(img.shape, dtype=np.float32)
+        img += np.sqrt(var) * (detector_normal(img.shape, cfg, rng) if normal is None else normal)
     return np.clip(np.rint(img), 0.0, UINT8_MAX).astype(np.uint8)

@@ -242,6 +242,22 @@ class CulledGeoms:
         option.geomgroup[self.hidden_group] = 0
 
 
+_GL_FLUSH = None
+
+
+def _gl_flush() -> None:
+    """``glFlush`` of the GL library MuJoCo's context runs on (through PyOpenGL's platform object, as
+    ``World.gl_info``; ``OpenGL.GL`` is not imported for one function)."""
+    global _GL_FLUSH
+    if _GL_FLUSH is None:
+        import ctypes
+
+        from OpenGL import platform  # PyOpenGL, MuJoCo's own dependency for EGL and OSMesa
+
+        _GL_FLUSH = ctypes.CFUNCTYPE(None)(("glFlush", platform.PLATFORM.GL))
+    _GL_FLUSH()
+
+
 class CameraRenderer:
     """Renders one model's camera through a shared render context.
 
@@ -296,7 +312,17 @@ class CameraRenderer:
         self._model.geom_group[c.geom_ids] = np.where(out, c.hidden_group, c.group)
 
     def render_green(self, data: mujoco.MjData, camera_id: int) -> np.ndarray:
-        """The frame's green channel, (H, W) uint8, image row 0 at the top."""
+        """The frame's green channel, (H, W) uint8, image row 0 at the top (:meth:`draw`, then :meth:`read_green`)."""
+        self.draw(data, camera_id)
+        return self.read_green()
+
+    def draw(self, data: mujoco.MjData, camera_id: int) -> None:
+        """Draw a frame of ``data`` as it is now, and hand it to the GL driver without waiting for it.
+
+        ``glFlush`` after ``mjr_render``: a CPU renderer (llvmpipe) rasterises the frame on its own
+        threads while the caller goes on; :meth:`read_green` then waits for what is left. Without
+        the flush llvmpipe starts only when the pixels are read. The pixels are the same.
+        """
         if self._ctx is None:
             raise RuntimeError("render called after close")
         self._camera.fixedcamid = camera_id
@@ -306,6 +332,13 @@ class CameraRenderer:
                                mujoco.mjtCatBit.mjCAT_ALL.value, self._scene)
         with self._ctx.current():
             mujoco.mjr_render(self._rect, self._scene, self._ctx.mjr)
+            _gl_flush()
+
+    def read_green(self) -> np.ndarray:
+        """The green channel of the frame last drawn (:meth:`draw`), (H, W) uint8, image row 0 at the top."""
+        if self._ctx is None:
+            raise RuntimeError("render called after close")
+        with self._ctx.current():
             mujoco.mjr_readPixels(self._rgb, None, self._rect, self._ctx.mjr)
         return np.ascontiguousarray(self._rgb[::-1, :, 1])
 

@@ -335,6 +335,7 @@ class World:
         self.propulsion = PropulsionModel(lander)
         self.K = intrinsics(camera)
         self._renderer: CameraRenderer | None = None
+        self._frame_pose: bytes | None = None  # the poses of the frame started (start_frame), not yet read
         self._camera_tiles = None if tiles is None else CulledGeoms(
             geom_ids=np.array([m.geom(f"terrain_tile{k}").id for k in range(len(tiles.corners_L))]),
             corners=tiles.corners_L, group=TERRAIN_TILE_GEOM_GROUP, hidden_group=HIDDEN_TILE_GEOM_GROUP,
@@ -705,12 +706,35 @@ class World:
 
         Through a render context shared with earlier worlds of this process whose
         textures, heightfields and meshes are the same (``models.render_context``).
+        A frame started by :meth:`start_frame` is read when the world has not moved since;
+        otherwise the frame is drawn now.
+        """
+        self.start_frame()
+        self._frame_pose = None
+        # The scene is gray (white sun, gray albedo), so one channel carries it all.
+        return self._renderer.read_green()
+
+    def start_frame(self) -> None:
+        """Start drawing the camera's frame of the world as it is now, to be read by :meth:`render_signal`.
+
+        The GL driver draws it while the caller goes on (``CameraRenderer.draw``): the closed loop
+        starts a frame it will need before it feeds the other sensors to the flight software. Nothing
+        is kept that could go stale: :meth:`render_signal` reads this frame only if the poses a frame
+        is drawn from (``_frame_pose``) are still those it was started with, and draws another if
+        not. Starting a frame that is never read costs only its drawing.
         """
         if self._renderer is None:
             self._renderer = CameraRenderer(self.model, self.camera_cfg.width_px, self.camera_cfg.height_px,
                                             texture_key=self._texture_key(), culled=self._camera_tiles)
-        # The scene is gray (white sun, gray albedo), so one channel carries it all.
-        return self._renderer.render_green(self.data, self._cam)
+        pose = self._frame_pose_now()
+        if pose != self._frame_pose:
+            self._renderer.draw(self.data, self._cam)
+            self._frame_pose = pose
+
+    def _frame_pose_now(self) -> bytes:
+        """What a camera frame is drawn from, as bytes: the joints, the camera and every geom's pose."""
+        d = self.data
+        return b"".join(a.tobytes() for a in (d.qpos, d.cam_xpos, d.cam_xmat, d.geom_xpos, d.geom_xmat))
 
     def render_depth(self) -> np.ndarray:
         """Z-depth along the boresight, (H, W) float32 [m]."""

@@ -257,3 +257,44 @@ def test_gl_info_reads_the_strings_of_the_cameras_context():
                 ("vendor", GL.GL_VENDOR), ("renderer", GL.GL_RENDERER), ("version", GL.GL_VERSION))}
     assert info == expected == probed
     assert all(expected.values())
+
+
+def test_a_frame_started_ahead_is_the_frame_and_a_stale_one_is_never_read():
+    """World.start_frame hands the frame to the GL driver, render_signal reads it: the pixels of
+    MuJoCo's own renderer. When the world moves in between, the frame is drawn again at the new pose
+    (reading the started one would return the old view)."""
+    sc = _scenario()
+    with build_world(sc) as world:
+        _pose(world, 300.0, 0.0)
+        at_a = _reference_frame(world)
+        world.start_frame()
+        world.start_frame()  # the same pose: drawn once
+        assert np.array_equal(world.render_signal(), at_a)
+        world.start_frame()
+        _pose(world, 60.0, 7.5)  # the world moves before the frame is read
+        at_b = _reference_frame(world)
+        assert not np.array_equal(at_a, at_b)
+        assert np.array_equal(world.render_signal(), at_b)
+        world.start_frame()  # a frame started and never read is dropped by the next pose's frame
+        _pose(world, 20.0, -3.0)
+        assert np.array_equal(world.render_signal(), _reference_frame(world))
+        assert np.array_equal(world.render_signal(), _reference_frame(world))  # read twice: drawn again
+
+
+def test_camera_frame_at_draws_its_noise_while_the_frame_is_drawn_and_gives_the_same_frame():
+    """SensorSuite.camera_frame_at takes the frame's normal draws ahead: the same frame as the noise
+    drawn after the render, with and without an exposure gain, and without any noise."""
+    from bench.sim.world_builder import build_sensors
+    from models.camera import apply_detector_noise
+
+    for extra in ([], ["camera.shot_noise=false", "camera.read_noise_dn=0"]):
+        sc = _scenario(*extra)
+        sensors = build_sensors(sc)
+        with build_world(sc) as world:
+            _pose(world, 120.0, 4.0)
+            for index, gain in ((3, 1.0), (7, 0.6), (8, 1.7)):
+                signal = world.render_signal()
+                if gain != 1.0:
+                    signal = np.clip(signal.astype(np.float32) * np.float32(gain), 0.0, 255.0)
+                want = apply_detector_noise(signal, world.camera_cfg, sensors.frame_rng(index))
+                assert np.array_equal(sensors.camera_frame_at(world, index, gain), want)

@@ -332,6 +332,13 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                 world.set_engine_fault(faults.thrust_gain(t_ns), faults.fault_torque_B_Nm(t_ns),
                                        faults.thrust_direction_B(t_ns))
                 world.propulsion.set_rcs_fault(faults.rcs_fault(t_ns))
+            camera_tick = "camera" in periods and t_ns % periods["camera"] == 0
+            if camera_tick and cam.enabled and (recorder is not None or (tracker_truth is None and fsw.wants_image())):
+                # A frame the tracker will want: the GL driver draws it while the other sensors are fed to the
+                # flight software (World.start_frame; read below, redrawn if the world has moved since).
+                t0 = time.perf_counter()
+                world.start_frame()
+                timing["render_s"] += time.perf_counter() - t0
             # Sensors due now (zero-order hold between samples); the filter consumes them.
             t0 = time.perf_counter()
             if t_ns % periods["imu"] == 0:
@@ -353,7 +360,7 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                                           fsw.on_altimeter)
                 alt_msg = msg if msg is not None else alt_msg
             timing["filter_s"] += time.perf_counter() - t0
-            if "camera" in periods and t_ns % periods["camera"] == 0:
+            if camera_tick:
                 tracks = None
                 frame = None
                 delivered = faults is None or (faults.frame_delivered(t_ns) and not down)

@@ -17,7 +17,7 @@ import numpy as np
 from bench.scenario import Scenario, ScenarioError
 from bench.scenario.seeding import component_rng, component_seed
 from bench.sim.terrain_cache import cached_terrain
-from models.camera import apply_detector_noise
+from models.camera import apply_detector_noise, detector_normal
 from models.faults import FaultInjector, terrain_step_heights
 from models.render_context import free_shared_contexts
 from models.sensors import AltimeterModel, ImuModel, StarTrackerModel
@@ -179,11 +179,15 @@ class SensorSuite:
         """Render and corrupt camera frame ``frame_index`` of the run, (H, W) uint8 (see :meth:`frame_rng`).
 
         ``exposure_gain`` multiplies the scene's signal before the detector noise (an ``exposure`` fault).
+        The frame's noise is drawn while the GL driver draws the frame (``World.start_frame``).
         """
+        cfg = world.camera_cfg
+        world.start_frame()
+        normal = detector_normal((cfg.height_px, cfg.width_px), cfg, self.frame_rng(frame_index))
         signal = world.render_signal()
         if exposure_gain != 1.0:
             signal = np.clip(signal.astype(np.float32) * np.float32(exposure_gain), 0.0, 255.0)
-        return apply_detector_noise(signal, world.camera_cfg, self.frame_rng(frame_index))
+        return apply_detector_noise(signal, cfg, None, normal)
 
 
 def build_sensors(scenario: Scenario) -> SensorSuite:

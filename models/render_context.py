@@ -124,6 +124,7 @@ class _SharedContext:
         self.size = (width, height)
         self.thread: int | None = None  # the thread whose worlds use it; None while idle
         self.users = 0
+        self.frame_token: object | None = None  # identifies the last frame drawn in it (CameraRenderer.draw)
         self.gl = mujoco.GLContext(width, height)
         # mujoco.GLContext.as_current (MuJoCo >= 3.3) restores the thread's previous context,
         # none included, afterwards; without it the context stays current in its thread, so
@@ -142,6 +143,7 @@ class _SharedContext:
             if self.mjr is not None:
                 self.mjr.free()
             self.mjr = mujoco.MjrContext(model, FONT_SCALE.value)
+            self.frame_token = None
             mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self.mjr)
             self.mjr.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
         self.key = key
@@ -291,6 +293,7 @@ class CameraRenderer:
         self._camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
         self._rect = mujoco.MjrRect(0, 0, width, height)
         self._rgb = np.empty((height, width, 3), np.uint8)
+        self._frame_token: object | None = None
         self._culled = culled
         if culled is not None:
             culled.show_in(self._option)
@@ -333,6 +336,12 @@ class CameraRenderer:
         with self._ctx.current():
             mujoco.mjr_render(self._rect, self._scene, self._ctx.mjr)
             _gl_flush()
+        self._frame_token = self._ctx.frame_token = object()
+
+    def holds_frame(self) -> bool:
+        """Whether the context's frame buffer still holds this renderer's last :meth:`draw` (another
+        world's renderer sharing the context has not drawn since)."""
+        return self._ctx is not None and self._frame_token is not None and self._ctx.frame_token is self._frame_token
 
     def read_green(self) -> np.ndarray:
         """The green channel of the frame last drawn (:meth:`draw`), (H, W) uint8, image row 0 at the top."""

@@ -720,14 +720,15 @@ class World:
         The GL driver draws it while the caller goes on (``CameraRenderer.draw``): the closed loop
         starts a frame it will need before it feeds the other sensors to the flight software. Nothing
         is kept that could go stale: :meth:`render_signal` reads this frame only if the poses a frame
-        is drawn from (``_frame_pose``) are still those it was started with, and draws another if
-        not. Starting a frame that is never read costs only its drawing.
+        is drawn from (``_frame_pose``) are still those it was started with and no other world sharing
+        the render context has drawn since, and draws another if not. Starting a frame that is never
+        read costs only its drawing.
         """
         if self._renderer is None:
             self._renderer = CameraRenderer(self.model, self.camera_cfg.width_px, self.camera_cfg.height_px,
                                             texture_key=self._texture_key(), culled=self._camera_tiles)
         pose = self._frame_pose_now()
-        if pose != self._frame_pose:
+        if pose != self._frame_pose or not self._renderer.holds_frame():
             self._renderer.draw(self.data, self._cam)
             self._frame_pose = pose
 

@@ -281,6 +281,21 @@ def test_a_frame_started_ahead_is_the_frame_and_a_stale_one_is_never_read():
         assert np.array_equal(world.render_signal(), _reference_frame(world))  # read twice: drawn again
 
 
+def test_a_frame_started_is_drawn_again_when_another_world_drew_in_the_shared_context():
+    """Two worlds over one terrain share a GL context, and so its frame buffer: a frame started by one
+    is not read after the other has drawn there (it would be the other's view)."""
+    sc = _scenario()
+    terrain = build_terrain(sc)
+    with build_world(sc, terrain) as a, build_world(sc, terrain) as b:
+        _pose(a, 300.0, 0.0)
+        _pose(b, 60.0, 7.5)
+        want_a, want_b = _reference_frame(a), _reference_frame(b)
+        a.start_frame()
+        assert np.array_equal(b.render_signal(), want_b)
+        assert a._renderer._ctx is b._renderer._ctx  # shared
+        assert np.array_equal(a.render_signal(), want_a)
+
+
 def test_camera_frame_at_draws_its_noise_while_the_frame_is_drawn_and_gives_the_same_frame():
     """SensorSuite.camera_frame_at takes the frame's normal draws ahead: the same frame as the noise
     drawn after the render, with and without an exposure gain, and without any noise."""

@@ -12,8 +12,8 @@ start: importing matplotlib and loading its fonts and text machinery took about 
 the twelve panels (1.5–2.3 s in all, against about 1.0 s warm). Here a process forked from the
 campaign workers' fork server imports matplotlib and draws a small figure of the same kinds of
 artists while the run flies (on the second core, which the closed loop leaves partly idle), makes
-the run figure's empty panels and their ticks (:func:`~bench.report.report.plot_canvas`), then waits; at the end it
-draws the run's figure warm while the run writes its other files and the video
+the run figure's empty panels and their ticks (:func:`~bench.report.report.plot_canvas`), then
+waits; at the end it draws the run's figure warm while the run writes its other files and the video
 process finishes.
 """
 

@@ -31,7 +31,7 @@ import hashlib
 import math
 import os
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -244,19 +244,27 @@ class CulledGeoms:
         option.geomgroup[self.hidden_group] = 0
 
 
-_GL_FLUSH = None
+def gl_function(name: str, restype: object, *argtypes: object) -> Callable:
+    """An OpenGL function of the GL library MuJoCo's context runs on, as a ctypes function.
+
+    Taken from PyOpenGL's platform object (imported with MuJoCo's EGL or OSMesa context), not from
+    ``OpenGL.GL``, whose import costs about 0.1 s for a function or two.
+    """
+    import ctypes
+
+    from OpenGL import platform  # PyOpenGL, MuJoCo's own dependency for EGL and OSMesa
+
+    return ctypes.CFUNCTYPE(restype, *argtypes)((name, platform.PLATFORM.GL))
+
+
+_GL_FLUSH: Callable | None = None
 
 
 def _gl_flush() -> None:
-    """``glFlush`` of the GL library MuJoCo's context runs on (through PyOpenGL's platform object, as
-    ``World.gl_info``; ``OpenGL.GL`` is not imported for one function)."""
+    """``glFlush``: hand the GL commands issued so far to the driver, without waiting for them."""
     global _GL_FLUSH
     if _GL_FLUSH is None:
-        import ctypes
-
-        from OpenGL import platform  # PyOpenGL, MuJoCo's own dependency for EGL and OSMesa
-
-        _GL_FLUSH = ctypes.CFUNCTYPE(None)(("glFlush", platform.PLATFORM.GL))
+        _GL_FLUSH = gl_function("glFlush", None)
     _GL_FLUSH()
 
 

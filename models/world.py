@@ -32,7 +32,7 @@ import mujoco  # noqa: E402  (the GL backend must be chosen first)
 
 from models.actuators import PropulsionModel, PropulsionOutput  # noqa: E402
 from models.camera import R_MJCAM_C, CameraConfig, intrinsics, offscreen_samples  # noqa: E402
-from models.render_context import CameraRenderer, CulledGeoms, arrays_digest, visual_digest  # noqa: E402
+from models.render_context import CameraRenderer, CulledGeoms, arrays_digest, gl_function, visual_digest  # noqa: E402
 from models.lander import (  # noqa: E402
     CONTACT_SOLREF,
     FOOTPAD_NAMES,
@@ -266,16 +266,10 @@ GL_VENDOR, GL_RENDERER, GL_VERSION = 0x1F00, 0x1F01, 0x1F02  # glGetString's nam
 
 
 def _gl_get_string():
-    """``glGetString`` of the GL library MuJoCo's context runs on, as a fresh ctypes function.
-
-    Taken from PyOpenGL's platform object (imported with MuJoCo's EGL or OSMesa context), not from
-    ``OpenGL.GL``, whose import costs about 0.1 s at the end of every run for three strings.
-    """
+    """``glGetString`` of the GL library MuJoCo's context runs on (:func:`models.render_context.gl_function`)."""
     import ctypes
 
-    from OpenGL import platform  # PyOpenGL, MuJoCo's own dependency for EGL and OSMesa
-
-    return ctypes.CFUNCTYPE(ctypes.c_char_p, ctypes.c_uint)(("glGetString", platform.PLATFORM.GL))
+    return gl_function("glGetString", ctypes.c_char_p, ctypes.c_uint)
 
 
 class World:

@@ -548,13 +548,13 @@ def test_path_violation_matches_the_array_reference(law_name):
     law = make_guidance({"law": law_name}, guidance_limits(VehicleParams(), ControlConfig()))
     rng = np.random.default_rng(5)
     grid = np.arange(law.cfg.t_go_min_s, law.cfg.t_go_max_s + 0.25, 0.5)
-    for i in range(600):
+    for i in range(200):
         r = rng.normal([0.0, 0.0, 300.0], [300.0, 300.0, 200.0])
         v = rng.normal([0.0, 0.0, -20.0], [15.0, 15.0, 15.0])
         r_f, v_f = np.array([0.0, 0.0, 30.0]) + rng.normal(0.0, 5.0, 3), np.array([0.0, 0.0, -1.0])
         mass = float(rng.uniform(1500.0, 2100.0))
         z_B = rng.normal(0.0, 0.3, 3) + [0.0, 0.0, 1.0]
-        t_go = grid if i % 10 == 0 else np.array([rng.uniform(1.0, 90.0)])
+        t_go = grid if i % 20 == 0 else np.array([rng.uniform(1.0, 90.0)])
         for margins, axis in ((False, None), (True, None), (True, z_B)):
             viol, dv = law.path_violation(r, v, mass, r_f, v_f, t_go, with_margins=margins, z_B_L=axis)
             want_viol, want_dv = _ref_path_violation(law, r, v, mass, r_f, v_f, t_go, margins, axis)

@@ -147,17 +147,16 @@ def test_plots_on_a_canvas_made_ahead_are_the_same_file(tmp_path, terrain, nav):
     """The plot process makes the empty panels and their ticks before the telemetry arrives: the same
     PNG, byte for byte; a canvas of the other layout is not used (its panels would not fit)."""
     kwargs = dict(title="synthetic descent", criteria=CRITERIA, touchdown={"t_s": 9.8})
-    tel = descent_telemetry(nav=nav)
+    tel = descent_telemetry(n=201, nav=nav)
     fresh = write_plots(tel, terrain, tmp_path / "fresh.png", **kwargs).read_bytes()
-    ahead = write_plots(tel, terrain, tmp_path / "ahead.png", canvas=plot_canvas(nav), **kwargs).read_bytes()
     ticked = plot_canvas(nav, ticks=10)
-    assert all(len(ax.xaxis.majorTicks) >= 10 for ax in ticked.axes)
-    ahead_ticks = write_plots(tel, terrain, tmp_path / "ticks.png", canvas=ticked, **kwargs).read_bytes()
-    other = plot_canvas(not nav)
-    wrong = write_plots(tel, terrain, tmp_path / "wrong.png", canvas=other, **kwargs).read_bytes()
-    assert ahead == fresh and ahead_ticks == fresh and wrong == fresh
-    assert not any(ax.has_data() for ax in other.axes)  # left as it was
-    assert len(plot_canvas(True).axes) == 3 * PLOT_COLUMNS_NAV and len(plot_canvas(False).axes) == 3 * PLOT_COLUMNS_PLAIN
+    assert all(len(ax.xaxis.majorTicks) >= 10 and len(ax.yaxis.majorTicks) >= 10 for ax in ticked.axes)
+    assert write_plots(tel, terrain, tmp_path / "ticks.png", canvas=ticked, **kwargs).read_bytes() == fresh
+    assert len(ticked.axes) == 3 * (PLOT_COLUMNS_NAV if nav else PLOT_COLUMNS_PLAIN)
+    if nav:  # a canvas of the other layout: left as it was, and the same file
+        other = plot_canvas(False)
+        assert write_plots(tel, terrain, tmp_path / "other.png", canvas=other, **kwargs).read_bytes() == fresh
+        assert not any(ax.has_data() for ax in other.axes)
 
 
 def test_plots_tolerate_no_touchdown_and_nan(tmp_path, terrain):

@@ -124,7 +124,9 @@ class _SharedContext:
         self.size = (width, height)
         self.thread: int | None = None  # the thread whose worlds use it; None while idle
         self.users = 0
-        self.frame_token: object | None = None  # identifies the last frame drawn in it (CameraRenderer.draw)
+        # What its frame buffer holds, started by CameraRenderer.start and not read yet: (renderer,
+        # frame key); None when it holds no such frame.
+        self.started: tuple | None = None
         self.gl = mujoco.GLContext(width, height)
         # mujoco.GLContext.as_current (MuJoCo >= 3.3) restores the thread's previous context,
         # none included, afterwards; without it the context stays current in its thread, so
@@ -143,7 +145,7 @@ class _SharedContext:
             if self.mjr is not None:
                 self.mjr.free()
             self.mjr = mujoco.MjrContext(model, FONT_SCALE.value)
-            self.frame_token = None
+            self.started = None
             mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self.mjr)
             self.mjr.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
         self.key = key
@@ -301,7 +303,6 @@ class CameraRenderer:
         self._camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
         self._rect = mujoco.MjrRect(0, 0, width, height)
         self._rgb = np.empty((height, width, 3), np.uint8)
-        self._frame_token: object | None = None
         self._culled = culled
         if culled is not None:
             culled.show_in(self._option)
@@ -327,6 +328,18 @@ class CameraRenderer:
         self.draw(data, camera_id)
         return self.read_green()
 
+    def start(self, data: mujoco.MjData, camera_id: int) -> None:
+        """:meth:`draw` a frame of ``data`` as it is now, to be read by :meth:`read_green`, unless the
+        context's frame buffer already holds it: started here, not read yet, of the same camera and
+        the same poses (the joints, the camera and every geom), and no renderer sharing the context
+        has drawn since. Starting a frame that is never read costs only its drawing."""
+        d = data
+        key = (camera_id, b"".join(a.tobytes() for a in (d.qpos, d.cam_xpos, d.cam_xmat, d.geom_xpos, d.geom_xmat)))
+        held = self._ctx.started if self._ctx is not None else None
+        if held is None or held[0] is not self or held[1] != key:
+            self.draw(data, camera_id)
+            self._ctx.started = (self, key)
+
     def draw(self, data: mujoco.MjData, camera_id: int) -> None:
         """Draw a frame of ``data`` as it is now, and hand it to the GL driver without waiting for it.
 
@@ -344,12 +357,7 @@ class CameraRenderer:
         with self._ctx.current():
             mujoco.mjr_render(self._rect, self._scene, self._ctx.mjr)
             _gl_flush()
-        self._frame_token = self._ctx.frame_token = object()
-
-    def holds_frame(self) -> bool:
-        """Whether the context's frame buffer still holds this renderer's last :meth:`draw` (another
-        world's renderer sharing the context has not drawn since)."""
-        return self._ctx is not None and self._frame_token is not None and self._ctx.frame_token is self._frame_token
+        self._ctx.started = None  # the frame buffer no longer holds a started frame
 
     def read_green(self) -> np.ndarray:
         """The green channel of the frame last drawn (:meth:`draw`), (H, W) uint8, image row 0 at the top."""
@@ -357,6 +365,7 @@ class CameraRenderer:
             raise RuntimeError("render called after close")
         with self._ctx.current():
             mujoco.mjr_readPixels(self._rgb, None, self._rect, self._ctx.mjr)
+        self._ctx.started = None  # read: the next start draws again
         return np.ascontiguousarray(self._rgb[::-1, :, 1])
 
     def current(self) -> contextlib.AbstractContextManager:
@@ -367,6 +376,8 @@ class CameraRenderer:
         """Give the shared context back (freed with its last user, unless kept idle)."""
         if self._ctx is not None:
             ctx, self._ctx = self._ctx, None
+            if ctx.started is not None and ctx.started[0] is self:
+                ctx.started = None
             if ctx.pid == os.getpid():
                 _release(ctx)
 

@@ -18,6 +18,7 @@ qacc/qpos/qvel are checked and :class:`PhysicsDivergedError` is raised
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import math
 import weakref
@@ -265,13 +266,6 @@ def world_mjcf(terrain: Terrain, lander: LanderConfig, camera: CameraConfig, sun
 GL_VENDOR, GL_RENDERER, GL_VERSION = 0x1F00, 0x1F01, 0x1F02  # glGetString's names (OpenGL 1.0)
 
 
-def _gl_get_string():
-    """``glGetString`` of the GL library MuJoCo's context runs on (:func:`models.render_context.gl_function`)."""
-    import ctypes
-
-    return gl_function("glGetString", ctypes.c_char_p, ctypes.c_uint)
-
-
 class World:
     """MuJoCo truth world with propulsion, truth signals and rendering.
 
@@ -329,7 +323,6 @@ class World:
         self.propulsion = PropulsionModel(lander)
         self.K = intrinsics(camera)
         self._renderer: CameraRenderer | None = None
-        self._frame_pose: bytes | None = None  # the poses of the frame started (start_frame), not yet read
         self._camera_tiles = None if tiles is None else CulledGeoms(
             geom_ids=np.array([m.geom(f"terrain_tile{k}").id for k in range(len(tiles.corners_L))]),
             corners=tiles.corners_L, group=TERRAIN_TILE_GEOM_GROUP, hidden_group=HIDDEN_TILE_GEOM_GROUP,
@@ -704,32 +697,22 @@ class World:
         otherwise the frame is drawn now.
         """
         self.start_frame()
-        self._frame_pose = None
         # The scene is gray (white sun, gray albedo), so one channel carries it all.
         return self._renderer.read_green()
 
     def start_frame(self) -> None:
         """Start drawing the camera's frame of the world as it is now, to be read by :meth:`render_signal`.
 
-        The GL driver draws it while the caller goes on (``CameraRenderer.draw``): the closed loop
+        The GL driver draws it while the caller goes on (``CameraRenderer.start``): the closed loop
         starts a frame it will need before it feeds the other sensors to the flight software. Nothing
-        is kept that could go stale: :meth:`render_signal` reads this frame only if the poses a frame
-        is drawn from (``_frame_pose``) are still those it was started with and no other world sharing
-        the render context has drawn since, and draws another if not. Starting a frame that is never
-        read costs only its drawing.
+        is kept that could go stale: the frame is read only if the world's poses are still those it was
+        started with and no other world sharing the render context has drawn since; otherwise
+        :meth:`render_signal` draws another.
         """
         if self._renderer is None:
             self._renderer = CameraRenderer(self.model, self.camera_cfg.width_px, self.camera_cfg.height_px,
                                             texture_key=self._texture_key(), culled=self._camera_tiles)
-        pose = self._frame_pose_now()
-        if pose != self._frame_pose or not self._renderer.holds_frame():
-            self._renderer.draw(self.data, self._cam)
-            self._frame_pose = pose
-
-    def _frame_pose_now(self) -> bytes:
-        """What a camera frame is drawn from, as bytes: the joints, the camera and every geom's pose."""
-        d = self.data
-        return b"".join(a.tobytes() for a in (d.qpos, d.cam_xpos, d.cam_xmat, d.geom_xpos, d.geom_xmat))
+        self._renderer.start(self.data, self._cam)
 
     def render_depth(self) -> np.ndarray:
         """Z-depth along the boresight, (H, W) float32 [m]."""
@@ -752,7 +735,7 @@ class World:
                 the same backend (no scene, no textures) instead of returning None.
         """
         def strings() -> dict[str, str]:
-            get_string = _gl_get_string()
+            get_string = gl_function("glGetString", ctypes.c_char_p, ctypes.c_uint)
             return {name: get_string(code).decode("utf-8", "replace")
                     for name, code in (("vendor", GL_VENDOR), ("renderer", GL_RENDERER), ("version", GL_VERSION))}
 

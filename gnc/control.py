@@ -58,7 +58,7 @@ from gnc.config import validate_options, validated_config
 from gnc.guidance import LUNAR_GRAVITY_MPS2, GuidanceCommand, GuidanceLimits, TiltLimitConfig
 from gnc.messages import N_LEGS, ContactMessage
 from gnc.navstate import NavState
-from gnc.numeric import clip_float, cross3, max_abs3, norm
+from gnc.numeric import clip_float, cross3, finite_small, max_abs3, norm
 from gnc.quat import body_z_L, quat_error, quat_from_elements, unit_quaternion
 
 # Propellant modelled as a uniform sphere: I = SPHERE_INERTIA_FACTOR * m * r^2.
@@ -220,11 +220,6 @@ def guidance_limits(vehicle: VehicleParams, cfg: ControlConfig) -> GuidanceLimit
 
 
 # --------------------------------------------------------------------------- stages
-def _finite(a: np.ndarray) -> bool:
-    """``bool(np.all(np.isfinite(a)))`` of a small float array, element by element on floats."""
-    return all(map(math.isfinite, a.ravel().tolist()))
-
-
 def thrust_vector_command(
     a_cmd_L: np.ndarray,
     g_L: np.ndarray,
@@ -420,7 +415,7 @@ class Controller:
         q = unit_quaternion(nav.q_LB)  # normalised once: the thrust projection and the attitude loop use it
         if self.cfg.thrust_projection == "body_axis" and q is not None:
             z_B_L = body_z_L(q)
-        if cmd.valid and _finite(a_cmd) and math.isfinite(mass) and math.isfinite(altitude):
+        if cmd.valid and finite_small(a_cmd) and math.isfinite(mass) and math.isfinite(altitude):
             self._thrust_hold_N, z_cmd_L = thrust_vector_command(
                 a_cmd, self.g_L, mass, altitude, self.vehicle, self.cfg.tilt, z_B_L
             )
@@ -429,7 +424,7 @@ class Controller:
         omega = np.asarray(nav.omega_B, float)
         torque_max = self.vehicle.rcs_torque_max_Nm
         torque = (0.0, 0.0, 0.0)
-        if q is not None and _finite(omega):
+        if q is not None and finite_small(omega):
             inertia = self.vehicle.inertia_B_kgm2(mass if math.isfinite(mass) else self.vehicle.dry_mass_kg)
             tau = attitude_torque_B(q, omega, self._q_cmd_hold, inertia, self.cfg, torque_max).tolist()
             if all(map(math.isfinite, tau)):  # cannot fail with finite inputs; never emit NaN

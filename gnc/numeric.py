@@ -17,6 +17,12 @@ def all_finite(*arrays: np.ndarray) -> bool:
     return bool(np.isfinite(np.concatenate([np.ravel(a) for a in arrays])).all())
 
 
+def finite_small(a: np.ndarray) -> bool:
+    """``bool(np.all(np.isfinite(a)))`` of one small float array (a 3- or 4-vector of one control
+    tick): element by element on floats, several times cheaper there than :func:`all_finite`."""
+    return all(map(math.isfinite, a.ravel().tolist()))
+
+
 def median(a: np.ndarray) -> float:
     """``float(np.median(a))`` of a non-empty 1-D array, by one partition."""
     n = a.size

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from gnc.numeric import all_finite, median
+from gnc.numeric import all_finite, finite_small, median
 from gnc.vision_nav import _image_cells, _rays_L
 
 
@@ -24,6 +24,16 @@ def test_all_finite_finds_one_bad_value_in_any_array(bad):
             b = [x.copy() for x in arrays]
             b[k].flat[i] = bad
             assert not all_finite(*b)
+
+
+def test_finite_small_is_np_all_isfinite():
+    rng = np.random.default_rng(8)
+    for shape in [(3,), (4,), (2, 2), (1,)]:
+        for _ in range(200):
+            a = rng.normal(0.0, 10.0, shape) * 10.0 ** rng.integers(-300, 300)
+            if rng.random() < 0.5:
+                a.flat[rng.integers(a.size)] = rng.choice([np.nan, np.inf, -np.inf, 0.0, -0.0, 1e308])
+            assert finite_small(a) == bool(np.all(np.isfinite(a))), a
 
 
 def test_image_cells_label_like_numpy_unique():

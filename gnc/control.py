@@ -426,9 +426,9 @@ class Controller:
         torque = (0.0, 0.0, 0.0)
         if q is not None and finite_small(omega):
             inertia = self.vehicle.inertia_B_kgm2(mass if math.isfinite(mass) else self.vehicle.dry_mass_kg)
-            tau = attitude_torque_B(q, omega, self._q_cmd_hold, inertia, self.cfg, torque_max).tolist()
-            if all(map(math.isfinite, tau)):  # cannot fail with finite inputs; never emit NaN
-                torque = tau
+            tau = attitude_torque_B(q, omega, self._q_cmd_hold, inertia, self.cfg, torque_max)
+            if finite_small(tau):  # cannot fail with finite inputs; never emit NaN
+                torque = tau.tolist()
         torque = np.array([clip_float(t, -torque_max, torque_max) for t in torque])
         thrust = clip_float(float(self._thrust_hold_N), self.vehicle.thrust_min_N, self.vehicle.thrust_max_N)
         return ActuatorCommand(thrust, torque, True, t_ns, self._q_cmd_hold.copy())

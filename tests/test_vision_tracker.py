@@ -209,6 +209,23 @@ def test_redetection_replaces_lost_tracks():
     assert np.isnan(t2.prev_xy).all()
 
 
+def test_templates_left_without_a_track_are_tracked_on_without_error():
+    # A scene fading to a flat grey (glare, haze): at 3 % contrast LK and the
+    # forward-backward check lose every point, the block matching keeps some
+    # templates (their energy is under the floor) and re-detection finds no
+    # point in them. The next frame then has templates but no point to solve,
+    # which OpenCV's LK refuses (an empty point set); the tracker must carry on.
+    frames = translated_frames(6, (1.3, 0.6), size=256, seed=2)
+    tr = Tracker()
+    for frame, contrast in zip(frames, (1.0, 0.3, 0.1, 0.03)):
+        out = tr.step(np.rint(128 + contrast * (frame.astype(np.float32) - 128)).astype(np.uint8))
+    assert len(out) == 0 and tr.templates.shape[0] > 0  # the state under test
+    dim = tr.step(np.rint(128 + 0.03 * (frames[4].astype(np.float32) - 128)).astype(np.uint8))
+    assert len(dim) == 0 and dim.xy.shape == (0, 2)
+    back = tr.step(frames[5])  # full contrast again: new templates and points
+    assert len(back) > 20
+
+
 def test_templates_are_spread_and_inside():
     frames = translated_frames(2, (1.0, 0.0), size=256)
     cfg = TrackerConfig()

@@ -770,9 +770,15 @@ class Tracker:
                 -ox_p, -oy_p, dx - ox_c, dy - oy_c, ox_c - ox_p - dx, oy_c - oy_p - dy, ox_c, oy_c, *bounds,
             ))
         per_t = np.array(rows, dtype=np.float64).reshape(-1, 12)
-        # Per point: one gather of its template's row.
-        g = per_t[self._tpl_of]
-        xy = self._xy
+        # Per point: one gather of its template's row. The points of a template
+        # lost in this step go with it: they are not solved (LK solves each
+        # point on its own, so the others' results do not change).
+        xy, flow, tpl_of = self._xy, self._flow, self._tpl_of
+        live = None
+        if len(kept) < n_t:
+            live = np.flatnonzero(np.isfinite(per_t[tpl_of, 8]))
+            xy, flow, tpl_of = xy[live], flow[live], tpl_of[live]
+        g = per_t[tpl_of]
         n = xy.shape[0]
         # LK inputs in mosaic coordinates, float32 as OpenCV takes them: the
         # points of frame k, the forward starts (position + seed) and the
@@ -785,12 +791,14 @@ class Tracker:
         pts = np.empty((3, n, 2), np.float32)
         np.add(xy, g[:, 0:2], out=pts[0], casting="unsafe")
         if track_seed:
-            np.add(xy + self._flow, g[:, 2:4], out=pts[1], casting="unsafe")
-            np.subtract(g[:, 4:6], self._flow, out=pts[2], casting="unsafe")
+            np.add(xy + flow, g[:, 2:4], out=pts[1], casting="unsafe")
+            np.subtract(g[:, 4:6], flow, out=pts[2], casting="unsafe")
         else:
             np.add(xy, g[:, 2:4], out=pts[1], casting="unsafe")
             pts[2] = g[:, 4:6]
-        if cfg.lk_backend == "opencv" and cfg.fb_check:
+        if n == 0:  # no point to solve (OpenCV's LK refuses an empty set)
+            q_mos, ok = np.zeros((0, 2), np.float32), np.zeros(0, bool)
+        elif cfg.lk_backend == "opencv" and cfg.fb_check:
             kw_fwd, kw_back = self._lk_kwargs
             q_mos, ok = forward_backward_opencv_ok(mos_prev, mos_cur, pts, kw_fwd, kw_back, cfg.fb_max_px,
                                                    cfg.fb_blend)
@@ -803,7 +811,7 @@ class Tracker:
         else:
             back_window = cfg.lk_window if cfg.fb_window is None else min(cfg.fb_window, cfg.lk_window)
             p_mos = xy + g[:, 0:2]
-            guess = (xy + self._flow if track_seed else xy) + g[:, 2:4]
+            guess = (xy + flow if track_seed else xy) + g[:, 2:4]
             fb = forward_backward(mos_prev, mos_cur, p_mos, guess, None, cfg.fb_max_px, backend="numpy",
                                   window=cfg.lk_window, max_iter=cfg.lk_max_iter, eps=cfg.lk_eps_px,
                                   min_eig=cfg.lk_min_eig, back_window=back_window)
@@ -819,9 +827,11 @@ class Tracker:
         old_xy = xy[idx]
         self._xy = q_mos[idx] + g[idx, 6:8]
         self._flow = self._xy - old_xy
+        self._tpl_of = tpl_of[idx]
+        if live is not None:
+            idx = live[idx]  # back to the indices of all this step's tracks
         self._ids = self._ids[idx]
         self._age = self._age[idx] + 1
-        self._tpl_of = self._tpl_of[idx]
         # (t, bx, by, sx, sy) of the kept templates; integers and their
         # sub-pixel displacements are exact in float64.
         kept_arr = np.array(kept, dtype=np.float64).reshape(-1, 5)

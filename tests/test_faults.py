@@ -307,6 +307,28 @@ def test_reset_and_thrust_loss_in_the_loop():
     assert "computer" in events and res.summary["faults"][0]["detected"]
 
 
+def test_a_reset_at_hand_over_restarts_from_the_hand_over_data():
+    from bench.sim.run import run
+
+    # Down from t = 0, before the first control tick: no checkpoint yet, so the restart takes the hand-over's
+    # own estimate (as loaded, never updated) carried ballistically over the second down.
+    sc = load_scenario(None, [*SHORT, 'faults=[{kind="computer_reset", t_s=0.0, down_s=1.0}]'])
+    res = run(sc)
+    tel = res.telemetry
+    down = tel["t_s"] < 1.0
+    assert set(tel["phase"][down]) == {"off"} and np.isnan(tel["t_go_s"][down]).all()  # guidance never ran
+    assert not tel["engine_on"][down].any() and set(tel["phase"][~down]) <= {"approach", "terminal", "touchdown"}
+    r0 = np.array([tel[f"nav_r_{a}_m"][0] for a in "xyz"])
+    v0 = np.array([tel[f"nav_v_{a}_mps"][0] for a in "xyz"])
+    first = np.flatnonzero(~down)[0]
+    r1 = np.array([tel[f"nav_r_{a}_m"][first] for a in "xyz"])
+    g_L = np.array([0.0, 0.0, -sc.estimator.gravity_mps2])
+    # Horizontally nothing has updated it yet; the height has had the altimeter's update at t = 1 s.
+    np.testing.assert_allclose(r1[:2], (r0 + v0 * 1.0)[:2], atol=1e-3)
+    assert abs(r1[2] - (r0 + v0 * 1.0 + 0.5 * g_L)[2]) < 2.0
+    assert [e["reason"] for e in res.summary["fdir_events"]][:1] == ["computer restarted after 1.00 s down"]
+
+
 def test_a_fault_that_never_triggers_changes_nothing():
     from bench.sim.run import run
 

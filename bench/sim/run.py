@@ -73,7 +73,7 @@ from bench.sim.world_builder import SensorSuite, build_sensors, build_terrain, b
 from gnc.control import ActuatorCommand
 from gnc.estimator import IDX_BA, IDX_R, IDX_V
 from gnc.flight import FlightSoftware
-from gnc.guidance import PHASE_TERMINAL
+from gnc.guidance import PHASE_OFF, PHASE_TERMINAL
 from gnc.messages import AltimeterMessage, AttitudeMessage, ContactMessage, ImageMessage, ImuMessage
 from gnc.navstate import NavState
 from models.camera import R_BC
@@ -421,9 +421,10 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                     pipeline.extend([act] * latency_ticks)  # at hand-over the computer was already flying it
                 pipeline.append(act)
                 applied = pipeline.popleft()
-                tel.rows.append(_row(t_ns, truth, act, fsw.last_guidance, legs, imu_msg, alt_msg, st_msg, thrust_max,
-                                     world.propulsion.delivered_thrust_N(applied.thrust_N),
-                                     PHASE_TOUCHDOWN if touchdown is not None else fsw.last_guidance.phase,
+                guid = fsw.last_guidance  # None until guidance first runs (a computer down from the start)
+                phase = PHASE_TOUCHDOWN if touchdown is not None else guid.phase if guid is not None else PHASE_OFF
+                tel.rows.append(_row(t_ns, truth, act, guid, legs, imu_msg, alt_msg, st_msg, thrust_max,
+                                     world.propulsion.delivered_thrust_N(applied.thrust_N), phase,
                                      fsw, sensors.imu.accel_bias, applied, tel, nav_offset_L))
             # End conditions.
             if touchdown_ns is not None and t_ns - touchdown_ns >= settle_ns:
@@ -827,7 +828,8 @@ def _row(t_ns, truth, act, cmd, legs, imu, alt, st, thrust_max, thrust_delivered
     """One tick's ``_Telemetry.ROW_COLUMNS``; its NEES error and covariance block go to ``tel``.
 
     ``nav_offset_L``: where the flight software's navigation frame puts the truth, minus the truth (the
-    map's shift with map fixes); None: its frame is L.
+    map's shift with map fixes); None: its frame is L. ``cmd`` None (guidance has not run yet: the
+    computer down from the start): its columns are NaN.
     """
     nan3 = (math.nan,) * 3
     x, P = fsw.filter.ekf.x, fsw.filter.ekf.P
@@ -843,7 +845,8 @@ def _row(t_ns, truth, act, cmd, legs, imu, alt, st, thrust_max, thrust_delivered
         t_ns / NS_PER_S, *truth.r_BL_L.tolist(), *truth.v_BL_L.tolist(), *truth.q_LB.tolist(),
         *truth.omega_B.tolist(), truth.mass_kg, truth.propellant_kg, tilt_deg(truth.q_LB),
         act.thrust_N, thrust_delivered, thrust_delivered / thrust_max, *act.torque_B_Nm.tolist(),
-        *act.q_LB_cmd.tolist(), *np.asarray(cmd.a_cmd_L, float).tolist(), cmd.t_go_s, act.engine_on, phase,
+        *act.q_LB_cmd.tolist(), *(np.asarray(cmd.a_cmd_L, float).tolist() if cmd is not None else nan3),
+        cmd.t_go_s if cmd is not None else math.nan, act.engine_on, phase,
         int(legs.sum()),
         *(imu.f_B if imu is not None else nan3), *(imu.omega_B if imu is not None else nan3),
         alt.range_m if alt is not None else math.nan, bool(alt.valid) if alt is not None else False,

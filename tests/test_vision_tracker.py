@@ -103,6 +103,28 @@ def test_geometry_scales_with_frames_larger_than_the_reference():
     assert fixed.for_side(512) is fixed
 
 
+def test_the_scaled_geometry_stops_at_the_fields_limits():
+    # A camera of up to 4096 px is a valid scenario: its frames must get a valid configuration, not a
+    # ValidationError. Below the limits the rule above; above them W1 stops at 15, the template at 255
+    # (the largest multiple of Sx = Sy = 5 up to 256), and the edge margin grows to W1's detection margin.
+    cfg = TrackerConfig()
+    expected = {1024: (120, 84, 9, 8), 2048: (240, 168, 15, 8), 4096: (255, 336, 15, 8)}
+    for side, (size, border, w1, edge) in expected.items():
+        big = cfg.for_side(side)
+        assert (big.template_size, big.border_px, big.fp_window, big.edge_margin_px) == (size, border, w1, edge)
+        assert big.lambda_t == pytest.approx(30.0 * w1**2 / 9.0)
+    # A small reference scales a 512 frame by 8 (W1 = 17 uncapped) and a 3 px edge margin must grow to 8.
+    small = TrackerConfig(reference_side_px=64, template_size=10, lk_window=3, edge_margin_px=3, border_px=6)
+    scaled = small.for_side(512)
+    assert (scaled.template_size, scaled.fp_window, scaled.edge_margin_px, scaled.border_px) == (80, 15, 8, 48)
+    frames = translated_frames(2, (2.0, 1.0), size=512, seed=4)
+    tr = Tracker(small)
+    tr.step(frames[0])
+    out = tr.step(frames[1])
+    old = ~np.isnan(out.prev_xy[:, 0])
+    assert old.sum() > 20 and np.median(np.linalg.norm(out.xy[old] - out.prev_xy[old] - (2.0, 1.0), axis=1)) < 0.1
+
+
 def test_a_512_frame_is_tracked_with_the_scaled_geometry():
     step = (2.4, -1.3)
     frames = translated_frames(6, step, size=512, seed=3)

@@ -71,6 +71,12 @@ from vision.fixation import (
 from vision.lk import forward_backward, forward_backward_opencv_ok, forward_opencv_fast, seeded_lk_kwargs
 from vision.tracks import Tracks, check_image
 
+TEMPLATE_SIZE_MAX = 256
+"""Largest template side [px] (``TrackerConfig.template_size``, also for frames scaled up)."""
+
+FP_WINDOW_MAX = 15
+"""Largest odd W1 [px] (``TrackerConfig.fp_window``, also for frames scaled up)."""
+
 FULL_SCALE_DN = 255.0
 """8-bit full scale [DN]: the intensity scale every threshold is expressed in."""
 
@@ -271,7 +277,7 @@ class TrackerConfig(BaseModel):
     subsample_x: int = Field(5, ge=1, le=64, description="Sx, block-averaging interval along x, eq. (2.1) [px]")
     subsample_y: int = Field(5, ge=1, le=64, description="Sy, block-averaging interval along y, eq. (2.1) [px]")
     template_size: int = Field(
-        30, ge=5, le=256, description="Wx = Wy, side of a template / sub-image [px]; a multiple of Sx and Sy"
+        30, ge=5, le=TEMPLATE_SIZE_MAX, description="Wx = Wy, side of a template / sub-image [px]; a multiple of Sx and Sy"
     )
     n_templates: int = Field(7, ge=1, le=256, description="N, number of templates kept in track [-]")
     template_separation_frac: float = Field(
@@ -318,7 +324,7 @@ class TrackerConfig(BaseModel):
     max_rel_ssd: float = Field(
         0.6, gt=0.0, description="template lost if min SSD / template centred energy exceeds this [-] (~2: unrelated)"
     )
-    fp_window: int = Field(3, ge=1, le=15, description="W1, patch side for G, eq. (3.3) [px]; odd")
+    fp_window: int = Field(3, ge=1, le=FP_WINDOW_MAX, description="W1, patch side for G, eq. (3.3) [px]; odd")
     lambda_t: float = Field(30.0, ge=0.0, description="lambda_t, min-eigenvalue threshold of eq. (3.4) [DN^2]")
     fp_nms_radius: int = Field(1, ge=0, le=10, description="non-maximum suppression radius for feature points [px]")
     max_features_per_template: int = Field(15, ge=1, le=256, description="most feature points per sub-image [-]")
@@ -455,7 +461,9 @@ class TrackerConfig(BaseModel):
         to a multiple of Sx and Sy, ``border_px`` round(k x border_px) (at
         least the LK tile margin), ``fp_window`` (W1) the odd size nearest
         k x W1, and ``lambda_t`` scales with W1's area (G sums over W1^2
-        pixels). For frames no larger than the reference, or with
+        pixels). The template and W1 stop at their fields' limits
+        (``TEMPLATE_SIZE_MAX``, ``FP_WINDOW_MAX``), and ``edge_margin_px`` grows
+        to W1's detection margin where that is larger. For frames no larger than the reference, or with
         ``reference_side_px`` None, it is this configuration (smaller
         sub-images would not hold the detection and LK windows). The result has ``reference_side_px`` None and is
         validated as any other.
@@ -464,11 +472,12 @@ class TrackerConfig(BaseModel):
             return self
         k = side_px / self.reference_side_px
         block = math.lcm(self.subsample_x, self.subsample_y)
-        size = max(block, block * round(k * self.template_size / block))
-        w1 = 2 * max(round(k * (self.fp_window - 1) / 2), 0) + 1
-        border = max(round(k * self.border_px), self.edge_margin_px, lk_tile_margin(size, self.lk_window))
+        size = min(max(block, block * round(k * self.template_size / block)), block * (TEMPLATE_SIZE_MAX // block))
+        w1 = min(2 * max(round(k * (self.fp_window - 1) / 2), 0) + 1, FP_WINDOW_MAX)
+        edge = max(self.edge_margin_px, detection_margin(w1))
+        border = max(round(k * self.border_px), edge, lk_tile_margin(size, self.lk_window))
         return TrackerConfig.model_validate({
-            **self.model_dump(), "template_size": size, "border_px": border, "fp_window": w1,
+            **self.model_dump(), "template_size": size, "border_px": border, "fp_window": w1, "edge_margin_px": edge,
             "lambda_t": self.lambda_t * (w1 / self.fp_window) ** 2, "reference_side_px": None,
         })
 

@@ -146,6 +146,9 @@ LOW = ["initial.r_BL_L_m=[0.0, 0.0, 120.0]", "initial.v_BL_L_mps=[0.0, 0.0, -5.0
           "landing.v_horizontal_max_mps=5"], "tipped_over"),
         (["sim.t_max_ns=5000000000"], "timeout"),
         (["initial.v_BL_L_mps=[0.0, 0.0, -1e11]"], "diverged"),
+        # 40 m/s sideways with the engine off: past the 512 m terrain's edge in 6.4 s, 12 s before it would
+        # reach the ground; the run ends there instead of falling on with no ground under it.
+        (['guidance.law="off"', "initial.v_BL_L_mps=[40.0, 0.0, 0.0]"], "off_terrain"),
     ],
 )
 def test_every_failure_outcome_is_reachable(sets, outcome):
@@ -156,6 +159,8 @@ def test_every_failure_outcome_is_reachable(sets, outcome):
         assert "diverged" in s["error"] and "physics_dt_ns" in s["error"]
     if outcome == "timeout":
         assert s["touchdown"]["t_s"] is None and s["sim_time_s"] == pytest.approx(5.0)
+    if outcome == "off_terrain":
+        assert s["touchdown"]["t_s"] is None and s["sim_time_s"] == pytest.approx(256.0 / 40.0, abs=0.05)
 
 
 def test_unstable_timestep_is_refused_at_load():

@@ -40,12 +40,12 @@ if TYPE_CHECKING:  # typing only
 
     from models.terrain import Terrain
 
-OUTCOMES = ("landed", "hard_landing", "tipped_over", "slope_exceeded", "fuel_exhausted", "safe_abort", "timeout",
-            "diverged", "error")
+OUTCOMES = ("landed", "hard_landing", "tipped_over", "slope_exceeded", "fuel_exhausted", "safe_abort", "off_terrain",
+            "timeout", "diverged", "error")
 OUTCOME_COLORS = {
     "landed": "tab:green", "hard_landing": "tab:orange", "tipped_over": "tab:red",
     "slope_exceeded": "tab:olive", "safe_abort": "tab:cyan",
-    "fuel_exhausted": "tab:purple", "timeout": "tab:brown", "diverged": "tab:pink", "error": "black",
+    "fuel_exhausted": "tab:purple", "off_terrain": "tab:blue", "timeout": "tab:brown", "diverged": "tab:pink", "error": "black",
 }
 OTHER_COLOR = "tab:gray"  # outcomes not in OUTCOMES
 CONFIDENCE = 0.95

@@ -23,17 +23,18 @@ Loop (integer-nanosecond scheduler):
   ``landing.settle_s`` to see whether the lander stays upright.
 
 Outcomes, first match wins: ``diverged`` (physics blew up), ``fuel_exhausted``
-(propellant ran out before touchdown), ``timeout`` (no touchdown by
-``sim.t_max_ns``), ``hard_landing`` (touchdown beyond the velocity or tilt
+(propellant ran out before touchdown), ``off_terrain`` (the lander left the
+terrain's square before touching down: there is no ground beyond it, so the
+run ends there), ``timeout`` (no touchdown by ``sim.t_max_ns``), ``hard_landing`` (touchdown beyond the velocity or tilt
 limits), ``tipped_over`` (after settling the lander has fallen over: its
 centre of mass is outside the footpads' support polygon, or its tilt is
 beyond the static tip-over angle of its leg geometry,
 :func:`models.lander.static_tipover_deg`), ``slope_exceeded`` (it stands, but
 tilted beyond ``landing.tilt_max_deg``), ``landed``. ``safe_abort``: the flight
-software declared an abort (:mod:`gnc.fdir`) and, ``ABORT_OBSERVE_S`` later,
-the lander is still flying and not descending faster than
-``landing.v_vertical_max_mps``; an aborted lander that does not meet this
-flies on to its touchdown and is classified as any other.
+software declared an abort (:mod:`gnc.fdir`) and, ``ABORT_OBSERVE_S`` later
+(judged once, at that instant), the lander is still flying and not descending
+faster than ``landing.v_vertical_max_mps``; an aborted lander that does not
+meet this flies on to its touchdown and is classified as any other.
 
 Faults (``scenario.faults``, :mod:`models.faults`) are applied between the
 truth sensor models and the flight software's messages, in the camera's
@@ -83,8 +84,8 @@ from models.lander import LanderConfig, com_position_B, footpad_positions_B, sta
 from models.terrain import Terrain
 from models.world import PhysicsDivergedError, TruthState, World
 
-OUTCOMES = ("landed", "hard_landing", "tipped_over", "slope_exceeded", "fuel_exhausted", "safe_abort", "timeout",
-            "diverged")
+OUTCOMES = ("landed", "hard_landing", "tipped_over", "slope_exceeded", "fuel_exhausted", "safe_abort", "off_terrain",
+            "timeout", "diverged")
 PHASE_TOUCHDOWN = "touchdown"
 ABORT_OBSERVE_S = 10.0  # after a declared abort, the run goes on this long to see the lander safe
 
@@ -285,6 +286,9 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
     faults = sensors.faults
     down = False  # the flight computer is down (a computer_reset fault)
     abort_ns: int | None = None
+    abort_judged = False  # the lander has been judged ABORT_OBSERVE_S after a declared abort
+    off_terrain = False  # it left the terrain's square before touching down
+    half_size_m = terrain.size_m / 2.0
     tracker_truth = (TruthTracker(terrain, world.K, (cam.width_px, cam.height_px), TRUTH_TRACK_POINTS,
                                   component_rng(scenario.seed, "vision")) if truth_tracks else None)
     thrust_max = scenario.lander.engine.thrust_max_N
@@ -429,9 +433,14 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
             # End conditions.
             if touchdown_ns is not None and t_ns - touchdown_ns >= settle_ns:
                 break
-            if (abort_ns is not None and touchdown_ns is None and t_ns - abort_ns >= ABORT_OBSERVE_S * NS_PER_S
-                    and truth.v_BL_L[2] >= -crit.v_vertical_max_mps):
-                outcome = "safe_abort"  # declared, and seen safe: flying, not descending fast
+            if (abort_ns is not None and not abort_judged and touchdown_ns is None
+                    and t_ns - abort_ns >= ABORT_OBSERVE_S * NS_PER_S):
+                abort_judged = True  # judged once, at that instant: later it flies on to its touchdown
+                if truth.v_BL_L[2] >= -crit.v_vertical_max_mps:
+                    outcome = "safe_abort"  # declared, and seen safe: flying, not descending fast
+                    break
+            if touchdown_ns is None and max(abs(truth.r_BL_L[0]), abs(truth.r_BL_L[1])) > half_size_m:
+                off_terrain = True  # no ground beyond it: nothing left to land on
                 break
             if t_ns >= sim.t_max_ns:
                 break
@@ -453,7 +462,7 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
     final_tilt = tilt_deg(truth.q_LB)
     stability = _stability(truth, world.lander_cfg)
     if outcome is None:
-        outcome = _classify(touchdown, exhausted_ns, touchdown_ns, final_tilt, scenario, stability)
+        outcome = _classify(touchdown, exhausted_ns, touchdown_ns, final_tilt, scenario, stability, off_terrain)
     fdir_events = [e.to_dict() for e in fsw.fdir.events] if fsw.fdir is not None else []
     sim_time_s = world.t_ns / NS_PER_S
     telemetry = tel.columns(terrain, scenario.lander) if tel.rows else {}
@@ -807,12 +816,12 @@ def _stability(truth: TruthState, lander: LanderConfig) -> dict[str, float]:
 
 
 def _classify(touchdown: dict | None, exhausted_ns: int | None, touchdown_ns: int | None, final_tilt: float,
-              scenario: Scenario, stability: dict[str, float]) -> str:
+              scenario: Scenario, stability: dict[str, float], off_terrain: bool = False) -> str:
     crit = scenario.landing
     if exhausted_ns is not None and (touchdown_ns is None or exhausted_ns < touchdown_ns):
         return "fuel_exhausted"
     if touchdown is None:
-        return "timeout"
+        return "off_terrain" if off_terrain else "timeout"
     if (touchdown["v_vertical_mps"] > crit.v_vertical_max_mps or touchdown["v_horizontal_mps"] > crit.v_horizontal_max_mps
             or touchdown["tilt_deg"] > crit.tilt_max_deg):
         return "hard_landing"

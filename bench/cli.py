@@ -174,13 +174,30 @@ def _start_helper_server() -> None:
     start_worker_server(1)
 
 
+# The file each command's results are known by: an --out folder holding another command's results is refused,
+# so that a run, a campaign or a comparison never writes over (or beside) another's.
+RESULT_FILES = (("summary.json", "a run's results"), ("campaign.json", "a campaign"),
+                ("faults.json", "a fault matrix"), ("sweep.json", "a sweep"), ("compare.json", "a comparison"),
+                ("metrics.json", "a replay"))
+
+
+def _output_folder(value: str, own: str) -> Path:
+    """``--out`` as a folder this command may write: not a file, and holding no other command's results
+    (``own``: the file of this command's, whose earlier results it may replace)."""
+    out = Path(value)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {value!r} is a file; give a folder")
+    for name, what in RESULT_FILES:
+        if name != own and (out / name).is_file():
+            raise ValueError(f"--out {value!r} holds {what} ({name}); give another folder, so that it stays intact")
+    return out
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     _start_helper_server()
     from bench.report.run_outputs import run_and_write
 
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {args.out!r} is a file; give a folder")
+    out = _output_folder(args.out, "summary.json")
     scenario = load_scenario(args.scenario, args.overrides, args.preset)
     summary, table = run_and_write(scenario, out, video=not args.no_video, progress=True, video_process=True,
                                    plot_process=True)
@@ -204,13 +221,14 @@ def cmd_mc(args: argparse.Namespace) -> int:
         meta_path = directory / mc.CAMPAIGN
         if not meta_path.exists():
             raise ValueError(f"--resume {directory}: no {mc.CAMPAIGN} there; start the campaign with --out")
-        meta = json.loads(meta_path.read_text())
+        meta = mc.read_meta(meta_path, ("campaign_seed", "runs"), "--resume")
         runs = args.runs if args.runs is not None else meta["runs"]
         seed = args.seed if args.seed is not None else meta["campaign_seed"]
         base = load_scenario(directory / mc.BASE_SCENARIO)
     else:
         if args.runs is None:
             raise ValueError("--runs N is required for a new campaign")
+        _output_folder(args.out, mc.CAMPAIGN)
         base = load_scenario(args.scenario, args.overrides, args.preset)
         runs, seed = args.runs, (args.seed if args.seed is not None else base.seed)
     args.runs = runs
@@ -314,7 +332,8 @@ def _mc_replay(directory: Path, case: int, out: Path) -> int:
     from bench.campaign import mc
     from bench.report.run_outputs import run_and_write
 
-    meta = json.loads((directory / mc.CAMPAIGN).read_text())
+    _output_folder(str(out), "summary.json")
+    meta = mc.read_meta(directory / mc.CAMPAIGN, ("campaign_seed", "runs"), "--replay")
     if not 0 <= case < meta["runs"]:
         raise ValueError(f"--case {case}: the campaign has cases 0..{meta['runs'] - 1}")
     base = load_scenario(directory / mc.BASE_SCENARIO)
@@ -331,9 +350,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     from bench.evaluation.compare import compare_campaigns, format_compare, parse_gate, write_compare
     from bench.report.compare_html import render_compare_html, write_compare_report
 
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {args.out!r} is a file; give a folder")
+    out = _output_folder(args.out, "compare.json")
     gates = [parse_gate(g) for g in args.gates]  # every gate checked before the inputs are read
     doc = compare_campaigns(args.base, args.cand, gates, replay_root=out / "replay")
     html = render_compare_html(doc)  # rendered before anything is written
@@ -363,9 +380,7 @@ def cmd_record(args: argparse.Namespace) -> int:
 def cmd_replay(args: argparse.Namespace) -> int:
     from bench.evaluation.replay import format_replay, replay_dataset, write_replay
 
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {args.out!r} is a file; give a folder")
+    out = _output_folder(args.out, "metrics.json")
     seqs, doc = replay_dataset(Path(args.dataset), args.overrides)  # checks every input before it runs
     written = write_replay(seqs, doc, out)
     print(format_replay(doc))

@@ -62,7 +62,7 @@ def open_channel() -> Channel:
 
 
 class ExternalOptions(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     channel: str = Field(..., description="id of the channel to the agent (gnc.external.open_channel)")
 

@@ -95,7 +95,7 @@ def cvxpy_available() -> bool:
 class GfoldOptions(BaseModel):
     """``[guidance.options]`` of ``guidance.law = "gfold"``."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     nodes: int = Field(30, ge=8, le=200, description="intervals of the discretised path [-]")
     glide_slope_deg: float = Field(

@@ -100,7 +100,7 @@ class RcsConfig(BaseModel):
     tanks at ``|tau| / moment_arm_m`` of thrust per axis (a couple of two thrusters) at ``isp_s``.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     mode: Literal["pwm", "continuous"] = Field("pwm", description="pulse-width modulated or continuous torque")
     pwm_period_ns: int = Field(20_000_000, gt=0, description="pulse-width modulation period [ns] (default 50 Hz)")

@@ -67,3 +67,85 @@ def test_console_script_entry_point():
     res = subprocess.run([sys.executable, "-m", "bench.cli", "scenario", "show", "--set", "seed=3"],
                          capture_output=True, text=True, timeout=60)
     assert res.returncode == 0 and "seed = 3" in res.stdout
+
+
+def _files(root):
+    return {p.relative_to(root): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _refused(capsys, argv, needle):
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and err.startswith("landbench: error:") and needle in err, err
+
+
+def test_an_out_folder_holding_another_commands_results_is_refused_and_kept(tmp_path, capsys):
+    # A campaign folder and a run folder (made by hand: what matters is the file each is known by).
+    camp, run_dir, sweep_dir = tmp_path / "camp", tmp_path / "run", tmp_path / "sweep"
+    for d, name in ((camp, "campaign.json"), (run_dir, "summary.json"), (sweep_dir, "sweep.json")):
+        d.mkdir()
+        (d / name).write_text("{}")
+        (d / "scenario.toml").write_text("# kept\n")
+    before = _files(tmp_path)
+    _refused(capsys, ["run", "--no-video", "--out", str(camp), "--set", "sim.t_max_ns=1000000000"], "holds a campaign")
+    _refused(capsys, ["mc", "--runs", "1", "--dry-run", "--out", str(run_dir)], "holds a run's results")
+    _refused(capsys, ["compare", str(camp), str(camp), "--out", str(sweep_dir)], "holds a sweep")
+    _refused(capsys, ["mc", "--replay", str(camp), "--case", "0", "--out", str(sweep_dir)], "holds a sweep")
+    assert _files(tmp_path) == before
+
+
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        # a dispersion that draws outside the field's limits: refused before the campaign's folder exists
+        (["mc", "--runs", "2", "--dry-run", "--set",
+          'dispersions."sun.elevation_deg"={dist="uniform", low=-100.0, high=-90.0}'], "sun.elevation_deg"),
+        (["mc", "--runs", "1", "--dry-run", "--seed", "-1"], "--seed -1"),
+        (["faults", "--presets", "im1", "--runs", "1", "--workers", "0"], "--workers 0"),
+        (["faults", "--presets", "im1", "--runs", "1", "--seed", "-2"], "--seed -2"),
+        (["sweep", "--grid", "seed=1,2", "--runs", "1", "--case-timeout", "0"], "--case-timeout"),
+        (["sweep", "--grid", "seed=range(0, inf)", "--runs", "1", "--dry-run"], "finite"),
+        (["sweep", "--grid", "seed=range(0, 1e9)", "--runs", "1", "--dry-run"], "at most"),
+    ],
+)
+def test_campaign_mistakes_are_refused_before_anything_is_written(tmp_path, capsys, argv, needle):
+    out = tmp_path / "out"
+    _refused(capsys, [*argv, "--out", str(out)], needle)
+    assert not out.exists()
+
+
+def test_a_results_folder_without_its_keys_is_refused_in_one_line(tmp_path, capsys):
+    camp = tmp_path / "camp"
+    camp.mkdir()
+    (camp / "campaign.json").write_text("{}")
+    _refused(capsys, ["mc", "--resume", str(camp)], "lacks campaign_seed, runs")
+    _refused(capsys, ["mc", "--replay", str(camp), "--case", "0", "--out", str(tmp_path / "r")], "lacks")
+    (camp / "campaign.json").write_text("{not json")
+    _refused(capsys, ["mc", "--resume", str(camp)], "cannot be read")
+    for name, keys in (("faults", "presets"), ("sweep", "design")):
+        d = tmp_path / name
+        d.mkdir()
+        (d / f"{name}.json").write_text("{}")
+        _refused(capsys, [name, "--resume", str(d)], f"lacks {keys}")
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize(
+    "table, needle",
+    [
+        ("grid = [1, 2]\nruns = 1", "sweep.grid"),
+        ('grid = {seed = [1, 2]}\nrequire = "success_rate>=0.5"\nruns = 1', "sweep.require"),
+        ("grid = {seed = [1, 2]}\nruns = 1.7", "sweep.runs"),
+        ("ranges = [1]\nlhs = 2\nruns = 1", "sweep.ranges"),
+    ],
+)
+def test_a_sweep_table_of_the_wrong_types_is_refused_in_one_line(tmp_path, capsys, table, needle):
+    f = tmp_path / "s.toml"
+    f.write_text(f"[sweep]\n{table}\n")
+    _refused(capsys, ["sweep", str(f), "--dry-run", "--out", str(tmp_path / "out")], needle)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("field", ["propellant.nominal_need_kg", "lander.rcs.isp_s", "lander.rcs.moment_arm_m"])
+def test_non_finite_values_of_every_table_are_refused(capsys, field):
+    _refused(capsys, ["scenario", "show", "--set", f"{field}=inf"], field)

@@ -157,7 +157,7 @@ def run_faults(presets: Sequence[str], runs: int, out: Path, campaign_seed: int 
     if resume:
         if not meta_path.exists():
             raise ValueError(f"--resume {out}: no {FAULTS_JSON} there; start the matrix with --out")
-        old = json.loads(meta_path.read_text())
+        old = mc.read_meta(meta_path, ("presets", "runs", "campaign_seed"), "--resume")
         presets, runs, campaign_seed = old["presets"], old["runs"], old["campaign_seed"]
         data, base_dir = read_scenario_data(out / BASE_SCENARIO)
         overrides = []
@@ -179,7 +179,13 @@ def run_faults(presets: Sequence[str], runs: int, out: Path, campaign_seed: int 
             scenarios[name] = scenario_from_data(data, base_dir, overrides, name)
         except ValueError as exc:
             raise ValueError(f"preset {name}: {exc}") from None
+    mc.check_campaign_args(runs, campaign_seed, workers, retention, case_timeout_s, backend, address)
     if not resume:
+        for name, sc in scenarios.items():  # every preset's dispersed cases, before anything is written
+            try:
+                mc.check_cases(sc, runs, campaign_seed)
+            except ValueError as exc:
+                raise ValueError(f"preset {name}: {exc}") from None
         out.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out / BASE_SCENARIO, scenario_to_toml(base))
         atomic_write_text(meta_path, json.dumps({"presets": list(presets), "runs": runs,

@@ -88,6 +88,45 @@ def case_scenario(base: Scenario, campaign_seed: int, n_cases: int, index: int) 
     return apply_dispersions(base.model_copy(update={"seed": seed}))
 
 
+def read_meta(path: Path, keys: tuple[str, ...], flag: str) -> dict[str, Any]:
+    """A results folder's metadata file (``campaign.json``, ``faults.json``, ``sweep.json``), refused in one
+    line naming ``flag`` and the folder when it is missing, not JSON, or lacks one of ``keys``."""
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{flag} {path.parent}: its {path.name} cannot be read ({exc}); give a folder that "
+                         "landbench wrote") from None
+    missing = [k for k in keys if not isinstance(meta, dict) or k not in meta]
+    if missing:
+        raise ValueError(f"{flag} {path.parent}: its {path.name} lacks {', '.join(missing)}; give a folder that "
+                         "landbench wrote")
+    return meta
+
+
+def check_seed(campaign_seed: object) -> None:
+    """Refuse a campaign seed that is not a non-negative integer (``--seed``)."""
+    if isinstance(campaign_seed, bool) or not isinstance(campaign_seed, int) or campaign_seed < 0:
+        raise ValueError(f"--seed {campaign_seed!r}: a campaign seed is a non-negative integer")
+
+
+def check_cases(base: Scenario, runs: int, campaign_seed: int) -> None:
+    """Draw every case's dispersions and validate its scenario, before anything is written.
+
+    A draw outside a field's limits (a dispersion wider than the field allows) is the
+    user's mistake: refused here, in one line naming the case and the field, instead of
+    after the campaign's folder exists. Costs about 3 ms per case with dispersions.
+    """
+    check_seed(campaign_seed)
+    if not base.dispersions:
+        return  # every case is the base scenario with its own seed
+    for i, seed in enumerate(case_seeds(campaign_seed, runs)):
+        try:
+            apply_dispersions(base.model_copy(update={"seed": seed}))
+        except ValueError as exc:
+            raise ValueError(f"case {i} of --seed {campaign_seed}: its dispersed draw is refused: {exc}; "
+                             "keep that field's [dispersions] entry within the field's limits") from None
+
+
 def _flatten(prefix: str, value: Any, out: dict[str, Any]) -> None:
     if isinstance(value, dict):
         for k, v in value.items():
@@ -315,6 +354,28 @@ def _failed_row(index: int, seed: int, error: str, wall_s: float) -> dict[str, A
             "case_wall_time_s": wall_s}
 
 
+def check_campaign_args(runs: int, campaign_seed: int, workers: int | None = 1, retention: str = "summary",
+                        case_timeout_s: float | None = None, backend: str = "local", address: str | None = None,
+                        cases_per_worker: int | None = None) -> None:
+    """Refuse a campaign's bad arguments (as :func:`run_campaign` takes them) in one line, before anything is
+    written (``landbench faults`` and ``sweep`` call it before their own files too)."""
+    if runs < 1:
+        raise ValueError(f"--runs {runs}: must be >= 1")
+    check_seed(campaign_seed)
+    if workers is not None and workers < 1:
+        raise ValueError(f"--workers {workers}: must be >= 1")
+    if retention not in RETENTIONS:
+        raise ValueError(f"--retention {retention!r}: allowed: {', '.join(RETENTIONS)}")
+    if backend not in BACKENDS:
+        raise ValueError(f"--backend {backend!r}: allowed: {', '.join(BACKENDS)}")
+    if address is not None and backend != "ray":
+        raise ValueError(f"--address {address!r} is for the ray backend; add --backend ray")
+    if case_timeout_s is not None and not case_timeout_s > 0:
+        raise ValueError(f"--case-timeout {case_timeout_s}: must be > 0 [s]")
+    if cases_per_worker is not None and cases_per_worker < 1:
+        raise ValueError(f"--cases-per-worker {cases_per_worker}: must be >= 1 (1: a fresh process per case)")
+
+
 def run_campaign(base: Scenario, runs: int, out: Path, campaign_seed: int, workers: int | None = 1,
                  resume: bool = False, dry_run: bool = False, retention: str = "summary",
                  case_timeout_s: float | None = None, progress: bool = True, backend: str = "local",
@@ -340,29 +401,16 @@ def run_campaign(base: Scenario, runs: int, out: Path, campaign_seed: int, worke
             takes its place; None: :data:`CASES_PER_WORKER`; 1: a fresh
             process per case. The rows do not depend on it.
     """
-    if runs < 1:
-        raise ValueError(f"--runs {runs}: must be >= 1")
-    if workers is not None and workers < 1:
-        raise ValueError(f"--workers {workers}: must be >= 1")
-    if retention not in RETENTIONS:
-        raise ValueError(f"--retention {retention!r}: allowed: {', '.join(RETENTIONS)}")
-    if backend not in BACKENDS:
-        raise ValueError(f"--backend {backend!r}: allowed: {', '.join(BACKENDS)}")
-    if address is not None and backend != "ray":
-        raise ValueError(f"--address {address!r} is for the ray backend; add --backend ray")
-    if case_timeout_s is not None and not case_timeout_s > 0:
-        raise ValueError(f"--case-timeout {case_timeout_s}: must be > 0 [s]")
+    check_campaign_args(runs, campaign_seed, workers, retention, case_timeout_s, backend, address, cases_per_worker)
     if cases_per_worker is None:
         cases_per_worker = CASES_PER_WORKER
-    if cases_per_worker < 1:
-        raise ValueError(f"--cases-per-worker {cases_per_worker}: must be >= 1 (1: a fresh process per case)")
     cases_dir = out / CASES
     meta = {"campaign_seed": campaign_seed, "runs": runs, "retention": retention}
     meta_path = out / CAMPAIGN
     if resume:
         if not meta_path.exists():
             raise ValueError(f"--resume {out}: no {CAMPAIGN} there; start the campaign without --resume")
-        old = json.loads(meta_path.read_text())
+        old = read_meta(meta_path, ("campaign_seed", "runs"), "--resume")
         if (old["campaign_seed"], old["runs"]) != (campaign_seed, runs):
             raise ValueError(f"--resume {out}: that campaign has seed {old['campaign_seed']} and "
                              f"{old['runs']} runs; allowed: the same --seed and --runs")
@@ -370,6 +418,7 @@ def run_campaign(base: Scenario, runs: int, out: Path, campaign_seed: int, worke
     elif meta_path.exists():
         raise ValueError(f"--out {out} already holds a campaign; use --resume, or another folder")
     else:
+        check_cases(base, runs, campaign_seed)
         cases_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out / BASE_SCENARIO, scenario_to_toml(base))
         atomic_write_text(meta_path, json.dumps(meta, indent=2) + "\n")

@@ -52,6 +52,7 @@ from bench.scenario import Scenario, ScenarioError, scenario_to_toml
 from bench.scenario.schema import _toml_value, scenario_from_data  # noqa: F401 (scenario_from_data: the CLI)
 
 SWEEP_JSON = "sweep.json"
+MAX_GRID_VALUES = 10_000  # values one --grid range() may give
 BASE_SCENARIO = "scenario.toml"
 POINTS_DIR = "points"
 POINTS_PARQUET = "points.parquet"
@@ -149,14 +150,17 @@ def parse_grid(spec: str) -> tuple[str, list[Any]]:
     if m:
         try:
             args = [_toml_scalar(a) for a in _split_top(m.group(1))]
-            if not (1 <= len(args) <= 3) or not all(isinstance(a, (int, float)) and not isinstance(a, bool) for a in args):
+            if not (1 <= len(args) <= 3) or not all(isinstance(a, (int, float)) and not isinstance(a, bool)
+                                                    and math.isfinite(a) for a in args):
                 raise ValueError
             start, stop, step = (0, args[0], 1) if len(args) == 1 else (args[0], args[1], args[2] if len(args) == 3 else 1)
             if step == 0:
                 raise ValueError
         except ValueError:
-            raise ValueError(f"--grid {spec!r}: range() takes 1 to 3 numbers (start, stop, step != 0)") from None
+            raise ValueError(f"--grid {spec!r}: range() takes 1 to 3 finite numbers (start, stop, step != 0)") from None
         n = max(0, math.ceil((stop - start) / step))
+        if n > MAX_GRID_VALUES:
+            raise ValueError(f"--grid {spec!r}: range() gives {n} values; allowed: at most {MAX_GRID_VALUES} per field")
         values = [start + i * step for i in range(n)]
         if all(isinstance(a, int) for a in (start, step)):
             values = [int(v) for v in values]
@@ -315,7 +319,23 @@ def split_sweep_table(path: str | Path | None) -> tuple[dict[str, Any], Path, di
         if unknown:
             raise ScenarioError(f"unknown field 'sweep.{sorted(unknown)[0]}'; allowed here: grid, lhs, sobol, ranges, "
                                 "runs, require")
+        _check_sweep_types(table)
     return data, base, table
+
+
+def _check_sweep_types(table: dict[str, Any]) -> None:
+    """The ``[sweep]`` table's entries have the types they are read as (one line naming the first that has not)."""
+    expected = {"grid": (dict, "a table: field = [values]"), "ranges": (dict, "a table: field = [low, high]"),
+                "require": (list, "a list of strings: [\"success_rate>=0.95\"]")}
+    for key, (kind, what) in expected.items():
+        value = table.get(key)
+        if value is not None and (not isinstance(value, kind)
+                                  or (key == "require" and not all(isinstance(r, str) for r in value))):
+            raise ScenarioError(f"sweep.{key} = {value!r}: expected {what}")
+    for key in ("runs", "lhs", "sobol"):
+        value = table.get(key)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            raise ScenarioError(f"sweep.{key} = {value!r}: expected a whole number >= 1")
 
 
 def point_overrides(point: Mapping[str, Any]) -> list[str]:
@@ -468,7 +488,7 @@ def run_sweep(data: dict[str, Any], base_dir: Path, overrides: Sequence[str], de
     if resume:
         if not meta_path.exists():
             raise ValueError(f"--resume {out}: no {SWEEP_JSON} there; start the sweep with --out")
-        old = json.loads(meta_path.read_text())
+        old = mc.read_meta(meta_path, ("design", "runs", "campaign_seed"), "--resume")
         design = Design.from_json(old["design"])
         runs, campaign_seed = old["runs"], old["campaign_seed"]
         from bench.scenario.schema import read_scenario_data
@@ -478,7 +498,13 @@ def run_sweep(data: dict[str, Any], base_dir: Path, overrides: Sequence[str], de
     elif meta_path.exists():
         raise ValueError(f"--out {out} already holds a sweep; use --resume, or another folder")
     scenarios = point_scenarios(data, base_dir, overrides, design)  # every point validated before anything runs
+    mc.check_campaign_args(runs, campaign_seed, workers, retention, case_timeout_s, backend, address)
     if not resume:
+        for i, sc in enumerate(scenarios):  # every point's dispersed cases, before anything is written
+            try:
+                mc.check_cases(sc, runs, campaign_seed)
+            except ValueError as exc:
+                raise ValueError(f"point {i}: {exc}") from None
         base = scenario_from_data(data, base_dir, overrides)
         out.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out / BASE_SCENARIO, scenario_to_toml(base))

@@ -75,7 +75,7 @@ class PropellantBudget(BaseModel):
     ``R = t g m_dry / (Isp g0 - t g)`` (the hover flow ``g (m_dry + R) / (Isp g0)`` for ``t``).
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     nominal_need_kg: float = Field(
         72.0, ge=0, description="propellant a nominal descent from the default 500 m start uses [kg]"

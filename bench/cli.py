@@ -193,6 +193,17 @@ def _output_folder(value: str, own: str) -> Path:
     return out
 
 
+def _resume_takes_nothing_else(args: argparse.Namespace, *flags: str) -> None:
+    """``--resume DIR`` reads the scenario and the design from DIR: a scenario file, ``--set``, ``--preset``
+    or a design flag given beside it would be ignored, so it is refused."""
+    given = [name for name, attr in (("a scenario file", "scenario"), ("--set", "overrides"), ("--preset", "preset"),
+                                     *((f, f.lstrip("-").replace("-", "_")) for f in flags))
+             if getattr(args, attr, None) not in (None, [], ())]
+    if given:
+        raise ValueError(f"--resume {args.resume} takes its scenario and settings from that folder; drop "
+                         f"{', '.join(given)} (or start anew with --out)")
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     _start_helper_server()
     from bench.report.run_outputs import run_and_write
@@ -218,6 +229,7 @@ def cmd_mc(args: argparse.Namespace) -> int:
         raise ValueError("give --out DIR for a new campaign, or --resume DIR")
     if args.resume:
         # A resumed campaign is defined by its folder: base scenario, seed and size.
+        _resume_takes_nothing_else(args)
         meta_path = directory / mc.CAMPAIGN
         if not meta_path.exists():
             raise ValueError(f"--resume {directory}: no {mc.CAMPAIGN} there; start the campaign with --out")
@@ -263,6 +275,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     from bench.campaign import sweep
 
     if args.resume:
+        _resume_takes_nothing_else(args, "--grid", "--lhs", "--sobol", "--range")
         directory = Path(args.resume)
         doc = sweep.run_sweep({}, directory, [], None, 1, directory, 0, workers=args.workers, resume=True,
                               retention=args.retention, case_timeout_s=args.case_timeout, progress=True,
@@ -306,6 +319,7 @@ def cmd_faults(args: argparse.Namespace) -> int:
         print(faults.list_presets())
         return 0
     if args.resume:
+        _resume_takes_nothing_else(args, "--runs", "--seed")
         doc = faults.run_faults([], 1, Path(args.resume), None, workers=args.workers, resume=True,
                                 retention=args.retention, case_timeout_s=args.case_timeout, progress=True,
                                 backend=args.backend, address=args.address)

@@ -70,7 +70,8 @@ class PropulsionOutput:
         burn_steps: Physics steps for which the engine fires (fewer than the
             interval when the propellant runs out inside it).
         propellant_used_kg: Propellant consumed over the interval [kg].
-        exhausted: True when the tanks ran dry inside the interval.
+        exhausted: True when the tanks are dry at the end of the interval and thrust was asked for or
+            burned in it (they ran dry inside it, or were dry already).
     """
 
     thrust_N: float

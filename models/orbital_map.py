@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from models.terrain import (SHADE_MAX, SHADOW_FLOOR, UINT8_MAX, Surface, _lit_fraction, _relative_shading,
                             _sun_vector)
@@ -79,6 +79,16 @@ class OrbitalMapConfig(BaseModel):
         2.0, ge=0.0, le=100.0,
         description="georeferencing error of the map, 1-sigma per horizontal axis [m] (drawn per case)",
     )
+
+    @model_validator(mode="after")
+    def _whole_pixels_and_posts(self) -> "OrbitalMapConfig":
+        s = self.size_m
+        n_px, n_posts = round(s / self.image_res_m), round(s / self.dem_spacing_m)
+        if not (math.isclose(n_px * self.image_res_m, s, rel_tol=1e-9)
+                and math.isclose(n_posts * self.dem_spacing_m, s, rel_tol=1e-9)):
+            raise ValueError(f"onboard_map.size_m = {s} must be a whole number of image pixels ({self.image_res_m} m) "
+                             f"and DEM posts ({self.dem_spacing_m} m); e.g. {n_posts * self.dem_spacing_m:g}")
+        return self
 
 
 @dataclass(frozen=True, eq=False)

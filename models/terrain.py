@@ -62,6 +62,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 # ----------------------------------------------------------------- constants
 M2_PER_KM2 = 1.0e6
+MAX_CATALOG_FEATURES = 2.0e6  # craters (or boulders) one terrain may stamp; 250 000 took 6 s to generate (1024² texture)
 MIN_DEM_PX = 16  # smallest DEM side accepted [px]
 # Crater shape, in crater radii R = D/2 (see crater_profile):
 CRATER_EJECTA_DECAY_R = 0.35  # e-folding distance of the ejecta blanket beyond the rim [R]
@@ -231,6 +232,15 @@ class TerrainConfig(BaseModel):
             if hi <= lo:
                 raise ValueError(
                     f"{what}_max_diameter_m={hi} must be > {what}_min_diameter_m={lo}"
+                )
+            # The catalog's expected size (_power_law_catalog): each feature is stamped one by one.
+            density = getattr(self, f"{what}_density_per_km2")
+            mean = density * self.size_m**2 / M2_PER_KM2 * (1.0 - (hi / lo) ** -getattr(self, f"{what}_sfd_exponent"))
+            if mean > MAX_CATALOG_FEATURES:
+                raise ValueError(
+                    f"{what}_density_per_km2={density:g} over size_m={self.size_m:g} m gives about {mean:.3g} "
+                    f"{what}s (from {lo:g} m); allowed: at most {MAX_CATALOG_FEATURES:.0e}: lower the density or "
+                    f"raise {what}_min_diameter_m"
                 )
         if self.kind == "procedural":
             if self.target_clear_radius_m >= self.size_m / 2:

@@ -493,7 +493,6 @@ class World:
         i_acc_x, i_acc_y, i_acc_z = self._i_acc_xyz
         fault_torque = self._fault_torque_B is not None
         dt_ns = self.physics_dt_ns
-        had = prop.propellant_kg > 0.0
         used0 = prop.propellant_kg
         # The command is held over the interval: saturate it once (the per-step path did so every step).
         cmd_x, cmd_y, cmd_z = prop.clamp_torque(torque_cmd_B_Nm).tolist()
@@ -536,7 +535,8 @@ class World:
         self._imu_steps += n_steps
         self._set_propellant(prop.propellant_kg)
         mujoco.mj_forward(self.model, self.data)
-        exhausted = had and prop.propellant_kg <= 0.0 and (thrust_cmd_N > 0.0 or burn_steps > 0)
+        # Dry inside the interval, or dry from the start and asked for thrust (a tank loaded empty).
+        exhausted = prop.propellant_kg <= 0.0 and (thrust_cmd_N > 0.0 or burn_steps > 0)
         impulse_B = np.array([impulse_x, impulse_y, impulse_z])
         return PropulsionOutput(thrust, impulse_B / max(n_steps, 1), burn_steps, used0 - prop.propellant_kg, exhausted)
 

@@ -149,3 +149,25 @@ def test_a_sweep_table_of_the_wrong_types_is_refused_in_one_line(tmp_path, capsy
 @pytest.mark.parametrize("field", ["propellant.nominal_need_kg", "lander.rcs.isp_s", "lander.rcs.moment_arm_m"])
 def test_non_finite_values_of_every_table_are_refused(capsys, field):
     _refused(capsys, ["scenario", "show", "--set", f"{field}=inf"], field)
+
+
+def test_resume_refuses_settings_it_would_ignore(tmp_path, capsys):
+    camp = tmp_path / "camp"
+    assert main(["mc", "--runs", "1", "--dry-run", "--out", str(camp)]) == 0
+    before = _files(tmp_path)
+    _refused(capsys, ["mc", "--resume", str(camp), "--set", "seed=99"], "drop --set")
+    _refused(capsys, ["mc", "--resume", str(camp), "--preset", "im1"], "drop --preset")
+    _refused(capsys, ["sweep", "--resume", str(camp), "--grid", "seed=1,2"], "drop --grid")
+    _refused(capsys, ["faults", "--resume", str(camp), "--runs", "3"], "drop --runs")
+    assert _files(tmp_path) == before
+
+
+@pytest.mark.parametrize(
+    "setting, needle",
+    [
+        ("onboard_map.size_m=230.4", "whole number of image pixels"),  # checked at load, not 9 s into the run
+        ("terrain.size_m=100000.0", "lower the density"),  # 2e8 craters: hours of generation
+    ],
+)
+def test_settings_that_would_fail_or_stall_the_run_are_refused_at_load(capsys, setting, needle):
+    _refused(capsys, ["scenario", "show", "--set", setting], needle)

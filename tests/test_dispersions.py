@@ -173,3 +173,17 @@ def test_filter_noise_model_is_the_specification_the_top_of_each_dispersed_range
     for path, value in spec.items():
         d = sc.dispersions[path]
         assert d.dist == "uniform" and value == d.high, (path, value, d)
+
+
+@pytest.mark.parametrize(
+    "spec, needle",
+    [
+        ('{dist="normal", sigma=-5.0}', "normal sigma = -5.0 must be >= 0"),
+        ('{dist="normal", sigma=[1.0, -1.0, 0.0]}', "must be >= 0"),
+        ('{dist="truncnorm", sigma=0.0, low=-1.0, high=1.0}', "truncnorm sigma = 0.0 must be > 0"),
+    ],
+)
+def test_a_negative_or_degenerate_sigma_is_refused(spec, needle):
+    path = "initial.r_BL_L_m" if "[" in spec else "sun.elevation_deg"
+    with pytest.raises(ScenarioError, match=needle):
+        load_scenario(None, [f'dispersions."{path}"={spec}'])

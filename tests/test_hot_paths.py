@@ -200,7 +200,6 @@ class _ArrayWorld(World):
         import mujoco
 
         prop = self.propulsion
-        had = prop.propellant_kg > 0.0
         used0 = prop.propellant_kg
         burn_steps = 0
         thrust = 0.0
@@ -227,7 +226,7 @@ class _ArrayWorld(World):
         self._imu_sum, self._gyro_sum = list(imu_sum), list(gyro_sum)
         self._set_propellant(prop.propellant_kg)
         mujoco.mj_forward(self.model, self.data)
-        exhausted = had and prop.propellant_kg <= 0.0 and (thrust_cmd_N > 0.0 or burn_steps > 0)
+        exhausted = prop.propellant_kg <= 0.0 and (thrust_cmd_N > 0.0 or burn_steps > 0)  # dry: ran or was
         return actuators.PropulsionOutput(thrust, impulse_B / max(n_steps, 1), burn_steps,
                                           used0 - prop.propellant_kg, exhausted)
 

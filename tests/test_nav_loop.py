@@ -198,6 +198,15 @@ def test_modes_are_validated():
         load_scenario(None, ["camera.enabled=false"])  # vision on needs frames
 
 
+def test_the_random_feature_search_flies_on_its_own_stream():
+    # tracker.fp_search = "random" (the paper's alternative search) needs a generator: the flight software's
+    # tracker gets the run's "tracker" stream, so the segment flies with vision, and the same seed repeats it.
+    sc = load_scenario(None, [*SEGMENT, 'tracker.fp_search="random"', "sim.t_max_ns=2_000_000_000"])
+    a, b = run(sc), run(sc)
+    assert a.summary["vision"]["measurements"] >= 10
+    np.testing.assert_array_equal(a.telemetry["vision_tracks"], b.telemetry["vision_tracks"])
+
+
 def test_vision_in_the_loop_segment_is_bit_identical_when_run_twice():
     # A short segment from 150 m down with camera, tracker and filter: the full vision loop,
     # fast enough for every `make test`. Same scenario, same machine: the same telemetry, bit for bit.

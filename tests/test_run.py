@@ -140,6 +140,7 @@ LOW = ["initial.r_BL_L_m=[0.0, 0.0, 120.0]", "initial.v_BL_L_mps=[0.0, 0.0, -5.0
     "sets, outcome",
     [
         (["lander.propellant_kg=20"], "fuel_exhausted"),
+        (["lander.propellant_kg=0"], "fuel_exhausted"),  # loaded empty: the first thrust asked for finds none
         (['guidance.law="off"'], "hard_landing"),
         (['guidance.law="off"', "initial.r_BL_L_m=[0.0, 0.0, 4.0]", "initial.v_BL_L_mps=[0.0, 0.0, 0.0]",
           "initial.euler_LB_deg=[50.0, 0.0, 0.0]", "landing.tilt_max_deg=60", "landing.v_vertical_max_mps=5",

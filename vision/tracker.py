@@ -500,7 +500,7 @@ class Tracker:
     Args:
         config: A :class:`TrackerConfig` (defaults when None).
         rng: Generator for the random search strategy (required with
-            ``fp_search="random"``; the bench passes the run's "vision"
+            ``fp_search="random"``; the bench passes the run's "tracker"
             stream). Never NumPy's global state.
     """
 

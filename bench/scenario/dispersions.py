@@ -61,23 +61,37 @@ class _Dist(BaseModel):
     )
 
 
+def _check_sigma(sigma: float | list[float], dist: str, zero_ok: bool) -> None:
+    s = np.asarray(sigma, float)
+    if np.any(s < 0.0) or (not zero_ok and np.any(s == 0.0)):
+        raise ValueError(f"{dist} sigma = {sigma} must be {'>= 0' if zero_ok else '> 0'}"
+                         + ("" if zero_ok else " (the bounds are in sigmas)"))
+
+
 class Normal(_Dist):
     """Nominal plus a Gaussian offset."""
 
     dist: Literal["normal"]
-    sigma: float | list[float] = Field(description="1-sigma of the offset (scalar or per component)")
+    sigma: float | list[float] = Field(description="1-sigma of the offset (scalar or per component), >= 0 (0: a "
+                                       "component not dispersed)")
+
+    @model_validator(mode="after")
+    def _not_negative(self) -> "Normal":
+        _check_sigma(self.sigma, "normal", zero_ok=True)
+        return self
 
 
 class TruncNormal(_Dist):
     """Nominal plus a Gaussian offset truncated to [low, high] (offset units)."""
 
     dist: Literal["truncnorm"]
-    sigma: float | list[float] = Field(description="1-sigma of the offset (scalar or per component)")
+    sigma: float | list[float] = Field(description="1-sigma of the offset (scalar or per component), > 0")
     low: float | list[float] = Field(description="lowest offset from nominal")
     high: float | list[float] = Field(description="highest offset from nominal")
 
     @model_validator(mode="after")
     def _ordered(self) -> "TruncNormal":
+        _check_sigma(self.sigma, "truncnorm", zero_ok=False)
         if np.any(np.asarray(self.low, float) >= np.asarray(self.high, float)):
             raise ValueError(f"truncnorm low = {self.low} must be below high = {self.high}")
         return self

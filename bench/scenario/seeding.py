@@ -24,6 +24,7 @@ COMPONENTS: tuple[str, ...] = (
     "map",
     "faults",
     "lidar",
+    "tracker",
 )
 
 

@@ -124,7 +124,9 @@ def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.nda
                                 altimeter_mount_B_m=knowledge.r_alt_B_m,
                                 gyro_delta_angle=scenario.realism == "realistic",
                                 map_bias_sigma_m=1.0 if map_on else None, regional_relief=map_on)
-    tracker = Tracker(scenario.tracker) if scenario.tracks == "vision" and scenario.vision == "on" else None
+    # The tracker's own stream, drawn from only by its random feature search (tracker.fp_search = "random").
+    tracker = (Tracker(scenario.tracker, rng=component_rng(scenario.seed, "tracker"))
+               if scenario.tracks == "vision" and scenario.vision == "on" else None)
     map_nav = None
     if scenario.nav_map == "on":
         if onboard_map is None:

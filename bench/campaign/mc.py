@@ -110,11 +110,12 @@ def check_seed(campaign_seed: object) -> None:
 
 
 def check_cases(base: Scenario, runs: int, campaign_seed: int) -> None:
-    """Draw every case's dispersions and validate its scenario, before anything is written.
+    """Draw every case's dispersions and validate its scenario, before a dry run writes anything.
 
-    A draw outside a field's limits (a dispersion wider than the field allows) is the
-    user's mistake: refused here, in one line naming the case and the field, instead of
-    after the campaign's folder exists. Costs about 3 ms per case with dispersions.
+    A dry run writes each case's dispersed scenario, so a draw outside a field's limits
+    is refused here, in one line naming the case and the field, instead of after the
+    campaign's folder exists. (A campaign that flies records such a case as an error row
+    and goes on.) Costs about 3 ms per case with dispersions.
     """
     check_seed(campaign_seed)
     if not base.dispersions:
@@ -418,7 +419,8 @@ def run_campaign(base: Scenario, runs: int, out: Path, campaign_seed: int, worke
     elif meta_path.exists():
         raise ValueError(f"--out {out} already holds a campaign; use --resume, or another folder")
     else:
-        check_cases(base, runs, campaign_seed)
+        if dry_run:  # its job is writing every case's scenario: a draw that cannot be one is refused first
+            check_cases(base, runs, campaign_seed)
         cases_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out / BASE_SCENARIO, scenario_to_toml(base))
         atomic_write_text(meta_path, json.dumps(meta, indent=2) + "\n")

@@ -500,7 +500,7 @@ def run_sweep(data: dict[str, Any], base_dir: Path, overrides: Sequence[str], de
     scenarios = point_scenarios(data, base_dir, overrides, design)  # every point validated before anything runs
     mc.check_campaign_args(runs, campaign_seed, workers, retention, case_timeout_s, backend, address)
     if not resume:
-        for i, sc in enumerate(scenarios):  # every point's dispersed cases, before anything is written
+        for i, sc in enumerate(scenarios if dry_run else ()):  # a dry run's cases, before anything is written
             try:
                 mc.check_cases(sc, runs, campaign_seed)
             except ValueError as exc:

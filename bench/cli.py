@@ -154,6 +154,8 @@ def cmd_vision_figures(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {args.out!r} is a file; give a folder")
+    if args.frames < 3:
+        raise ValueError(f"--frames {args.frames}: the figures need 3 consecutive frames; give --frames 3 or more")
     scenario = load_scenario(args.scenario, args.overrides)
     descent = render_descent(scenario, args.frames, with_depth=False)
     # Three consecutive frames from the middle of the descent, as in the paper's Fig. 2.

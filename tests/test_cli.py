@@ -171,3 +171,8 @@ def test_resume_refuses_settings_it_would_ignore(tmp_path, capsys):
 )
 def test_settings_that_would_fail_or_stall_the_run_are_refused_at_load(capsys, setting, needle):
     _refused(capsys, ["scenario", "show", "--set", setting], needle)
+
+
+def test_vision_figures_with_too_few_frames_names_the_flag(tmp_path, capsys):
+    _refused(capsys, ["vision-figures", "--frames", "2", "--out", str(tmp_path / "v")], "--frames 2")
+    assert not (tmp_path / "v").exists()

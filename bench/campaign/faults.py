@@ -40,7 +40,7 @@ import numpy as np
 
 from bench.report.io import atomic_write_text, json_safe
 from bench.scenario import scenario_to_toml
-from bench.scenario.presets import REFERENCE, get_preset, preset_names
+from bench.scenario.presets import REFERENCE, TERRAIN_PRESETS, get_preset, preset_names
 from bench.scenario.schema import read_scenario_data, scenario_from_data
 
 FAULTS_JSON = "faults.json"
@@ -67,7 +67,8 @@ def parse_presets(text: str) -> list[str]:
             get_preset(n)
         except ValueError:
             raise ValueError(f"--presets {text!r}: no preset {n!r}; allowed: all, or names among "
-                             f"{', '.join([*preset_names(), REFERENCE.name])} (landbench faults list)") from None
+                             f"{', '.join([*preset_names(), REFERENCE.name])} (landbench faults list), or the terrain "
+                             f"preset{'s' if len(TERRAIN_PRESETS) > 1 else ''} {', '.join(TERRAIN_PRESETS)}") from None
     return names
 
 

@@ -86,7 +86,9 @@ class PropellantBudget(BaseModel):
         """The reserve [kg] for a lander (its dry mass and Isp) at a surface gravity."""
         t, g, isp_g0 = self.reserve_hover_s, gravity_mps2, lander.engine.isp_s * 9.80665
         if t * g >= isp_g0:
-            raise ValueError(f"propellant.reserve_hover_s = {t} is beyond what any load can hover; allowed: < {isp_g0 / g:.0f}")
+            raise ValueError(f"propellant.reserve_hover_s = {t} is beyond what any load can hover at a gravity of {g:g} "
+                             f"m/s^2 with an Isp of {lander.engine.isp_s:g} s (sim.gravity_mps2, lander.engine.isp_s); "
+                             f"allowed: < {isp_g0 / g:.3g} s")
         return t * g * lander.dry_mass_kg / (isp_g0 - t * g)
 
     def load_kg(self, lander: LanderConfig, gravity_mps2: float) -> float:

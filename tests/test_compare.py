@@ -390,3 +390,50 @@ def test_replay_frames_at_different_times_are_refused(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("landbench: error: frame 3 of seed 2 is at t_ns") and "\n" not in err
     assert not out.exists()
+
+
+def test_a_minus_zero_gate_bounds_a_fall(synth, tmp_path, capsys):
+    # "-0": may not fall at all. The tilt falls about 0.05 deg on average (synth), the miss rises 0.3 m:
+    # a -0 gate fails the tilt and passes the miss (-0.0 >= 0 once read it as a +0 bound, both ways round).
+    base = write_campaign(tmp_path / "base", synth["base"])
+    cand = write_campaign(tmp_path / "cand", synth["cand"])
+    tilt_change = float(np.mean(synth["tilt"][1] - synth["tilt"][0]))
+    assert tilt_change < 0
+    for gate in ("touchdown_tilt_deg:-0", "touchdown_tilt_deg:-0%"):
+        assert main(["compare", str(base), str(cand), "--out", str(tmp_path / "c"), "--gate", gate]) == 1
+        assert _stdout_lines(capsys)[-1] == f"FAILED gates: {gate}"
+    assert main(["compare", str(base), str(cand), "--out", str(tmp_path / "c"), "--gate",
+                 "touchdown_miss_distance_m:-0"]) == 0
+    assert cmp.parse_gate("x:-0").bounds_fall and not cmp.parse_gate("x:+0").bounds_fall
+
+
+def test_a_metric_the_candidate_lost_in_every_case_fails_its_gate(synth, tmp_path, capsys):
+    # Every CAND case without a touchdown (say, all timed out): the gate cannot check, so it fails (exit 1)
+    # and the comparison is written, instead of a bad-input refusal that a CI would read as a broken job.
+    cand_rows = [{**r, "touchdown_miss_distance_m": None} for r in synth["cand"]]
+    base = write_campaign(tmp_path / "base", synth["base"])
+    cand = write_campaign(tmp_path / "cand", cand_rows)
+    out = tmp_path / "c"
+    assert main(["compare", str(base), str(cand), "--out", str(out), "--gate", "touchdown_miss_distance_m:+1",
+                 "--gate", "success_rate:-50pp"]) == 1
+    doc = json.loads((out / cmp.COMPARE_JSON).read_text())
+    assert [g["passed"] for g in doc["gates"]] == [False, True] and "CAND has no value" in doc["gates"][0]["reason"]
+    capsys.readouterr()
+    # A metric BASE does not have is still a bad gate (a typo): exit 2, nothing written.
+    assert main(["compare", str(base), str(cand), "--out", str(tmp_path / "d"), "--gate", "bogus_metric:+1"]) == 2
+    assert not (tmp_path / "d").exists()
+
+
+@pytest.mark.parametrize("damage", ["runs_zero", "row_is_a_list", "case_is_null"])
+def test_a_damaged_campaign_is_refused_in_one_line(synth, tmp_path, capsys, damage):
+    base = write_campaign(tmp_path / "base", synth["base"])
+    cand = write_campaign(tmp_path / "cand", synth["cand"])
+    if damage == "runs_zero":
+        (cand / mc.CAMPAIGN).write_text(json.dumps({"campaign_seed": CAMPAIGN_SEED, "runs": 0}))
+    else:
+        f = cand / mc.CASES / "00000.json"
+        f.write_text("[1, 2]" if damage == "row_is_a_list" else json.dumps({**synth["cand"][0], "case": None}))
+    assert main(["compare", str(base), str(cand), "--out", str(tmp_path / "c")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and err.startswith("landbench: error: CAND") and str(cand) in err
+    assert not (tmp_path / "c").exists()

@@ -172,8 +172,17 @@ def _read_campaign(path: Path, role: str) -> PairedInput:
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise CompareInputError(f"{role} {path}: unreadable {mc.CAMPAIGN} ({type(exc).__name__}: {exc}); "
                                 "give a folder written by landbench mc --out DIR") from None
+    if runs < 1:
+        raise CompareInputError(f"{role} {path}: its {mc.CAMPAIGN} says runs = {runs}; a campaign has at least one "
+                                "case: give a folder written by landbench mc --out DIR")
     rows = mc.read_rows(path, runs)
-    have = {int(r.get("case", -1)) for r in rows}
+    bad = [r for r in rows if not isinstance(r, dict) or isinstance(r.get("case"), bool)
+           or not isinstance(r.get("case"), int)]
+    if bad:
+        raise CompareInputError(f"{role} {path}: a case file in {mc.CASES}/ is not a case row (a JSON object with "
+                                "an integer 'case'); give a folder written by landbench mc --out DIR, or rerun "
+                                "that case with landbench mc --resume")
+    have = {r["case"] for r in rows}
     missing = [i for i in range(runs) if i not in have]
     if missing:
         raise CompareInputError(
@@ -395,6 +404,11 @@ class Gate:
     tolerance: float  # signed: + bounds a rise, - a fall (pp for the success rate)
     relative: bool  # tolerance in % of BASE's value
 
+    @property
+    def bounds_fall(self) -> bool:
+        """True when the spec's sign is '-' (``-0`` too: "must not fall at all", which -0.0 >= 0 would lose)."""
+        return math.copysign(1.0, self.tolerance) < 0.0
+
 
 _NUMBER = r"[+-](?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?"
 
@@ -437,6 +451,10 @@ def _evaluate_gate(gate: Gate, success: Mapping[str, Any], metrics: Mapping[str,
                    reason=f"success rate {100 * c:.1f} % vs {100 * b:.1f} %: {change_pp:+.1f} pp "
                           f"{'>=' if passed else '<'} {gate.tolerance:+g} pp")
         return out
+    if gate.metric not in metrics:  # BASE has it, CAND has no finite value in any case
+        out.update(base=None, cand=None, change=None, limit=None, passed=False,
+                   reason=f"CAND has no value of {gate.metric} in any case (BASE has): cannot check, failed")
+        return out
     m = metrics[gate.metric]
     b, c = m["base"].get(gate.statistic), m["cand"].get(gate.statistic)
     if b is None or c is None:
@@ -445,7 +463,7 @@ def _evaluate_gate(gate: Gate, success: Mapping[str, Any], metrics: Mapping[str,
         return out
     limit = abs(b) * gate.tolerance / 100.0 if gate.relative else gate.tolerance
     change = c - b
-    passed = change <= limit + 1e-12 if gate.tolerance >= 0 else change >= limit - 1e-12
+    passed = change >= limit - 1e-12 if gate.bounds_fall else change <= limit + 1e-12
     tol_text = f"{gate.tolerance:+g} %" if gate.relative else f"{gate.tolerance:+g}"
     out.update(base=b, cand=c, change=change, limit=limit, passed=passed,
                reason=f"{gate.statistic} {c:.4g} vs {b:.4g}: change {change:+.4g}, allowed {tol_text}"
@@ -548,15 +566,17 @@ def metric_names(base_rows: Sequence[Mapping[str, Any]], cand_rows: Sequence[Map
     A key is numeric on a side when at least one of its rows holds a finite
     non-boolean number; identifiers, dispersions and machine-dependent keys are left out.
     """
-    def numeric(rows: Sequence[Mapping[str, Any]]) -> list[str]:
-        keys: list[str] = []
-        for r in rows:
-            keys += [k for k in r if k not in keys]
-        return [k for k in keys if k not in IDENTIFIER_KEYS and not mc.is_run_dependent(k)
-                and not k.startswith(DISPERSION_PREFIX) and np.isfinite(column(rows, k)).any()]
+    cand = set(numeric_keys(cand_rows))
+    return [k for k in numeric_keys(base_rows) if k in cand]
 
-    cand = set(numeric(cand_rows))
-    return [k for k in numeric(base_rows) if k in cand]
+
+def numeric_keys(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """The numeric per-case metrics of one side (see :func:`metric_names`), in column order."""
+    keys: list[str] = []
+    for r in rows:
+        keys += [k for k in r if k not in keys]
+    return [k for k in keys if k not in IDENTIFIER_KEYS and not mc.is_run_dependent(k)
+            and not k.startswith(DISPERSION_PREFIX) and np.isfinite(column(rows, k)).any()]
 
 
 def _metric(base_rows: Sequence[Mapping[str, Any]], cand_rows: Sequence[Mapping[str, Any]], key: str) -> dict[str, Any]:
@@ -636,16 +656,18 @@ def compare_inputs(base: PairedInput, cand: PairedInput, gates: Sequence[str | G
     parsed = [g if isinstance(g, Gate) else parse_gate(g) for g in gates]
     check_paired(base, cand)
     names = metric_names(base.rows, cand.rows)
+    base_names = numeric_keys(base.rows)
     replay = base.kind == "replay"
     headline = REPLAY_HEADLINE_METRICS if replay else HEADLINE_METRICS
     for g in parsed:
         if g.metric == SUCCESS_GATE and replay:
             raise CompareInputError(f"--gate {g.spec!r}: open-loop replays have no success rate (the vehicle does "
                                     "not respond); gate a replay metric instead, e.g. epe_median_px:+10%")
-        if g.metric != SUCCESS_GATE and g.metric not in names:
-            raise CompareInputError(f"--gate {g.spec!r}: no numeric metric {g.metric!r} on both sides (e.g. "
-                                    f"{', '.join(n for n in headline if n in names) or ', '.join(names[:4])}); "
-                                    f"allowed forms: {GATE_FORMS}")
+        # A metric BASE has and CAND lost in every case is a regression the gate reports (failed), not bad input.
+        if g.metric != SUCCESS_GATE and g.metric not in base_names:
+            raise CompareInputError(f"--gate {g.spec!r}: BASE has no numeric metric {g.metric!r} (e.g. "
+                                    f"{', '.join(n for n in headline if n in base_names) or ', '.join(base_names[:4])}"
+                                    f"); allowed forms: {GATE_FORMS}")
     success = None
     base_ok = cand_ok = np.zeros(0, bool)
     if not replay:

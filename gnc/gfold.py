@@ -92,6 +92,9 @@ def cvxpy_available() -> bool:
     return importlib.util.find_spec("cvxpy") is not None
 
 
+RESOLVE_HINT_MIN_S = 0.5  # a re-solve keeps the time left as its final time only above this [s]
+
+
 class GfoldOptions(BaseModel):
     """``[guidance.options]`` of ``guidance.law = "gfold"``."""
 
@@ -348,7 +351,7 @@ class GfoldGuidance(ZemZevGuidance):
         best: tuple[float, float, dict] | None = None
         status = "not solved"
         try:
-            if t_f_hint_s is not None and t_f_hint_s > 0.5:
+            if t_f_hint_s is not None and t_f_hint_s > RESOLVE_HINT_MIN_S:
                 ref = self.solution
                 z_ref = z_line(t_f_hint_s)
                 if ref is not None:
@@ -426,7 +429,10 @@ class GfoldGuidance(ZemZevGuidance):
                 self.solution = sol
                 self.planned_fuel_kg = sol.fuel_kg
             t_go = sol.t_f_s - (t_ns - sol.t0_ns) / NS_PER_S
-            if (t_go > opt.resolve_min_t_go_s and t_ns - self._last_solve_ns >= opt.resolve_period_s * NS_PER_S):
+            # Not below RESOLVE_HINT_MIN_S whatever the option says: that re-solve would search a fresh final
+            # time of at least t_go_min_s and push the arrival back each time (a hover until the fuel is gone).
+            if (t_go > max(opt.resolve_min_t_go_s, RESOLVE_HINT_MIN_S)
+                    and t_ns - self._last_solve_ns >= opt.resolve_period_s * NS_PER_S):
                 self._last_solve_ns = t_ns
                 new, status = self.solve_path(t_ns, r, v, m, target_L, t_f_hint_s=t_go)
                 if new is None:

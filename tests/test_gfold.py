@@ -137,3 +137,18 @@ def test_gfold_lands_the_default_scenario():
     s = run(load_scenario(None, ['guidance.law="gfold"'])).summary
     assert s["landed"], s["outcome"]
     assert s["guidance"]["law_stats"]["failures"] == 0 and not s["guidance"]["law_stats"]["fallback_zem_zev"]
+
+
+def test_rapid_re_solves_near_the_gate_do_not_push_the_arrival_back():
+    # Re-solves allowed down to 0.4 s before the gate, every 0.1 s: a re-solve with under 0.5 s left used to
+    # search a fresh final time of at least t_go_min_s (5 s), so the arrival moved back each time and the
+    # lander hovered above the gate until its fuel was gone. It now lands like the defaults.
+    from bench.scenario import load_scenario
+    from bench.sim.run import run
+    from tests.conftest import SMALL_SET
+
+    sc = load_scenario(None, [*SMALL_SET, 'guidance.law="gfold"', 'nav="truth"', 'vision="off"',
+                              "camera.enabled=false", "guidance.options.resolve_period_s=0.1",
+                              "guidance.options.resolve_min_t_go_s=0.4"])
+    s = run(sc).summary
+    assert s["outcome"] == "landed" and s["fuel_exhausted_t_s"] is None, s["outcome"]

@@ -102,3 +102,9 @@ def test_the_observation_is_the_flight_software_estimate_not_truth():
     env.close()
     with pytest.raises(ValueError, match="nav"):
         LanderEnv(nav="perfect")
+
+
+@pytest.mark.parametrize("t_max_s", [float("inf"), float("nan"), 0.0])
+def test_an_episode_limit_that_is_not_a_finite_positive_time_is_refused(t_max_s):
+    with pytest.raises(ValueError, match="t_max_s"):
+        LanderEnv(overrides=SMALL_SET, t_max_s=t_max_s)

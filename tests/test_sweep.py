@@ -207,3 +207,20 @@ def test_the_design_can_be_a_sweep_table_in_the_scenario_file(tmp_path):
     with pytest.raises(ValueError, match="unknown field 'sweep.runz'"):
         sweep.split_sweep_table(f)
     assert read_scenario_data(None)[0]["seed"] == 1
+
+
+def test_a_gfold_partner_case_that_used_no_fuel_gives_no_ratio_instead_of_a_crash():
+    # A case whose G-FOLD partner burned nothing (its computer down for the whole short run) made the
+    # summary divide by zero after every case had flown, and no statistics or report were written.
+    d = sweep.design_from_args(['guidance.law="zem_zev","gfold"'], None, None, [], 0)
+    assert [p["guidance.law"] for p in d.points] == ["zem_zev", "gfold"]
+    rows = [[{"case": 0, "fuel_used_kg": 10.0}, {"case": 1, "fuel_used_kg": 12.0}],
+            [{"case": 0, "fuel_used_kg": 0.0}, {"case": 1, "fuel_used_kg": 6.0}]]
+    ratios = sweep.case_fuel_ratios(d, rows)
+    assert np.isnan(ratios[0][0]) and ratios[0][1] == pytest.approx(2.0)
+    np.testing.assert_array_equal(ratios[1], [math.nan, 1.0])  # 0 / 0: no ratio either
+
+
+def test_a_grid_range_with_an_infinite_count_is_refused_in_one_line():
+    with pytest.raises(ValueError, match="too many values"):
+        sweep.design_from_args(["guidance.gate_altitude_m=range(0, 1e308, 1e-308)"], None, None, [], 0)

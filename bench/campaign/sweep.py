@@ -158,7 +158,11 @@ def parse_grid(spec: str) -> tuple[str, list[Any]]:
                 raise ValueError
         except ValueError:
             raise ValueError(f"--grid {spec!r}: range() takes 1 to 3 finite numbers (start, stop, step != 0)") from None
-        n = max(0, math.ceil((stop - start) / step))
+        span = (stop - start) / step
+        if not math.isfinite(span):
+            raise ValueError(f"--grid {spec!r}: range() gives too many values; allowed: at most {MAX_GRID_VALUES} "
+                             "per field")
+        n = max(0, math.ceil(span))
         if n > MAX_GRID_VALUES:
             raise ValueError(f"--grid {spec!r}: range() gives {n} values; allowed: at most {MAX_GRID_VALUES} per field")
         values = [start + i * step for i in range(n)]
@@ -544,6 +548,10 @@ def _doc(design: Design, runs: int, campaign_seed: int, reqs: Sequence[Requireme
             "require": [str(r) for r in reqs]}
 
 
+def _ratio(num: float, den: float) -> float:
+    return num / den if den != 0.0 and math.isfinite(den) else math.nan
+
+
 def case_fuel_ratios(design: Design, all_rows: Sequence[Sequence[Mapping[str, Any]]]) -> list[np.ndarray | None]:
     """Per point, each case's fuel over the same case's fuel at its G-FOLD partner point (None: no partner)."""
     from bench.campaign.rows import row_float
@@ -555,7 +563,9 @@ def case_fuel_ratios(design: Design, all_rows: Sequence[Sequence[Mapping[str, An
             out.append(None)
             continue
         ref = {r["case"]: row_float(r.get("fuel_used_kg")) for r in all_rows[j]}
-        out.append(np.array([row_float(r.get("fuel_used_kg")) / ref.get(r["case"], math.nan) for r in rows], float))
+        # A partner case that used no fuel (or none known) gives no ratio: NaN, left out like a missing value.
+        out.append(np.array([_ratio(row_float(r.get("fuel_used_kg")), ref.get(r["case"], math.nan)) for r in rows],
+                            float))
     return out
 
 

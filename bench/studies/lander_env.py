@@ -49,6 +49,8 @@ draws the scenario's ``[dispersions]`` for every episode (as a campaign case).
 
 from __future__ import annotations
 
+import math
+
 import threading
 from dataclasses import dataclass
 from typing import Any
@@ -121,8 +123,8 @@ class LanderEnv(gym.Env):
             raise ValueError(f"nav = {nav!r}; allowed: 'estimator' or 'truth'")
         sets = [*overrides, "camera.enabled=false", 'vision="off"', f'nav="{nav}"']
         if t_max_s is not None:
-            if not t_max_s > 0:
-                raise ValueError(f"t_max_s = {t_max_s}: must be > 0")
+            if not (t_max_s > 0 and math.isfinite(t_max_s)):
+                raise ValueError(f"t_max_s = {t_max_s}: must be finite and > 0 [s]")
             sets.append(f"sim.t_max_ns={int(round(t_max_s * NS_PER_S))}")
         if scenario is None:
             self.base = load_scenario(None, sets)

@@ -42,6 +42,7 @@ import contextlib
 import importlib
 import json
 import multiprocessing.connection as mp_connection
+import numbers
 import os
 import threading
 import time
@@ -105,7 +106,7 @@ def read_meta(path: Path, keys: tuple[str, ...], flag: str) -> dict[str, Any]:
 
 def check_seed(campaign_seed: object) -> None:
     """Refuse a campaign seed that is not a non-negative integer (``--seed``)."""
-    if isinstance(campaign_seed, bool) or not isinstance(campaign_seed, int) or campaign_seed < 0:
+    if isinstance(campaign_seed, bool) or not isinstance(campaign_seed, numbers.Integral) or campaign_seed < 0:
         raise ValueError(f"--seed {campaign_seed!r}: a campaign seed is a non-negative integer")
 
 

@@ -29,8 +29,8 @@ for a failed gyro), withhold (an excluded sensor) or average (a noisy
 altimeter) it, re-initialise the filter's terrain height (the Hakuto-R
 guard), recalibrate the thrust, and declare a safe abort, after which
 guidance is replaced by a climb. Monitoring ends at the first leg contact.
-The state, covariance, mass and attitude are checkpointed at every control
-tick (non-volatile memory, for a restart after a computer reset).
+The state, covariance, mass and attitude are checkpointed at hand-over and at
+every control tick (non-volatile memory, for a restart after a computer reset).
 
 Mass is the flight computer's own propellant gauging: the mass estimate at
 hand-over minus the integral of the thrust it believes it commanded,
@@ -194,9 +194,10 @@ class FlightSoftware:
         self._alt_buffer: list[tuple[int, float, float]] = []  # (t, height less expected, sigma)
         self._discounted = False  # the vertical covariance was re-inflated on a noisy-altimeter detection
         self._altimeter_lost = False  # no usable altimeter (health monitoring): vision's divergence is used
-        # Non-volatile memory, written at every control tick: (t_ns, filter state (24,), covariance (24, 24),
-        # mass [kg], attitude q_LB (4,) or None).
-        self.checkpoint: tuple[int, np.ndarray, np.ndarray, float, np.ndarray | None] | None = None
+        # Non-volatile memory: (t_ns, filter state (24,), covariance (24, 24), mass [kg], attitude q_LB (4,) or
+        # None). The hand-over's data until the first control tick writes it (a reset before that restarts there).
+        self.checkpoint: tuple[int, np.ndarray, np.ndarray, float, np.ndarray | None] = self._checkpoint(
+            nav_filter.time_ns)
 
     # ------------------------------------------------------------------ sensors
     def on_imu(self, msg: ImuMessage) -> None:
@@ -536,8 +537,12 @@ class FlightSoftware:
             veh = self.controller.vehicle
             self.fdir.torque_check(t_ns, act.torque_B_Nm, act.thrust_N if act.engine_on else 0.0,
                                    veh.inertia_B_kgm2(self.mass_kg), veh.rcs_torque_max_Nm)
-            self.checkpoint = (t_ns, self.filter.ekf.x.copy(), self.filter.ekf.P.copy(), self.mass_kg, self.filter.q_LB)
+            self.checkpoint = self._checkpoint(t_ns)
         return act
+
+    def _checkpoint(self, t_ns: int) -> tuple[int, np.ndarray, np.ndarray, float, np.ndarray | None]:
+        """The state, covariance, mass and attitude as they are now, tagged ``t_ns`` (:attr:`checkpoint`)."""
+        return t_ns, self.filter.ekf.x.copy(), self.filter.ekf.P.copy(), self.mass_kg, self.filter.q_LB
 
     # ------------------------------------------------------------------ fault detection and recovery
     def _monitoring(self) -> bool:

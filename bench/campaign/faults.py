@@ -163,8 +163,6 @@ def run_faults(presets: Sequence[str], runs: int, out: Path, campaign_seed: int 
         data, base_dir = read_scenario_data(out / BASE_SCENARIO)
         overrides = []
     else:
-        if runs < 1:
-            raise ValueError(f"--runs {runs}: must be >= 1")
         if meta_path.exists():
             raise ValueError(f"--out {out} already holds a fault matrix; use --resume, or another folder")
         if out.exists() and not out.is_dir():

@@ -483,8 +483,6 @@ def run_sweep(data: dict[str, Any], base_dir: Path, overrides: Sequence[str], de
     """
     from bench.campaign import mc
 
-    if runs < 1:
-        raise ValueError(f"--runs {runs}: must be >= 1")
     reqs = [parse_require(r) for r in require]
     meta_path = out / SWEEP_JSON
     if not resume and out.exists() and any(out.iterdir()) and not meta_path.exists():
@@ -504,11 +502,12 @@ def run_sweep(data: dict[str, Any], base_dir: Path, overrides: Sequence[str], de
     scenarios = point_scenarios(data, base_dir, overrides, design)  # every point validated before anything runs
     mc.check_campaign_args(runs, campaign_seed, workers, retention, case_timeout_s, backend, address)
     if not resume:
-        for i, sc in enumerate(scenarios if dry_run else ()):  # a dry run's cases, before anything is written
-            try:
-                mc.check_cases(sc, runs, campaign_seed)
-            except ValueError as exc:
-                raise ValueError(f"point {i}: {exc}") from None
+        if dry_run:  # a dry run's cases, before anything is written
+            for i, sc in enumerate(scenarios):
+                try:
+                    mc.check_cases(sc, runs, campaign_seed)
+                except ValueError as exc:
+                    raise ValueError(f"point {i}: {exc}") from None
         base = scenario_from_data(data, base_dir, overrides)
         out.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out / BASE_SCENARIO, scenario_to_toml(base))

@@ -176,9 +176,8 @@ def _read_campaign(path: Path, role: str) -> PairedInput:
         raise CompareInputError(f"{role} {path}: its {mc.CAMPAIGN} says runs = {runs}; a campaign has at least one "
                                 "case: give a folder written by landbench mc --out DIR")
     rows = mc.read_rows(path, runs)
-    bad = [r for r in rows if not isinstance(r, dict) or isinstance(r.get("case"), bool)
-           or not isinstance(r.get("case"), int)]
-    if bad:
+    if any(not isinstance(r, dict) or isinstance(r.get("case"), bool) or not isinstance(r.get("case"), int)
+           for r in rows):
         raise CompareInputError(f"{role} {path}: a case file in {mc.CASES}/ is not a case row (a JSON object with "
                                 "an integer 'case'); give a folder written by landbench mc --out DIR, or rerun "
                                 "that case with landbench mc --resume")

@@ -148,11 +148,7 @@ def restart_flight_software(scenario: Scenario, old: FlightSoftware, t_ns: int) 
     outage: the engine was off; :func:`gnc.fdir.restart_estimate`), never from the truth;
     the detections of its earlier life are kept, and the restart is one more.
     """
-    checkpoint = old.checkpoint
-    if checkpoint is None:  # down before its first control tick: the hand-over's data, as it was loaded
-        nav = old.filter
-        checkpoint = (nav.time_ns, nav.ekf.x.copy(), nav.ekf.P.copy(), old.mass_kg, nav.q_LB)
-    t0, x0, P0, mass, q0 = checkpoint
+    t0, x0, P0, mass, q0 = old.checkpoint  # the hand-over's data when it went down before its first control tick
     x, P = restart_estimate(x0, P0, (t_ns - t0) / 1e9, scenario.estimator.gravity_mps2)
     onboard_map = old.map_nav.matcher.map if old.map_nav is not None else None  # the map survives in storage
     new = build_flight_software(scenario, x[:3], x[3:6], t0_ns=t_ns, q0_LB=q0, onboard_map=onboard_map)

@@ -50,7 +50,6 @@ draws the scenario's ``[dispersions]`` for every episode (as a campaign case).
 from __future__ import annotations
 
 import math
-
 import threading
 from dataclasses import dataclass
 from typing import Any

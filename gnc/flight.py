@@ -54,6 +54,7 @@ from gnc.hda import HazardAvoidance
 from gnc.map_nav import MapNavigator
 from gnc.messages import AltimeterMessage, AttitudeMessage, ContactMessage, ImageMessage, ImuMessage, LidarScanMessage
 from gnc.navstate import NavState
+from gnc.plugins import LawOutputError, check_law_vector
 from gnc.vision_nav import VisionMeasurement, VisionNavConfig, vision_measurement
 from vision.tracker import Tracker
 from vision.tracks import Tracks
@@ -528,7 +529,9 @@ class FlightSoftware:
             cmd = self._abort_command(nav)
         else:
             cmd = self.guidance.update(nav, self.target)
+            self._check_guidance_output(cmd, t_ns)
         act = self.controller.update(nav, cmd, contact)
+        self._check_controller_output(act, t_ns)
         self.last_guidance = cmd
         self._hold_thrust(t_ns, act.thrust_N if act.engine_on else 0.0)
         if self._monitoring():
@@ -539,6 +542,27 @@ class FlightSoftware:
                                    veh.inertia_B_kgm2(self.mass_kg), veh.rcs_torque_max_Nm)
             self.checkpoint = self._checkpoint(t_ns)
         return act
+
+    def _check_guidance_output(self, cmd: object, t_ns: int) -> None:
+        """Raise :class:`gnc.plugins.LawOutputError` when the guidance law's command cannot be flown (a law that
+        overrides ``update`` is checked here; :meth:`GuidanceLaw.update` checks its formulas' output itself)."""
+        law = getattr(getattr(self.guidance, "cfg", None), "law", type(self.guidance).__name__)
+        if not isinstance(cmd, GuidanceCommand):
+            raise LawOutputError(f"guidance.law = {law!r}: update returned {type(cmd).__name__} at t = "
+                                 f"{t_ns / 1e9:.3f} s; allowed: a gnc.guidance.GuidanceCommand "
+                                 "(README: Controller design studies)")
+        if cmd.valid:
+            check_law_vector(cmd.a_cmd_L, 3, "guidance.law", law, "update (GuidanceCommand.a_cmd_L)", t_ns, "m/s^2")
+
+    def _check_controller_output(self, act: object, t_ns: int) -> None:
+        """Raise :class:`gnc.plugins.LawOutputError` when the controller's command cannot be flown."""
+        law = getattr(getattr(self.controller, "cfg", None), "law", type(self.controller).__name__)
+        if not isinstance(act, ActuatorCommand):
+            raise LawOutputError(f"control.law = {law!r}: update returned {type(act).__name__} at t = "
+                                 f"{t_ns / 1e9:.3f} s; allowed: a gnc.control.ActuatorCommand "
+                                 "(README: Controller design studies)")
+        check_law_vector(act.thrust_N, 0, "control.law", law, "update (ActuatorCommand.thrust_N)", t_ns, "N")
+        check_law_vector(act.torque_B_Nm, 3, "control.law", law, "update (ActuatorCommand.torque_B_Nm)", t_ns, "N m")
 
     def _checkpoint(self, t_ns: int) -> tuple[int, np.ndarray, np.ndarray, float, np.ndarray | None]:
         """The state, covariance, mass and attitude as they are now, tagged ``t_ns`` (:attr:`checkpoint`)."""

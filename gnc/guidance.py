@@ -113,6 +113,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 from gnc.config import validate_options, validated_config
 from gnc.navstate import NavState
 from gnc.numeric import clip_float, norm
+from gnc.plugins import check_law_vector
 from gnc.quat import body_z_L, unit_quaternion
 
 NS_PER_S = 1_000_000_000
@@ -704,13 +705,19 @@ class GuidanceLaw(ABC):
                 self.phase = PHASE_TERMINAL
             elif t_go <= self.cfg.open_loop_t_go_s:
                 a = self._open_loop_accel_L(t_ns, r, v, r_f, v_f, t_go)
+                source = "coeffs (the open-loop path, evaluated)"
             else:
                 if t_go > REPLAN_MIN_T_GO_S and t_ns - self._t_plan_ns >= REPLAN_MIN_INTERVAL_NS:
                     t_go = self._maybe_replan(t_ns, r, v, m, r_f, v_f, t_go, nav.q_LB)
                 a = self.accel_L(r, v, r_f, v_f, t_go)
+                source = "accel_L"
         if self.phase == PHASE_TERMINAL:
             a = self.terminal_accel_L(r, v, target_L)
+            source = "terminal_accel_L"
             t_go = max(r[2] - target_L[2], 0.0) / self.cfg.terminal_descent_rate_mps
+        # A law's output is checked before it is capped (a NaN would pass through the cap to the controller,
+        # which holds its last good command: flown silently).
+        check_law_vector(a, 3, "guidance.law", self.cfg.law, source, t_ns, "m/s^2")
         a_capped, saturated = cap_acceleration_L(a, self.g_L, m, self.limits, r[2] - target_L[2])
         return GuidanceCommand(t_ns, a_capped, self.phase, float(t_go), saturated=saturated, valid=True)
 

@@ -6,6 +6,13 @@ Input: an import path ``package.module:ClassName`` (``guidance.law``,
 Output: the class. Called at scenario validation (so a bad plug-in is refused
 before anything runs or is written) and when the flight software is built.
 
+In flight, :func:`check_law_vector` checks what a law or controller returns at
+every control tick: a non-finite or misshapen command raises
+:class:`LawOutputError` naming the law, the value, the time and what is allowed,
+so that a broken law ends the run instead of being flown silently (the
+controller would otherwise hold its last good command, or clamp a NaN thrust
+to the engine's minimum).
+
 The module is imported with the current working directory on the search path
 (so ``my_law.py`` beside the scenario works from that folder), and is refused
 if its source imports the simulator or the truth side (``mujoco``,
@@ -23,9 +30,45 @@ import re
 import sys
 from pathlib import Path
 
+import numpy as np
+
 # Roots a flight-software module may not import (as tests/test_boundary.py enforces for gnc/ and vision/).
 FORBIDDEN_ROOTS = frozenset({"mujoco", "models", "bench", "dm_control"})
 _SPEC = re.compile(r"^[A-Za-z_]\w*(\.[A-Za-z_]\w*)*:[A-Za-z_]\w*$")
+
+
+class LawOutputError(ValueError):
+    """A guidance law or controller returned a command the vehicle cannot fly (non-finite, wrong shape).
+
+    A ValueError: a user's plug-in is the usual cause, so the command line shows it as one
+    ``landbench: error:`` line and a campaign records the case as an error row with the message.
+    """
+
+
+def check_law_vector(value: object, size: int, field: str, law: str, what: str, t_ns: int, unit: str) -> None:
+    """Raise :class:`LawOutputError` unless ``value`` is a finite vector of ``size`` numbers.
+
+    Args:
+        value: What the law returned (a NumPy array, a sequence or a float; a float for ``size`` 0).
+        size: Expected number of elements; 0 for a scalar.
+        field: Scenario field of the law (``guidance.law``, ``control.law``).
+        law: Its value (``apollo``, ``my_law:MyLaw``).
+        what: What was returned, e.g. ``"accel_L (the approach acceleration)"``.
+        t_ns: Time of the control tick [ns].
+        unit: Unit of the value, for the message, e.g. ``"m/s^2"``.
+    """
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        arr = None
+    shape = () if size == 0 else (size,)
+    if arr is not None and arr.shape == shape and np.isfinite(arr).all():
+        return
+    want = "a finite number" if size == 0 else f"a finite vector of {size} numbers, shape ({size},)"
+    shown = np.array2string(arr, precision=4, threshold=12) if arr is not None and arr.size <= 64 else repr(value)[:80]
+    got = f"shape {arr.shape} " if arr is not None and arr.shape != shape else ""
+    raise LawOutputError(f"{field} = {law!r}: {what} returned {got}{shown} at t = {t_ns / 1e9:.3f} s; allowed: "
+                         f"{want} [{unit}] (README: Controller design studies)")
 
 
 def _boundary_violations(module) -> set[str]:

@@ -119,3 +119,50 @@ def test_a_bad_controller_plugin_gets_one_error_line(sets, needle, capsys, tmp_p
     assert main(["run", *[a for s in sets for a in ("--set", s)], "--out", str(tmp_path / "r")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("landbench: error: control.") and needle in err, err
+
+
+# --------------------------------------------------------------------------- output a vehicle cannot fly
+def test_check_law_vector_passes_finite_vectors_and_names_law_value_and_time():
+    from gnc.plugins import LawOutputError, check_law_vector
+
+    check_law_vector(np.array([0.1, -2.0, 1.62]), 3, "guidance.law", "apollo", "accel_L", 0, "m/s^2")
+    check_law_vector([0.0, 0.0, 0.0], 3, "guidance.law", "apollo", "accel_L", 0, "m/s^2")
+    check_law_vector(1500.0, 0, "control.law", "x:Y", "update", 0, "N")
+    for bad, shown in [(np.array([0.0, np.nan, 1.0]), "nan"), (np.array([np.inf, 0.0, 0.0]), "inf"),
+                       (np.zeros(2), "shape (2,)"), (np.zeros((1, 3)), "shape (1, 3)"), (None, "nan"),
+                       ("up", "'up'")]:
+        with pytest.raises(LawOutputError) as exc:
+            check_law_vector(bad, 3, "guidance.law", "my_law:MyLaw", "accel_L", 12_345_000_000, "m/s^2")
+        msg = str(exc.value)
+        assert msg.startswith("guidance.law = 'my_law:MyLaw': accel_L returned ") and shown in msg, msg
+        assert "t = 12.345 s" in msg and "allowed: a finite vector of 3 numbers" in msg and "\n" not in msg, msg
+    with pytest.raises(LawOutputError, match=r"control.law = 'x:Y': update returned nan at t = 0.000 s; allowed: a "
+                                             r"finite number \[N\]"):
+        check_law_vector(float("nan"), 0, "control.law", "x:Y", "update", 0, "N")
+
+
+def test_a_law_turning_nan_in_flight_ends_the_run_with_one_error_line(capsys, tmp_path):
+    # Before the check, the controller held its last good command and the run went on to a
+    # fuel-exhausted or hard landing, with nothing naming the law.
+    out = tmp_path / "run"
+    sets = [a for s in [*NO_CAMERA, 'guidance.law="plugin_bad_outputs:NanLateLaw"'] for a in ("--set", s)]
+    assert main(["run", *sets, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("landbench: error: guidance.law = 'plugin_bad_outputs:NanLateLaw': "
+                                                   "accel_L returned [nan nan nan] at t = "), err
+    assert not out.exists()  # nothing written
+
+
+@pytest.mark.parametrize("sets, needle", [
+    (['guidance.law="plugin_bad_outputs:TwoAxisLaw"'], "guidance.law = 'plugin_bad_outputs:TwoAxisLaw': accel_L returned shape (2,)"),
+    (['guidance.law="plugin_bad_outputs:TupleLaw"'], "guidance.law = 'plugin_bad_outputs:TupleLaw': update returned tuple at t = "),
+    (['control.law="plugin_bad_outputs:NanTorqueController"'],
+     "control.law = 'plugin_bad_outputs:NanTorqueController': update (ActuatorCommand.torque_B_Nm) returned [nan nan nan] "
+     "at t = 2.02"),
+])
+def test_a_law_output_that_cannot_be_flown_stops_the_run(sets, needle):
+    from gnc.plugins import LawOutputError
+
+    with pytest.raises(LawOutputError) as exc:
+        run(load_scenario(None, [*NO_CAMERA, *sets]))
+    assert needle in str(exc.value), str(exc.value)

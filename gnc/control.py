@@ -57,6 +57,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 from gnc.config import validate_options, validated_config
 from gnc.guidance import LUNAR_GRAVITY_MPS2, GuidanceCommand, GuidanceLimits, TiltLimitConfig
 from gnc.messages import N_LEGS, ContactMessage
+from gnc.plugins import build_law
 from gnc.navstate import NavState
 from gnc.numeric import clip_float, cross3, finite_small, max_abs3, norm
 from gnc.quat import body_z_L, quat_error, quat_from_elements, unit_quaternion
@@ -442,4 +443,4 @@ def make_controller(
     A bad parameter raises ValueError naming the field, value and what is allowed.
     """
     cfg = validated_config(ControlConfig, cfg, "control")
-    return controller_class(cfg.law)(cfg, vehicle)
+    return build_law(controller_class(cfg.law), cfg.law, "control.law", cfg, vehicle)

@@ -54,7 +54,7 @@ from gnc.hda import HazardAvoidance
 from gnc.map_nav import MapNavigator
 from gnc.messages import AltimeterMessage, AttitudeMessage, ContactMessage, ImageMessage, ImuMessage, LidarScanMessage
 from gnc.navstate import NavState
-from gnc.plugins import LawOutputError, check_law_vector
+from gnc.plugins import LawOutputError, check_law_vector, is_plugin, plugin_raised
 from gnc.vision_nav import VisionMeasurement, VisionNavConfig, vision_measurement
 from vision.tracker import Tracker
 from vision.tracks import Tracks
@@ -528,10 +528,10 @@ class FlightSoftware:
         if self.fdir is not None and self.fdir.abort is not None:
             cmd = self._abort_command(nav)
         else:
-            cmd = self.guidance.update(nav, self.target)
+            cmd = self._law_call(self.guidance, "guidance.law", t_ns, nav, self.target)
             self._check_guidance_output(cmd, t_ns)
-        act = self.controller.update(nav, cmd, contact)
-        self._check_controller_output(act, t_ns)
+        act = self._law_call(self.controller, "control.law", t_ns, nav, cmd, contact)
+        act = self._checked_controller_output(act, t_ns)
         self.last_guidance = cmd
         self._hold_thrust(t_ns, act.thrust_N if act.engine_on else 0.0)
         if self._monitoring():
@@ -543,26 +543,54 @@ class FlightSoftware:
             self.checkpoint = self._checkpoint(t_ns)
         return act
 
+    @staticmethod
+    def _law(component: object) -> str:
+        """The ``guidance.law`` / ``control.law`` value a guidance law or controller was built from."""
+        return getattr(getattr(component, "cfg", None), "law", type(component).__name__)
+
+    def _law_call(self, component: object, field: str, t_ns: int, *args: object) -> object:
+        """``component.update(*args)``; a plug-in's exception becomes one line (:func:`gnc.plugins.plugin_raised`).
+        A built-in's exception propagates as it is, with its traceback (a defect of this software)."""
+        law = self._law(component)
+        if not is_plugin(law):
+            return component.update(*args)
+        try:
+            return component.update(*args)
+        except LawOutputError:
+            raise  # already names the law (GuidanceLaw.update's check of accel_L and its kin)
+        except Exception as exc:  # noqa: BLE001 - any error in the user's plug-in is one line, chained
+            raise plugin_raised(field, law, "update", t_ns, exc) from exc
+
     def _check_guidance_output(self, cmd: object, t_ns: int) -> None:
         """Raise :class:`gnc.plugins.LawOutputError` when the guidance law's command cannot be flown (a law that
         overrides ``update`` is checked here; :meth:`GuidanceLaw.update` checks its formulas' output itself)."""
-        law = getattr(getattr(self.guidance, "cfg", None), "law", type(self.guidance).__name__)
+        law = self._law(self.guidance)
+        head = f"guidance.law = {law!r}: update returned"
         if not isinstance(cmd, GuidanceCommand):
-            raise LawOutputError(f"guidance.law = {law!r}: update returned {type(cmd).__name__} at t = "
-                                 f"{t_ns / 1e9:.3f} s; allowed: a gnc.guidance.GuidanceCommand "
-                                 "(README: Controller design studies)")
+            raise LawOutputError(f"{head} {type(cmd).__name__} at t = {t_ns / 1e9:.3f} s; allowed: a "
+                                 "gnc.guidance.GuidanceCommand (README: Controller design studies)")
+        if not isinstance(cmd.phase, str):
+            raise LawOutputError(f"{head} phase = {cmd.phase!r} at t = {t_ns / 1e9:.3f} s; allowed: a str "
+                                 "('approach', 'terminal', ...)")
+        if isinstance(cmd.t_go_s, bool) or not isinstance(cmd.t_go_s, (int, float, np.integer, np.floating)):
+            raise LawOutputError(f"{head} t_go_s = {cmd.t_go_s!r} at t = {t_ns / 1e9:.3f} s; allowed: a number of "
+                                 "seconds (NaN when unknown)")
         if cmd.valid:
             check_law_vector(cmd.a_cmd_L, 3, "guidance.law", law, "update (GuidanceCommand.a_cmd_L)", t_ns, "m/s^2")
 
-    def _check_controller_output(self, act: object, t_ns: int) -> None:
-        """Raise :class:`gnc.plugins.LawOutputError` when the controller's command cannot be flown."""
-        law = getattr(getattr(self.controller, "cfg", None), "law", type(self.controller).__name__)
+    def _checked_controller_output(self, act: object, t_ns: int) -> ActuatorCommand:
+        """The controller's command, checked (finite thrust and torque of the right shape; else
+        :class:`gnc.plugins.LawOutputError`) and with a torque given as a sequence made an array."""
+        law = self._law(self.controller)
         if not isinstance(act, ActuatorCommand):
             raise LawOutputError(f"control.law = {law!r}: update returned {type(act).__name__} at t = "
                                  f"{t_ns / 1e9:.3f} s; allowed: a gnc.control.ActuatorCommand "
                                  "(README: Controller design studies)")
         check_law_vector(act.thrust_N, 0, "control.law", law, "update (ActuatorCommand.thrust_N)", t_ns, "N")
         check_law_vector(act.torque_B_Nm, 3, "control.law", law, "update (ActuatorCommand.torque_B_Nm)", t_ns, "N m")
+        if type(act.thrust_N) is not float or type(act.torque_B_Nm) is not np.ndarray:
+            act = dataclasses.replace(act, thrust_N=float(act.thrust_N), torque_B_Nm=np.asarray(act.torque_B_Nm, float))
+        return act
 
     def _checkpoint(self, t_ns: int) -> tuple[int, np.ndarray, np.ndarray, float, np.ndarray | None]:
         """The state, covariance, mass and attitude as they are now, tagged ``t_ns`` (:attr:`checkpoint`)."""

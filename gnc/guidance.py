@@ -113,7 +113,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 from gnc.config import validate_options, validated_config
 from gnc.navstate import NavState
 from gnc.numeric import clip_float, norm
-from gnc.plugins import check_law_vector
+from gnc.plugins import build_law, check_law_vector
 from gnc.quat import body_z_L, unit_quaternion
 
 NS_PER_S = 1_000_000_000
@@ -917,4 +917,4 @@ def make_guidance(
         limits = GuidanceLimits()
     if not isinstance(limits, GuidanceLimits):
         raise ValueError(f"limits = {limits!r}; allowed: a GuidanceLimits")
-    return law_cls(cfg, limits)
+    return build_law(law_cls, cfg.law, "guidance.law", cfg, limits)

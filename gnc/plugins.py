@@ -11,7 +11,8 @@ every control tick: a non-finite or misshapen command raises
 :class:`LawOutputError` naming the law, the value, the time and what is allowed,
 so that a broken law ends the run instead of being flown silently (the
 controller would otherwise hold its last good command, or clamp a NaN thrust
-to the engine's minimum).
+to the engine's minimum); a plug-in that raises in flight gets the same one
+line (:func:`plugin_raised`), with its exception and the line that raised.
 
 The module is imported with the current working directory on the search path
 (so ``my_law.py`` beside the scenario works from that folder), and is refused
@@ -28,6 +29,7 @@ import inspect
 import os
 import re
 import sys
+import traceback
 from pathlib import Path
 
 import numpy as np
@@ -65,10 +67,51 @@ def check_law_vector(value: object, size: int, field: str, law: str, what: str, 
     if arr is not None and arr.shape == shape and np.isfinite(arr).all():
         return
     want = "a finite number" if size == 0 else f"a finite vector of {size} numbers, shape ({size},)"
-    shown = np.array2string(arr, precision=4, threshold=12) if arr is not None and arr.size <= 64 else repr(value)[:80]
+    if arr is not None and arr.size <= 64:  # on one line whatever the shape
+        shown = np.array2string(arr.ravel() if arr.ndim > 1 else arr, precision=4, separator=", ", threshold=12)
+    else:
+        shown = repr(value)[:80]
     got = f"shape {arr.shape} " if arr is not None and arr.shape != shape else ""
     raise LawOutputError(f"{field} = {law!r}: {what} returned {got}{shown} at t = {t_ns / 1e9:.3f} s; allowed: "
                          f"{want} [{unit}] (README: Controller design studies)")
+
+
+def plugin_raised(field: str, law: str, what: str, t_ns: int | None, exc: BaseException) -> LawOutputError:
+    """The one-line error for a plug-in that raised in flight: its exception and the plug-in's line that raised.
+
+    Args:
+        field: Scenario field of the law (``guidance.law``, ``control.law``).
+        law: Its value, an import path ``package.module:ClassName``.
+        what: The method that raised, e.g. ``"update"``.
+        t_ns: Time of the control tick [ns] (None: before the flight, when the plug-in is built).
+        exc: The exception.
+    """
+    frames = traceback.extract_tb(exc.__traceback__)
+    where = f" ({Path(frames[-1].filename).name}:{frames[-1].lineno})" if frames else ""
+    text = " ".join(str(exc).split())  # one line
+    when = "" if t_ns is None else f" at t = {t_ns / 1e9:.3f} s"
+    return LawOutputError(f"{field} = {law!r}: {what} raised {type(exc).__name__}: {text}{where}{when}")
+
+
+def build_law(cls: type, law: str, field: str, *args: object) -> object:
+    """``cls(*args)``; a plug-in whose constructor raises gets one line (:func:`plugin_raised`).
+
+    A ValueError passes as it is (the options' validation names its field already), and so does
+    any exception of a built-in law (a defect of this software, with its traceback).
+    """
+    if not is_plugin(law):
+        return cls(*args)
+    try:
+        return cls(*args)
+    except ValueError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any error in the user's plug-in is one line, chained
+        raise plugin_raised(field, law, "__init__", None, exc) from exc
+
+
+def is_plugin(law: str) -> bool:
+    """Whether a law value is a user's plug-in (an import path) rather than a built-in name."""
+    return ":" in law
 
 
 def _boundary_violations(module) -> set[str]:

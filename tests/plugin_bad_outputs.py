@@ -55,3 +55,36 @@ class NanTorqueController(Controller):
         if nav.t_ns > 2_000_000_000:
             act.torque_B_Nm[:] = np.nan
         return act
+
+
+class RaisingLaw(NanLateLaw):
+    """Raises inside accel_L 25 s before the gate (a bug in the user's code)."""
+
+    def accel_L(self, r_L, v_L, r_f_L, v_f_L, t_go_s):
+        if np.ndim(t_go_s) == 0 and t_go_s < 25.0:
+            return np.zeros(3) + 1.0 / (float(t_go_s) - float(t_go_s))  # ZeroDivisionError
+        return super().accel_L(r_L, v_L, r_f_L, v_f_L, t_go_s)
+
+
+class TorqueListController(Controller):
+    """Returns its torque as a list of three floats (the bench takes it as an array)."""
+
+    def update(self, nav, cmd, contact=None):
+        act = super().update(nav, cmd, contact)
+        return type(act)(act.thrust_N, act.torque_B_Nm.tolist(), act.engine_on, act.t_ns, act.q_LB_cmd)
+
+
+class StringTgoLaw(NanLateLaw):
+    """Returns its time to go as text."""
+
+    def update(self, nav, target):
+        cmd = super().update(nav, target)
+        return type(cmd)(cmd.t_ns, cmd.a_cmd_L, cmd.phase, "soon", cmd.saturated, cmd.valid)
+
+
+class InitRaisingController(Controller):
+    """Its constructor raises (a bug in the user's code)."""
+
+    def __init__(self, cfg=None, vehicle=None):
+        super().__init__(cfg, vehicle)
+        self.gains = {}["kp"]

@@ -149,7 +149,7 @@ def test_a_law_turning_nan_in_flight_ends_the_run_with_one_error_line(capsys, tm
     assert main(["run", *sets, "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("landbench: error: guidance.law = 'plugin_bad_outputs:NanLateLaw': "
-                                                   "accel_L returned [nan nan nan] at t = "), err
+                                                   "accel_L returned [nan, nan, nan] at t = "), err
     assert not out.exists()  # nothing written
 
 
@@ -157,8 +157,10 @@ def test_a_law_turning_nan_in_flight_ends_the_run_with_one_error_line(capsys, tm
     (['guidance.law="plugin_bad_outputs:TwoAxisLaw"'], "guidance.law = 'plugin_bad_outputs:TwoAxisLaw': accel_L returned shape (2,)"),
     (['guidance.law="plugin_bad_outputs:TupleLaw"'], "guidance.law = 'plugin_bad_outputs:TupleLaw': update returned tuple at t = "),
     (['control.law="plugin_bad_outputs:NanTorqueController"'],
-     "control.law = 'plugin_bad_outputs:NanTorqueController': update (ActuatorCommand.torque_B_Nm) returned [nan nan nan] "
+     "control.law = 'plugin_bad_outputs:NanTorqueController': update (ActuatorCommand.torque_B_Nm) returned [nan, nan, nan] "
      "at t = 2.02"),
+    (['guidance.law="plugin_bad_outputs:StringTgoLaw"'],
+     "guidance.law = 'plugin_bad_outputs:StringTgoLaw': update returned t_go_s = 'soon' at t = 0.000 s"),
 ])
 def test_a_law_output_that_cannot_be_flown_stops_the_run(sets, needle):
     from gnc.plugins import LawOutputError
@@ -166,3 +168,29 @@ def test_a_law_output_that_cannot_be_flown_stops_the_run(sets, needle):
     with pytest.raises(LawOutputError) as exc:
         run(load_scenario(None, [*NO_CAMERA, *sets]))
     assert needle in str(exc.value), str(exc.value)
+
+
+def test_a_plugin_raising_in_flight_is_one_line_naming_its_exception_and_line(capsys, tmp_path):
+    out = tmp_path / "run"
+    sets = [a for s in [*NO_CAMERA, 'guidance.law="plugin_bad_outputs:RaisingLaw"'] for a in ("--set", s)]
+    assert main(["run", *sets, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("landbench: error: guidance.law = 'plugin_bad_outputs:RaisingLaw': "
+                                                   "update raised ZeroDivisionError: float division by zero "
+                                                   "(plugin_bad_outputs.py:"), err
+    assert " at t = " in err and not out.exists()
+
+
+def test_a_controller_torque_given_as_a_list_is_flown_as_an_array():
+    sc = load_scenario(None, [*NO_CAMERA, 'control.law="plugin_bad_outputs:TorqueListController"'])
+    assert run(sc).summary["outcome"] == "landed"  # before: AttributeError in the telemetry row
+
+
+def test_a_plugin_whose_constructor_raises_is_one_line(capsys, tmp_path):
+    out = tmp_path / "run"
+    assert main(["run", "--set", 'control.law="plugin_bad_outputs:InitRaisingController"', "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("landbench: error: control.law = 'plugin_bad_outputs:"
+                                                   "InitRaisingController': __init__ raised KeyError: 'kp' "
+                                                   "(plugin_bad_outputs.py:"), err
+    assert not out.exists()

@@ -8,6 +8,8 @@ import ``gnc/``.
 
 from __future__ import annotations
 
+import types
+import typing
 from collections.abc import Mapping
 from typing import Any
 
@@ -56,6 +58,77 @@ def format_validation_error(err: ValidationError, model: type[BaseModel], prefix
     return line.replace("\n", " ")
 
 
+def _leaf_types(ann: Any) -> list[Any]:
+    """The types an annotation admits: Optional/Union/Annotated unwrapped, containers kept whole."""
+    origin = typing.get_origin(ann)
+    if origin is typing.Annotated:
+        return _leaf_types(typing.get_args(ann)[0])
+    if origin is typing.Union or origin is types.UnionType:
+        return [t for a in typing.get_args(ann) for t in _leaf_types(a)]
+    return [ann]
+
+
+def _bool_in(ann: Any, value: Any, path: str) -> tuple[str, bool] | None:
+    """(dotted path, value) of a boolean given where ``ann`` wants a number (and no boolean), else None."""
+    leaves = _leaf_types(ann)
+    if isinstance(value, bool):
+        numeric = any(t in (int, float) for t in leaves)
+        return (path, value) if numeric and bool not in leaves and Any not in leaves else None
+    if isinstance(value, Mapping):  # a model, or one of a union of models told apart by Literal fields ("kind")
+        for t in leaves:
+            if isinstance(t, type) and issubclass(t, BaseModel) and _literals_match(t, value):
+                return _bool_in_model(t, value, path)
+        return None
+    if isinstance(value, (list, tuple)):
+        for t in leaves:
+            origin, args = typing.get_origin(t), typing.get_args(t)
+            if origin in (list, tuple) and args:
+                items = args if origin is tuple and Ellipsis not in args and len(args) == len(value) else None
+                for k, v in enumerate(value):
+                    if hit := _bool_in(items[k] if items else args[0], v, f"{path}[{k}]"):
+                        return hit
+                return None
+    return None
+
+
+def _literals_match(model: type[BaseModel], data: Mapping[str, Any]) -> bool:
+    """Whether ``data``'s values for ``model``'s Literal fields are among their allowed values."""
+    for name, field in model.model_fields.items():
+        key = field.alias or name
+        if typing.get_origin(field.annotation) is typing.Literal and key in data \
+                and data[key] not in typing.get_args(field.annotation):
+            return False
+    return True
+
+
+def _bool_in_model(model: type[BaseModel], data: Mapping[str, Any], prefix: str) -> tuple[str, bool] | None:
+    for name, field in model.model_fields.items():
+        key = field.alias or name
+        if key in data and (hit := _bool_in(field.annotation, data[key], f"{prefix}.{key}" if prefix else key)):
+            return hit
+    return None
+
+
+def bool_for_number(model: type[BaseModel], data: Any, prefix: str = "") -> str | None:
+    """Find a boolean given for a numeric field (pydantic's lax mode reads ``true`` as 1).
+
+    Args:
+        model: The model ``data`` is for.
+        data: Its raw input (a mapping, as parsed from TOML or ``--set``).
+        prefix: Dotted name of the config in messages, or "".
+
+    Returns:
+        None, or one line naming the field and the value: ``sim.t_max_ns = true: a number is expected,
+        not a boolean; ...``.
+    """
+    hit = _bool_in_model(model, data, prefix) if isinstance(data, Mapping) else None
+    if hit is None:
+        return None
+    path, value = hit
+    return (f"{path} = {'true' if value else 'false'}: a number is expected, not a boolean; allowed: a number "
+            "(write 1 or 0 if that is what you meant)")
+
+
 def validated_config(model: type[BaseModel], cfg: BaseModel | Mapping[str, Any] | None, prefix: str) -> Any:
     """Validate a config given as a model, a mapping or None (defaults).
 
@@ -78,6 +151,8 @@ def validated_config(model: type[BaseModel], cfg: BaseModel | Mapping[str, Any] 
         data = dict(cfg)
     else:
         raise ValueError(f"{prefix} = {cfg!r}: expected a {model.__name__} or a mapping of its fields")
+    if (line := bool_for_number(model, data, prefix)) is not None:
+        raise ValueError(line)
     try:
         return model.model_validate(data)
     except ValidationError as err:
@@ -98,6 +173,8 @@ def validate_options(cls: type, law: str, options: Mapping[str, Any] | None, fie
         if options:
             raise ValueError(f"{field} = {options!r}: {what} {law!r} takes no options; allowed: an empty table")
         return None
+    if (line := bool_for_number(model, options, field)) is not None:
+        raise ValueError(f"{line} (options of {what} {law!r})")
     try:
         return model.model_validate(options)
     except ValidationError as err:

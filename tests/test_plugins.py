@@ -76,6 +76,8 @@ def test_the_shipped_example_law_loads_and_reaches_its_gate_acceleration(monkeyp
     ("pdg", None, "unknown law"),
     ("plugin_laws:ScaledZemZev", "guidance.options.position_gain=1.0", "guidance.options.position_gain = 1.0"),
     ("plugin_laws:ScaledZemZev", "guidance.options.gain=7", "unknown field 'guidance.options.gain'"),
+    ("plugin_laws:ScaledZemZev", "guidance.options.position_gain=true",
+     "guidance.options.position_gain = true: a number is expected, not a boolean"),
     ("zem_zev", "guidance.options.gain=7", "takes no options"),
 ])
 def test_a_bad_plugin_gets_one_error_line(law, options, needle, capsys, tmp_path):

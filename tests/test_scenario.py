@@ -48,6 +48,26 @@ def test_wrong_type_names_field_value_and_expectation():
     assert "camera.width_px" in msg and "'wide'" in msg and "integer" in msg
 
 
+@pytest.mark.parametrize("assignment, path, shown", [
+    ("sim.t_max_ns=true", "sim.t_max_ns", "true"),  # pydantic's lax mode read this as 1 ns
+    ("lander.dry_mass_kg=false", "lander.dry_mass_kg", "false"),
+    ("lander.engine.thrust_max_N=true", "lander.engine.thrust_max_N", "true"),
+    ("initial.r_BL_L_m=[0, true, 500]", "initial.r_BL_L_m[1]", "true"),
+    ("sensors.altimeter.dropout_prob=true", "sensors.altimeter.dropout_prob", "true"),
+    ('faults=[{kind="thrust_loss", fraction=true}]', "faults[0].fraction", "true"),
+])
+def test_a_boolean_for_a_number_names_the_field(assignment, path, shown):
+    msg = _err([assignment])
+    assert msg == (f"{path} = {shown}: a number is expected, not a boolean; allowed: a number (write 1 or 0 if "
+                   "that is what you meant)"), msg
+
+
+def test_booleans_stay_booleans_and_numbers_numbers():
+    sc = load_scenario(None, ["camera.enabled=false", "vision=\"off\"", "sim.t_max_ns=90000000000",
+                              "lander.dry_mass_kg=1000.5"])
+    assert sc.camera.enabled is False and sc.sim.t_max_ns == 90_000_000_000 and sc.lander.dry_mass_kg == 1000.5
+
+
 def test_negative_mass_is_rejected():
     msg = _err(["lander.dry_mass_kg=-5"])
     assert "lander.dry_mass_kg" in msg and "-5" in msg and "greater than 0" in msg

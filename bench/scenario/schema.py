@@ -28,7 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from bench.scenario.dispersions import Dispersion, check_dispersion_paths, draw_dispersions
 from bench.scenario.hazard import HazardSettings
-from gnc.config import format_validation_error
+from gnc.config import bool_for_number, format_validation_error
 from gnc.control import ControlConfig
 from gnc.estimator import EstimatorConfig, local_site_config
 from gnc.fdir import FdirConfig
@@ -416,6 +416,8 @@ def default_scenario_text() -> str:
 
 def scenario_from_dict(data: dict[str, Any]) -> Scenario:
     """Validate a plain dict into a Scenario, raising a one-line ScenarioError."""
+    if (line := bool_for_number(Scenario, data)) is not None:
+        raise ScenarioError(line)  # pydantic's lax mode would take true for 1
     try:
         return Scenario.model_validate(data)
     except ValidationError as err:

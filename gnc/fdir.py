@@ -150,6 +150,13 @@ class FdirConfig(BaseModel):
     accel_window_s: float = Field(1.0, gt=0.0, description="window of the accelerometer-thrust check [s]")
     accel_lateral_max_mps2: float = Field(0.25, gt=0.0, description="largest mean lateral specific force [m/s^2]")
     accel_axial_frac: float = Field(0.15, gt=0.0, lt=1.0, description="largest relative axial specific-force error [-]")
+    accel_axial_min_mps2: float = Field(
+        0.3, ge=0.0,
+        description="the axial check judges a window only when the thrust expected over it gives at least this "
+                    "mean axial specific force [m/s^2]: below it the accelerometer's bias within its specification "
+                    "(7e-3 m/s^2 1-sigma) is a large share of the reading (at 3 sigma, half the 15 % tolerance at "
+                    "0.3 m/s^2; an engine coasting at 13 N on 1650 kg expects 0.008 m/s^2)",
+    )
     thrust_efficiency_min: float = Field(0.85, gt=0.0, lt=1.0, description="re-plan below this delivered/commanded [-]")
     bias_plausible_sigmas: float = Field(
         3.0, gt=0.0, description="lateral bias check: the filter's accelerometer bias estimate beyond this many "
@@ -671,7 +678,7 @@ class HealthMonitor:
         if self._lateral_run >= persist:
             self._event(t, ACCEL_THRUST, f"lateral specific force {math.hypot(mean[0], mean[1]):.2f} m/s^2 "
                                          "(accelerometer bias or thrust misalignment)", once_key="lateral")
-        if expect > 0.0:
+        if expect > 0.0 and expect >= c.accel_axial_min_mps2:
             eff = mean[2] / expect
             self._axial_run = self._axial_run + 1 if abs(eff - 1.0) > c.accel_axial_frac else 0
             if self._axial_run >= persist:

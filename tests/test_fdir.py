@@ -179,10 +179,12 @@ def test_abort_criterion():
     assert m.abort_reason(0, -8.0, 1.0, True, True) is None  # on the ground
 
 
-def _throttle_steps(monitor: HealthMonitor, efficiency: float = 1.0) -> None:
-    """A G-FOLD-like throttle profile (deep throttle, full thrust, deep throttle) flown by an engine with
-    the default lander's response, simulated here step by step (2 ms: first-order lag 0.1 s, then the
-    20 kN/s slew limit), delivering ``efficiency`` of its thrust; integrating IMU at 100 Hz, control at 50 Hz."""
+def _throttle_steps(monitor: HealthMonitor, efficiency: float = 1.0, deep_N: float = 1600.0, full_N: float = 7000.0,
+                    bias_z_mps2: float = 0.0) -> None:
+    """A G-FOLD-like throttle profile (deep throttle ``deep_N``, full thrust ``full_N``, deep throttle) flown by an
+    engine with the default lander's response, simulated here step by step (2 ms: first-order lag 0.1 s, then the
+    20 kN/s slew limit), delivering ``efficiency`` of its thrust; integrating IMU at 100 Hz (its axial bias
+    ``bias_z_mps2``), control at 50 Hz."""
     mass_kg, tau_s, slew_Nps, dt_s = 1650.0, 0.1, 20000.0, 0.002
     thrust_N = None
     f_sum, n = 0.0, 0
@@ -191,7 +193,7 @@ def _throttle_steps(monitor: HealthMonitor, efficiency: float = 1.0) -> None:
     for step in range(4000):  # 8 s
         t_ns = step * 2_000_000
         if step % 10 == 0:
-            cmd_N = 7000.0 if 3.0 <= t_ns / NS < 5.0 else 1600.0
+            cmd_N = full_N if 3.0 <= t_ns / NS < 5.0 else deep_N
             monitor.control_tick(t_ns, cmd_N, 1.0, mass_kg, False)
         if thrust_N is None:
             thrust_N = cmd_N
@@ -200,7 +202,7 @@ def _throttle_steps(monitor: HealthMonitor, efficiency: float = 1.0) -> None:
         f_sum += efficiency * thrust_N / mass_kg
         n += 1
         if n == 5:
-            f_B = np.array([0.0, 0.0, f_sum / n]) + rng.normal(0.0, 2e-3, 3)
+            f_B = np.array([0.0, 0.0, f_sum / n + bias_z_mps2]) + rng.normal(0.0, 2e-3, 3)
             monitor.imu(ImuMessage(t_ns + 2_000_000, f_B, rng.normal(0.0, 1e-5, 3)))
             f_sum, n = 0.0, 0
 
@@ -216,6 +218,25 @@ def test_a_healthy_engine_slewing_to_full_thrust_is_not_an_engine_fault():
     instant = _monitor()  # the command taken as the thrust: the same healthy engine is flagged
     _throttle_steps(instant)
     assert [e for e in instant.events if e.subsystem == "accel_thrust" and "axial" in e.reason]
+
+
+def test_a_coasting_engine_is_not_judged_against_the_accelerometer_bias():
+    """With no deep-throttle limit G-FOLD coasts at about 13 N (0.008 m/s^2 on 1650 kg): there an accelerometer
+    bias within its specification (-6e-3 m/s^2, the filter's 1-sigma is 7e-3) is most of the reading, and the
+    axial check read a healthy engine as 0.22 of its thrust and 'recalibrated' it (a fuel-exhausted landing).
+    The check judges only an expected axial specific force of at least accel_axial_min_mps2."""
+    m = HealthMonitor(FdirConfig(), SPEC, EngineResponse(time_constant_s=0.1, slew_rate_Nps=20000.0))
+    _throttle_steps(m, deep_N=13.0, bias_z_mps2=-6e-3)
+    assert not [e for e in m.events if e.subsystem == "accel_thrust"], m.events
+    assert m.thrust_efficiency is None
+    # The same bias at the default deep throttle (1600 N: 0.97 m/s^2) is 0.6 % of the reading: no event either.
+    m = HealthMonitor(FdirConfig(), SPEC, EngineResponse(time_constant_s=0.1, slew_rate_Nps=20000.0))
+    _throttle_steps(m, bias_z_mps2=-6e-3)
+    assert not [e for e in m.events if e.subsystem == "accel_thrust"], m.events
+    # A weak engine at full thrust is still found when it coasted before: the check runs above the floor.
+    m = HealthMonitor(FdirConfig(), SPEC, EngineResponse(time_constant_s=0.1, slew_rate_Nps=20000.0))
+    _throttle_steps(m, efficiency=0.7, deep_N=13.0, bias_z_mps2=-6e-3)
+    assert m.thrust_efficiency == pytest.approx(0.7, abs=0.02)
 
 
 def test_a_weak_engine_is_still_recalibrated_through_the_modelled_response():

@@ -30,6 +30,8 @@ def test_a_raising_case_and_a_timeout_are_recorded_and_the_campaign_goes_on(tmp_
     errors = [r for r in rows if r["outcome"] == "error"]
     assert errors and all("sun.elevation_deg" in r["error"] for r in errors)
     assert any(r["outcome"] == "landed" for r in rows)
+    # Every row names its case seed, the failed draw's too (to replay or report it).
+    assert [r["seed"] for r in sorted(rows, key=lambda r: r["case"])] == list(mc.case_seeds(2, 2))
     slow = mc.run_campaign(load_scenario(None, QUICK), 2, tmp_path / "t", campaign_seed=2, workers=2,
                            case_timeout_s=0.5, progress=False)
     assert [r["outcome"] for r in slow] == ["error", "error"] and all("timeout" in r["error"] for r in slow)

@@ -263,6 +263,7 @@ def _case_row(base_data: dict, campaign_seed: int, n_cases: int, index: int, cas
     t0 = time.perf_counter()
     row: dict[str, Any] = {"case": index}
     try:
+        row["seed"] = case_seeds(campaign_seed, n_cases)[index]  # kept by a case whose draw fails validation
         base = scenario_from_dict(base_data)
         scenario, drawn = case_scenario(base, campaign_seed, n_cases, index)
         row["seed"] = scenario.seed

@@ -104,6 +104,7 @@ def test_an_invalid_point_is_refused_before_anything_runs(grid, needle, tmp_path
     (["--lhs", "3", "--range", "guidance.gate_altitude_m=40:20", "--runs", "2"], "LOW < HIGH"),
     (["--grid", "guidance.law=zem_zev", "--runs", "2", "--require", "fuel<3"], "unknown metric 'fuel'"),
     (["--grid", "guidance.law=zem_zev,zem_zev", "--runs", "2"], "repeated"),
+    (["--grid", "guidance.gate_altitude_m=30,30.0", "--runs", "2"], "repeated"),  # the same number twice
     (["--grid", "guidance.law=zem_zev"], "--runs N is required"),
 ])
 def test_bad_sweep_flags_get_one_error_line(argv, needle, tmp_path, capsys):
@@ -119,6 +120,7 @@ def test_grid_grammar():
     assert sweep.parse_grid("a=range(3)") == ("a", [0, 1, 2])
     assert sweep.parse_grid('guidance.law=zem_zev,"x:Y",apollo') == ("guidance.law", ["zem_zev", "x:Y", "apollo"])
     assert sweep.parse_grid("initial.r_BL_L_m=[1, 2, 3],[4, 5, 6]") == ("initial.r_BL_L_m", [[1, 2, 3], [4, 5, 6]])
+    assert sweep.parse_grid('a=1,"1",true') == ("a", [1, "1", True])  # a number, a text, a boolean: three values
     d = sweep.grid_design([("a", [1, 2]), ("b", ["x", "y", "z"])])
     assert len(d.points) == 6 and d.points[0] == {"a": 1, "b": "x"} and d.points[-1] == {"a": 2, "b": "z"}
 
@@ -152,6 +154,19 @@ def test_sobol_wiring_recovers_the_ishigami_indices():
         assert abs(got[k]["S1"] - s1) < 0.03 + 2 * got[k]["S1_conf"], (k, got[k], s1)
         assert abs(got[k]["ST"] - st) < 0.03 + 2 * got[k]["ST_conf"], (k, got[k], st)
         assert 0.0 < got[k]["S1_conf"] < 0.1 and 0.0 < got[k]["ST_conf"] < 0.1
+
+
+def test_sobol_indices_of_a_constant_response_are_undefined_not_zero():
+    pytest.importorskip("SALib")
+    d = sweep.sobol_design({"x1": (0.0, 1.0), "x2": (0.0, 1.0)}, 64, seed=1)
+    # Every case landed with the same figure (a response that no factor moves): no variance to apportion.
+    for y in (np.full(len(d.points), 3.5), np.zeros(len(d.points))):
+        got = sweep.sobol_indices(d, y)
+        assert all(v is None for per in got.values() for v in per.values()), got  # SALib: 0 +- 0 for both
+    # A response that varies, however little, still gets its indices.
+    x = np.array([[p["x1"], p["x2"]] for p in d.points])
+    got = sweep.sobol_indices(d, 1e-9 * x[:, 0])
+    assert got["x1"]["ST"] > 0.9 and abs(got["x2"]["ST"]) < 0.05, got
 
 
 def test_pareto_front_and_requirements():

@@ -174,7 +174,9 @@ def parse_grid(spec: str) -> tuple[str, list[Any]]:
         values = [_toml_scalar(v) for v in _split_top(text)]
     if not values or any(v == "" for v in values):
         raise ValueError(f"--grid {spec!r}: no values (or an empty one); give at least one")
-    if len(set(map(repr, values))) != len(values):
+    # 1 and 1.0 are one value (the scenario field gets the same number either way): compare numbers as numbers.
+    same = [float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else repr(v) for v in values]
+    if len(set(same)) != len(values):
         raise ValueError(f"--grid {spec!r}: a value is repeated; give each value once")
     return key, values
 
@@ -256,12 +258,13 @@ def sobol_indices(design: Design, y: Sequence[float], seed: int = 0) -> dict[str
 
     Returns:
         {factor: {"S1", "S1_conf", "ST", "ST_conf"}} (conf: half-width of the
-        95 % bootstrap interval); NaN where the response is not finite everywhere.
+        95 % bootstrap interval); None (undefined) where the response is not finite everywhere, or the
+        same at every point (no variance to apportion: SALib would read 0 +- 0, as if no factor mattered).
     """
     from SALib.analyze import sobol as sobol_analyze
 
     y = np.asarray(y, float)
-    if not np.all(np.isfinite(y)):
+    if not np.all(np.isfinite(y)) or np.ptp(y) == 0.0:
         return {k: {"S1": None, "S1_conf": None, "ST": None, "ST_conf": None} for k in design.factors}
     import warnings
 

@@ -11,6 +11,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import NoReturn
 
 EXIT_USAGE = 2
 
@@ -405,8 +406,17 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------- parser
+class _Parser(argparse.ArgumentParser):
+    """argparse with landbench's one-line error: ``landbench: error: <what argparse found>; see 'landbench
+    <command> --help'`` (argparse's own printed the usage block first, then ``landbench <command>: error:``).
+    Its subparsers are of this class too (argparse makes them with the parent's class)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"landbench: error: {' '.join(message.split())}; see '{self.prog} --help'\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="landbench", description="Closed-loop lunar-landing GNC testbench (MuJoCo, vision, filterpy)."
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -596,12 +606,25 @@ def build_parser() -> argparse.ArgumentParser:
                    help="worker counts for --campaign (default 1,2; the first is the baseline)")
     p.add_argument("--backend", default="local", choices=("local", "ray"), help="campaign backend for --campaign")
     p.set_defaults(func=cmd_perf)
+    _tag_commands(parser)
     return parser
+
+
+def _tag_commands(parser: argparse.ArgumentParser) -> None:
+    """Give every (sub)command's namespace its own parser (``command_parser``), so that a flag it does not know
+    is reported against that command's ``--help``, not the top level's."""
+    for action in parser._actions:  # noqa: SLF001 - argparse keeps its subcommands there
+        if isinstance(action, argparse._SubParsersAction):  # noqa: SLF001
+            for sub in action.choices.values():
+                sub.set_defaults(command_parser=sub)
+                _tag_commands(sub)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        getattr(args, "command_parser", parser).error(f"unrecognized arguments: {' '.join(extra)}")
     try:
         return int(args.func(args) or 0)
     except ValueError as exc:  # bench.scenario.ScenarioError among them

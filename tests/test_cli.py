@@ -176,3 +176,19 @@ def test_settings_that_would_fail_or_stall_the_run_are_refused_at_load(capsys, s
 def test_vision_figures_with_too_few_frames_names_the_flag(tmp_path, capsys):
     _refused(capsys, ["vision-figures", "--frames", "2", "--out", str(tmp_path / "v")], "--frames 2")
     assert not (tmp_path / "v").exists()
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["run", "--bogus"], "unrecognized arguments: --bogus; see 'landbench run --help'"),
+    (["mc", "--runs", "x"], "argument --runs: invalid int value: 'x'; see 'landbench mc --help'"),
+    (["sweep", "--lhs"], "argument --lhs: expected one argument; see 'landbench sweep --help'"),
+    (["scenario"], "the following arguments are required: ACTION; see 'landbench scenario --help'"),
+    (["nope"], "argument COMMAND: invalid choice: 'nope'"),
+])
+def test_a_flag_mistake_is_one_error_line(argv, needle, capsys):
+    # argparse's own printed its usage block, then 'landbench <command>: error: ...'
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("landbench: error: ") and needle in err, err

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import ast
 from pathlib import Path
 
@@ -185,6 +187,22 @@ def test_float32_input_equals_uint8_input():
         np.testing.assert_array_equal(ta.ids, tb.ids)
         np.testing.assert_allclose(ta.xy, tb.xy)
         np.testing.assert_allclose(ta.xy, tc.xy)
+
+
+@pytest.mark.parametrize("full_scale", [1e-38, 1e-20, 3e38])
+def test_extreme_float_full_scales_track_as_uint8(full_scale):
+    # Scaled in float32, 255 / 1e-38 overflowed (inf, then 0 * inf = NaN) and a frame near 3e38 did too:
+    # every track was lost with a RuntimeWarning.
+    frames = translated_frames(4, (1.5, 0.5))
+    a, c = Tracker(), Tracker(TrackerConfig(float_full_scale=full_scale))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for f in frames:
+            ta = a.step(f)
+            tc = c.step((f.astype(np.float64) * (full_scale / 255)).astype(np.float32))
+    assert len(ta) > 20
+    np.testing.assert_array_equal(ta.ids, tc.ids)
+    np.testing.assert_allclose(ta.xy, tc.xy)
 
 
 def test_numpy_backend_matches_opencv_backend():

@@ -79,6 +79,7 @@ FP_WINDOW_MAX = 15
 
 FULL_SCALE_DN = 255.0
 """8-bit full scale [DN]: the intensity scale every threshold is expressed in."""
+_F32_MAX = float(np.finfo(np.float32).max)  # largest finite float32 [DN]
 
 TILE_GUARD_PX = 2
 """Extra tile rows/columns around the LK window: one for the derivative ring,
@@ -571,7 +572,10 @@ class Tracker:
         img = check_image(image)
         if img.dtype == np.float32:
             if self.config.float_full_scale != FULL_SCALE_DN:
-                img = img * np.float32(FULL_SCALE_DN / self.config.float_full_scale)
+                # Scaled in float64 and clipped to float32's range: a full scale of 1e-38 or a frame of 1e38
+                # would overflow float32 (inf, and 0 * inf = NaN) and lose every track.
+                img = np.multiply(img, FULL_SCALE_DN / self.config.float_full_scale, dtype=np.float64)
+                img = np.clip(img, -_F32_MAX, _F32_MAX).astype(np.float32)
             if self.config.lk_backend == "opencv":
                 img = np.clip(np.rint(img), 0, FULL_SCALE_DN).astype(np.uint8)
         if self._prev is not None and img.shape != self._prev.shape:

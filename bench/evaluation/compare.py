@@ -167,10 +167,13 @@ def read_input(path: str | Path, role: str) -> PairedInput:
 
 def _read_campaign(path: Path, role: str) -> PairedInput:
     try:
-        meta = json.loads((path / mc.CAMPAIGN).read_text())
+        meta = mc.read_meta(path / mc.CAMPAIGN, ("runs", "campaign_seed"), role)
+    except ValueError as exc:
+        raise CompareInputError(str(exc)) from None
+    try:
         runs, seed = int(meta["runs"]), int(meta["campaign_seed"])
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise CompareInputError(f"{role} {path}: unreadable {mc.CAMPAIGN} ({type(exc).__name__}: {exc}); "
+    except (ValueError, TypeError) as exc:
+        raise CompareInputError(f"{role} {path}: its {mc.CAMPAIGN} holds no whole runs and campaign_seed ({exc}); "
                                 "give a folder written by landbench mc --out DIR") from None
     if runs < 1:
         raise CompareInputError(f"{role} {path}: its {mc.CAMPAIGN} says runs = {runs}; a campaign has at least one "

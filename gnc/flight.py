@@ -685,21 +685,45 @@ class FlightSoftware:
         a = c.abort_hover_gain_per_s * (np.array([0.0, 0.0, c.abort_climb_mps]) - v)
         return GuidanceCommand(int(nav.t_ns), np.clip(a, -2.0, 2.0), "abort", math.nan)
 
-    def on_flown_command(self, t_ns: int, thrust_cmd_N: float, engine_on: bool) -> None:
-        """Open-loop replay's control tick: the mass gauge takes the command that was flown.
+    def on_flown_command(self, t_ns: int, thrust_cmd_N: float, engine_on: bool, contact: ContactMessage | None = None,
+                         torque_B_Nm: np.ndarray | None = None, oracle: bool = False) -> None:
+        """Open-loop replay's control tick: the mass gauge takes the command that was flown, and the health
+        monitoring runs on it as in flight.
 
         In an open-loop replay the vehicle does not respond, so a recomputed
         command flies nothing; the mass gauge integrates the recorded one
         (telemetry ``thrust_cmd_N``, ``engine_on``), exactly as :meth:`control`
-        integrated it in flight. Guidance and control are not run.
+        integrated it in flight. Guidance and control are not run. Given the
+        footpad contacts and the flown torque, the fault detection's clocked checks
+        and recoveries run as :meth:`control` ran them (the synthetic IMU while the
+        IMU is missing, the bias reset, the thrust calibration, the accelerometer
+        and torque checks), so that a replay of a descent whose monitoring acted
+        reproduces its navigation.
 
         Args:
             t_ns: the control tick [ns].
             thrust_cmd_N: the thrust command issued at this tick [N].
             engine_on: whether the engine was commanded on.
+            contact: the footpad contacts at this tick (None: no monitoring, the mass gauge only).
+            torque_B_Nm: the torque command issued at this tick, (3,) [N m] (with ``contact``).
+            oracle: guidance flew on the bench's truth (``nav = "truth"``), as :meth:`control`'s ``nav``.
         """
         self._advance_mass_gauge(t_ns)
-        self._hold_thrust(t_ns, thrust_cmd_N if engine_on else 0.0)
+        thrust_N = thrust_cmd_N if engine_on else 0.0
+        if contact is None:
+            self._hold_thrust(t_ns, thrust_N)
+            return
+        if self.fdir is not None and np.any(contact.legs):
+            self._on_ground = True
+        if self._monitoring():
+            self._fdir_tick(t_ns, contact, oracle=oracle)
+        self._hold_thrust(t_ns, thrust_N)
+        if self._monitoring():
+            self.fdir.control_tick(t_ns, thrust_N, self._thrust_scale, self.mass_kg, bool(np.any(contact.legs)))
+            veh = self.controller.vehicle
+            self.fdir.torque_check(t_ns, np.asarray(torque_B_Nm, float), thrust_N, veh.inertia_B_kgm2(self.mass_kg),
+                                   veh.rcs_torque_max_Nm)
+            self.checkpoint = self._checkpoint(t_ns)
 
     def _advance_mass_gauge(self, t_ns: int) -> None:
         """Burn the held thrust command's propellant up to ``t_ns`` (rocket equation, nominal Isp)."""

@@ -109,6 +109,25 @@ def test_record_refuses_truth_tracks_and_bad_seeds(tmp_path, capsys):
     _assert_refused(capsys, ["record", "--seeds", "3-1", "--out", str(out)], out, "--seeds")
 
 
+    reset = 'faults=[{kind="computer_reset", t_s=2.0, down_s=1.0}]'
+    _assert_refused(capsys, ["record", *_sets([*SEGMENT, reset]), "--seeds", "1", "--out", str(out)], out,
+                    "faults[0] is a computer_reset, which an open-loop replay cannot reproduce")
+
+
+def test_a_replay_reproduces_the_fault_detection_acting_on_navigation(tmp_path):
+    # The gyro lost for 1 s: the flight software dead-reckons on a synthetic IMU from the thrust command at its
+    # control ticks. Before the replay ran the monitoring, 31 nav columns split from the recording at 2.04 s.
+    ds, out = tmp_path / "ds", tmp_path / "replay"
+    drop = 'faults=[{kind="dropout", target="imu.gyro", t_s=2.0, duration_s=1.0}]'
+    assert main(["record", *_sets([*SEGMENT, drop, 'vision="off"', "camera.enabled=false"]), "--seeds", "1",
+                 "--out", str(ds)]) == 0
+    summary = json.loads((ds / "seed_001" / "summary.json").read_text())
+    assert any("IMU" in e["reason"] for e in summary["fdir_events"]), summary["fdir_events"]
+    assert main(["replay", str(ds), "--out", str(out)]) == 0
+    (m,) = json.loads((out / "metrics.json").read_text())["sequences"]
+    assert m["identical_to_recording"], m.get("differing_nav_columns")
+
+
 # --------------------------------------------------------------------------- replay
 def test_replay_reproduces_the_recorded_estimates_bit_for_bit(dataset, tmp_path):
     out = tmp_path / "replay"

@@ -251,6 +251,11 @@ def check_recordable(scenario: Scenario) -> None:
     if scenario.vision == "on" and scenario.tracks == "truth":
         raise ValueError("record: tracks = 'truth' feeds truth tracks, not messages, to the flight software; "
                          "format 1 records camera frames: use tracks = 'vision' (or vision = 'off')")
+    resets = [k for k, f in enumerate(scenario.faults) if getattr(f, "kind", None) == "computer_reset"]
+    if resets:
+        raise ValueError(f"record: faults[{resets[0]}] is a computer_reset, which an open-loop replay cannot "
+                         "reproduce (it does not restart the flight software from its checkpoint); leave it out of "
+                         "[[faults]] when recording")
 
 
 def with_seed(scenario: Scenario, seed: int) -> Scenario:

@@ -57,7 +57,7 @@ from bench.report.io import atomic_write_text, json_safe
 from bench.scenario import NS_PER_S, Scenario, ScenarioError
 from bench.sim.flight_build import build_flight_software, handover_estimate
 from gnc.estimator import IDX_BA, IDX_R, IDX_V, KIND_ALTIMETER, KIND_VELOCITY, KIND_VISION
-from gnc.messages import AltimeterMessage, AttitudeMessage, ImageMessage, ImuMessage
+from gnc.messages import N_LEGS, AltimeterMessage, AttitudeMessage, ContactMessage, ImageMessage, ImuMessage
 
 REPLAYABLE_SECTIONS = ("tracker", "vision_nav", "estimator")
 FORMAT = "landbench-replay"
@@ -154,6 +154,11 @@ def replay_recording(rec: Recording, scenario: Scenario) -> SequenceReplay:
         raise ValueError(f"recording {str(rec.path)!r}: its telemetry lacks the flown commands "
                          "(thrust_cmd_N, engine_on) of every control tick")
     thrust_cmd, engine_on = tel["thrust_cmd_N"].tolist(), tel["engine_on"].tolist()
+    # The fault detection's clocked checks run on the flown commands and contacts, as in flight.
+    legs_in = tel["legs_in_contact"].tolist() if "legs_in_contact" in tel else [0] * len(ctl_t)
+    torque = (np.column_stack([tel[f"torque_{a}_Nm"] for a in "xyz"]).astype(float)
+              if all(f"torque_{a}_Nm" in tel for a in "xyz") else np.zeros((len(ctl_t), 3)))
+    oracle = scenario.nav == "truth"
     frame_t = rec.frames_t_ns.tolist()
 
     # Per control tick, what the telemetry columns are computed from after the loop (_nav_columns).
@@ -195,7 +200,9 @@ def replay_recording(rec: Recording, scenario: Scenario) -> SequenceReplay:
             fr["accepted"].append(measured and v.rejected == n_rej)
             fr["nis"].append(float(v.last_record.nis) if measured and v.last_record is not None else math.nan)
         elif kind == _CONTROL:
-            fsw.on_flown_command(ctl_t[i], thrust_cmd[i], engine_on[i])  # guidance's commands would fly nothing
+            legs = np.arange(N_LEGS) < int(legs_in[i])  # the count of footpads in contact; the checks read any()
+            fsw.on_flown_command(ctl_t[i], thrust_cmd[i], engine_on[i], ContactMessage(ctl_t[i], legs), torque[i],
+                                 oracle)  # guidance's commands would fly nothing
             ekf, v = fsw.filter.ekf, fsw.vision
             tick_x.append(ekf.x.copy())
             tick_P.append(ekf.P[:9, :9].copy())

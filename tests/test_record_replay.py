@@ -128,6 +128,19 @@ def test_a_replay_reproduces_the_fault_detection_acting_on_navigation(tmp_path):
     assert m["identical_to_recording"], m.get("differing_nav_columns")
 
 
+def test_a_replay_with_map_fixes_scores_in_the_maps_frame(tmp_path):
+    # With nav_map on the flight software navigates in the map's frame (truth + the map's shift); the replay
+    # took its errors against the plain truth: nav_err_r_x/y and nees_r_h differed by the shift (2.7, -1.8) m.
+    ds, out = tmp_path / "ds", tmp_path / "replay"
+    assert main(["record", *_sets([*SEGMENT, 'nav_map="on"']),
+                 "--seeds", "1", "--out", str(ds)]) == 0
+    assert main(["replay", str(ds), "--out", str(out)]) == 0
+    (m,) = json.loads((out / "metrics.json").read_text())["sequences"]
+    assert m["identical_to_recording"], m.get("differing_nav_columns")
+    closed = json.loads((ds / "seed_001" / "summary.json").read_text())
+    assert m["navigation"]["pos_err_end_m"] < 2.0, (m["navigation"], closed["nav"])
+
+
 # --------------------------------------------------------------------------- replay
 def test_replay_reproduces_the_recorded_estimates_bit_for_bit(dataset, tmp_path):
     out = tmp_path / "replay"

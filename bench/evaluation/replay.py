@@ -137,7 +137,13 @@ def replay_recording(rec: Recording, scenario: Scenario) -> SequenceReplay:
     if int(truth["t_ns"][0]) != 0:
         raise ValueError(f"recording {str(rec.path)!r}: its truth does not start at t = 0")
     truth0 = SimpleNamespace(r_BL_L=_vec(truth, _R, 0), v_BL_L=_vec(truth, _V, 0))
-    fsw = build_flight_software(scenario, *handover_estimate(scenario, truth0))
+    maps = None
+    if scenario.nav_map == "on":  # the map the closed loop flew with (the recorded scenario's, seeded alike)
+        from bench.maps import scenario_onboard_map
+
+        maps = scenario_onboard_map(scenario)
+    fsw = build_flight_software(scenario, *handover_estimate(scenario, truth0),
+                                onboard_map=maps[0] if maps is not None else None)
     timer = None
     if fsw.tracker is not None:
         timer = _Timed(fsw.tracker.step)
@@ -167,6 +173,8 @@ def replay_recording(rec: Recording, scenario: Scenario) -> SequenceReplay:
     tick_rest: list[tuple] = []  # mass gauge and vision counters
     tick_i: list[int] = []  # the tick's row in the truth
     true_r, true_v, true_ba = (np.column_stack([truth[n] for n in names]).astype(float) for names in (_R, _V, _BA))
+    if maps is not None:  # with map fixes the flight software navigates in the map's frame: truth + its shift
+        true_r = true_r + np.array([*maps[1].shift_xy_m, 0.0])
     fr: dict[str, list] = {k: [] for k in ("frame", "t_ns", "vision_active", "tracks", "tracker_ms", "vision_ms",
                                             "measurement", "accepted", "rejected", "nis")}
     frame_tracks: list = []  # the tracker's output per frame (None where vision was off)

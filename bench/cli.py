@@ -181,7 +181,7 @@ def _start_helper_server() -> None:
 # so that a run, a campaign or a comparison never writes over (or beside) another's.
 RESULT_FILES = (("summary.json", "a run's results"), ("campaign.json", "a campaign"),
                 ("faults.json", "a fault matrix"), ("sweep.json", "a sweep"), ("compare.json", "a comparison"),
-                ("metrics.json", "a replay"))
+                ("metrics.json", "a replay"), ("manifest.json", "a recording"))
 
 
 def _output_folder(value: str, own: str) -> Path:
@@ -196,15 +196,17 @@ def _output_folder(value: str, own: str) -> Path:
     return out
 
 
-def _resume_takes_nothing_else(args: argparse.Namespace, *flags: str) -> None:
-    """``--resume DIR`` reads the scenario and the design from DIR: a scenario file, ``--set``, ``--preset``
-    or a design flag given beside it would be ignored, so it is refused."""
+def _resume_takes_nothing_else(args: argparse.Namespace, *flags: str, mode: str = "--resume") -> None:
+    """``--resume DIR`` (or ``mc --replay DIR``) reads the scenario and the design from DIR: a scenario file,
+    ``--set``, ``--preset`` or a design flag given beside it would be ignored, so it is refused."""
     given = [name for name, attr in (("a scenario file", "scenario"), ("--set", "overrides"), ("--preset", "preset"),
                                      *((f, f.lstrip("-").replace("-", "_")) for f in flags))
              if getattr(args, attr, None) not in (None, [], ())]
     if given:
-        raise ValueError(f"--resume {args.resume} takes its scenario and settings from that folder; drop "
-                         f"{', '.join(given)} (or start anew with --out)")
+        folder = getattr(args, mode.lstrip("-"))
+        anew = "start anew with --out" if mode == "--resume" else "run the changed case with landbench run"
+        raise ValueError(f"{mode} {folder} takes its scenario and settings from that folder; drop "
+                         f"{', '.join(given)} (or {anew})")
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -223,6 +225,7 @@ def cmd_mc(args: argparse.Namespace) -> int:
     if args.replay:
         if args.case is None or not args.out:
             raise ValueError("--replay DIR needs --case I and --out RUN")
+        _resume_takes_nothing_else(args, mode="--replay")  # the case flies as the campaign flew it
         return _mc_replay(Path(args.replay), args.case, Path(args.out))
     _start_workers_early(args)
     from bench.campaign import mc
@@ -380,10 +383,12 @@ def cmd_compare(args: argparse.Namespace) -> int:
 def cmd_record(args: argparse.Namespace) -> int:
     from bench.evaluation.record import check_recordable, parse_seeds, record_dataset
 
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {args.out!r} is a file; give a folder")
+    out = _output_folder(args.out, "")  # a dataset holds seed_NNN folders only: any results file is another's
     seeds = parse_seeds(args.seeds)
+    for assignment in args.overrides or ():
+        if assignment.partition("=")[0].strip() == "seed":
+            raise ValueError(f"--set {assignment!r}: record flies each seed of --seeds, which would replace it; "
+                             "give --seeds instead")
     scenario = load_scenario(args.scenario, args.overrides)
     check_recordable(scenario)
     for path, manifest in record_dataset(scenario, seeds, out, depth=args.depth, progress=True):
@@ -398,6 +403,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from bench.evaluation.replay import format_replay, replay_dataset, write_replay
 
     out = _output_folder(args.out, "metrics.json")
+    dataset = Path(args.dataset).resolve()
+    if out.resolve() == dataset or dataset in out.resolve().parents:
+        raise ValueError(f"--out {args.out!r} is inside the dataset being replayed; give a folder outside it")
     seqs, doc = replay_dataset(Path(args.dataset), args.overrides)  # checks every input before it runs
     written = write_replay(seqs, doc, out)
     print(format_replay(doc))

@@ -424,12 +424,14 @@ def test_a_metric_the_candidate_lost_in_every_case_fails_its_gate(synth, tmp_pat
     assert not (tmp_path / "d").exists()
 
 
-@pytest.mark.parametrize("damage", ["runs_zero", "row_is_a_list", "case_is_null"])
+@pytest.mark.parametrize("damage", ["runs_zero", "row_is_a_list", "case_is_null", "runs_fraction", "seed_text"])
 def test_a_damaged_campaign_is_refused_in_one_line(synth, tmp_path, capsys, damage):
     base = write_campaign(tmp_path / "base", synth["base"])
     cand = write_campaign(tmp_path / "cand", synth["cand"])
-    if damage == "runs_zero":
-        (cand / mc.CAMPAIGN).write_text(json.dumps({"campaign_seed": CAMPAIGN_SEED, "runs": 0}))
+    if damage in ("runs_zero", "runs_fraction", "seed_text"):  # runs 1.5 was read as 1, silently
+        meta = {"campaign_seed": "x" if damage == "seed_text" else CAMPAIGN_SEED,
+                "runs": {"runs_zero": 0, "runs_fraction": 1.5}.get(damage, len(synth["cand"]))}
+        (cand / mc.CAMPAIGN).write_text(json.dumps(meta))
     else:
         f = cand / mc.CASES / "00000.json"
         f.write_text("[1, 2]" if damage == "row_is_a_list" else json.dumps({**synth["cand"][0], "case": None}))

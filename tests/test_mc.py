@@ -48,6 +48,14 @@ def test_replay_reproduces_a_case_row(tmp_path):
     summary = json.loads((tmp_path / "r" / "summary.json").read_text())
     row = {k: v for k, v in rows[1].items() if not k.startswith("disp_") and k != "case"}
     assert _strip([mc.summary_row(summary)]) == _strip([row])
+    # A --set beside --replay would be ignored (the case flies as the campaign flew it): refused.
+    assert main(["mc", "--replay", str(tmp_path / "c"), "--case", "1", "--set", "seed=5", "--out",
+                 str(tmp_path / "r2")]) == 2
+    assert not (tmp_path / "r2").exists()
+    # Damaged metadata is one line naming the field (was a TypeError traceback from SeedSequence).
+    (tmp_path / "c" / mc.CAMPAIGN).write_text(json.dumps({"campaign_seed": "x", "runs": 2}))
+    with pytest.raises(ValueError, match=r"campaign_seed = 'x'; allowed: an integer >= 0"):
+        mc.read_meta(tmp_path / "c" / mc.CAMPAIGN, ("campaign_seed", "runs"), "--replay")
 
 
 def test_dry_run_writes_the_dispersed_scenarios(tmp_path):

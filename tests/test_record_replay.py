@@ -185,6 +185,32 @@ def test_a_tampered_file_is_refused(seq, tmp_path, capsys):
     _assert_refused(capsys, ["replay", str(copy.parent), "--out", str(out)], out, "sensors.npz does not match")
 
 
+def test_a_damaged_dataset_layout_is_refused(seq, tmp_path, capsys):
+    copy = _copy(seq, tmp_path)  # tmp_path/ds/seed_001
+    out = tmp_path / "replay"
+    shutil.copytree(copy, copy.parent / "seed_009")  # a copied seed: its figures would count twice
+    _assert_refused(capsys, ["replay", str(copy.parent), "--out", str(out)], out,
+                    "seed_001 and seed_009 hold the same seed 1")
+    (copy.parent / "seed_009" / MANIFEST).unlink()  # a recording without its manifest dropped out unnoticed
+    _assert_refused(capsys, ["replay", str(copy.parent), "--out", str(out)], out, "seed_009 has no manifest.json")
+    shutil.rmtree(copy.parent / "seed_009")
+    manifest = json.loads((copy / MANIFEST).read_text())
+    del manifest["seed"]  # was a KeyError traceback
+    (copy / MANIFEST).write_text(json.dumps(manifest))
+    _assert_refused(capsys, ["replay", str(copy.parent), "--out", str(out)], out, "has no seed")
+
+
+def test_outputs_that_would_land_on_other_results_are_refused(dataset, seq, tmp_path, capsys):
+    _assert_refused(capsys, ["replay", str(dataset), "--out", str(dataset / "r")], dataset / "r",
+                    "inside the dataset being replayed")
+    # record into a recording (or any other command's results) is refused, and so is a seed it would replace
+    before = sorted(p.name for p in seq.iterdir())
+    assert main(["record", "--seeds", "1", "--out", str(seq)]) == 2
+    assert "holds a run's results" in capsys.readouterr().err and sorted(p.name for p in seq.iterdir()) == before
+    _assert_refused(capsys, ["record", "--set", "seed=7", "--seeds", "1", "--out", str(tmp_path / "d")],
+                    tmp_path / "d", "give --seeds instead")
+
+
 def test_an_unknown_format_version_is_refused(seq, tmp_path, capsys):
     copy = _copy(seq, tmp_path)
     manifest = json.loads((copy / MANIFEST).read_text())
@@ -424,3 +450,14 @@ def test_a_worse_tracker_breaks_the_snapshot(worse_tracker):
     snap = json.loads(SNAPSHOT.read_text())
     bad = snapshot_violations(snapshot_metrics(worse_tracker), snap["metrics"], json.loads(TOLERANCES.read_text()))
     assert any(line.startswith("epe_median_px:") for line in bad), bad
+
+
+def test_a_replay_without_frames_leaves_no_older_frames_file(tmp_path):
+    # An earlier replay's frames.parquet (of other seeds) stayed beside the new metrics and compare read it.
+    from bench.evaluation.replay import FRAMES, SequenceReplay, write_replay
+
+    (tmp_path / FRAMES).write_bytes(b"an older replay's frames")
+    seq = SequenceReplay(seed=1, path=tmp_path, metrics={}, frames={"t_ns": np.zeros(0, np.int64)},
+                         nav={"t_ns": np.array([0, 20_000_000], np.int64), "nav_r_x_m": np.zeros(2)}, epe=None)
+    written = write_replay([seq], {"sequences": []}, tmp_path)
+    assert "frames" not in written and not (tmp_path / FRAMES).exists() and (tmp_path / "nav.parquet").is_file()

@@ -62,6 +62,12 @@ def test_a_boolean_for_a_number_names_the_field(assignment, path, shown):
                    "that is what you meant)"), msg
 
 
+def test_a_seed_fits_a_64_bit_integer():
+    assert load_scenario(None, [f"seed={2**63 - 1}"]).seed == 2**63 - 1
+    msg = _err([f"seed={2**63}"])  # was a traceback when a replay wrote it to an int64 column
+    assert msg.startswith(f"seed = {2**63}: Input should be less than"), msg
+
+
 def test_booleans_stay_booleans_and_numbers_numbers():
     sc = load_scenario(None, ["camera.enabled=false", "vision=\"off\"", "sim.t_max_ns=90000000000",
                               "lander.dry_mass_kg=1000.5"])

@@ -101,6 +101,11 @@ def read_meta(path: Path, keys: tuple[str, ...], flag: str) -> dict[str, Any]:
     if missing:
         raise ValueError(f"{flag} {path.parent}: its {path.name} lacks {', '.join(missing)}; give a folder that "
                          "landbench wrote")
+    for key, least in (("runs", 1), ("campaign_seed", 0)):  # whole numbers: a case index and a SeedSequence seed
+        value = meta.get(key, least)
+        if isinstance(value, bool) or not isinstance(value, int) or value < least:
+            raise ValueError(f"{flag} {path.parent}: its {path.name} says {key} = {value!r}; allowed: an integer >= "
+                             f"{least} (give a folder that landbench wrote)")
     return meta
 
 

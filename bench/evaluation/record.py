@@ -400,6 +400,10 @@ def find_recordings(path: Path) -> list[Path]:
     if (path / MANIFEST).exists():
         return [path]
     found = sorted(p for p in path.iterdir() if p.is_dir() and (p / MANIFEST).exists())
+    bare = sorted(p.name for p in path.iterdir() if p.is_dir() and p.name.startswith("seed_") and p not in found)
+    if bare:  # a recording whose manifest is gone would otherwise drop out of the replay unnoticed
+        raise ValueError(f"dataset {str(path)!r}: {bare[0]} has no {MANIFEST}; re-record that seed or remove the "
+                         "folder")
     if not found:
         raise ValueError(f"dataset {str(path)!r} holds no recording (no {MANIFEST} in it or in a seed_* folder)")
     return found
@@ -431,6 +435,9 @@ def verify_recording(path: Path) -> dict[str, Any]:
         if not isinstance(entry, dict) or sha256_file(f) != entry.get("sha256"):
             raise ValueError(f"recording {str(path)!r}: {name} does not match its sha256 in {MANIFEST} "
                              "(the file was changed or damaged); refusing to replay it")
+    seed = manifest.get("seed")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"recording {str(path)!r}: {MANIFEST} has no seed (a non-negative integer), got {seed!r}")
     if (path / SCENARIO).read_text(encoding="utf-8") != manifest.get("scenario_toml"):
         raise ValueError(f"recording {str(path)!r}: {SCENARIO} differs from the scenario in {MANIFEST}")
     return manifest

@@ -421,12 +421,21 @@ def prepare_replay(dataset: Path, overrides: list[str] | tuple[str, ...]) -> lis
     check_overrides(overrides)
     paths = find_recordings(dataset)
     out = []
+    seen: dict[int, Path] = {}
     for p in paths:
         manifest = verify_recording(p)
         try:
-            out.append((p, recorded_scenario(manifest["scenario_toml"], overrides), manifest))
+            scenario = recorded_scenario(manifest["scenario_toml"], overrides)
         except ScenarioError as exc:
             raise ScenarioError(f"recording {str(p)!r}: {exc}") from None
+        if scenario.seed != manifest["seed"]:
+            raise ValueError(f"recording {str(p)!r}: its {MANIFEST} says seed {manifest['seed']}, its scenario "
+                             f"seed {scenario.seed}; re-record it")
+        if scenario.seed in seen:  # a copied folder: its frames would pair with themselves, its figures count twice
+            raise ValueError(f"dataset {str(dataset)!r}: {seen[scenario.seed].name} and {p.name} hold the same seed "
+                             f"{scenario.seed}; a dataset holds each seed once")
+        seen[scenario.seed] = p
+        out.append((p, scenario, manifest))
     return out
 
 
@@ -467,6 +476,8 @@ def write_replay(seqs: list[SequenceReplay], doc: dict[str, Any], out: Path) -> 
     frames = joined("frames")
     if frames["t_s"].size:
         written["frames"] = write_telemetry_parquet(frames, out / FRAMES)
+    else:  # no frame replayed: an older replay's frames.parquet in this folder would be read as this one's
+        (out / FRAMES).unlink(missing_ok=True)
     written["nav"] = write_telemetry_parquet(joined("nav"), out / NAV)
     atomic_write_text(out / METRICS, json.dumps(doc, indent=2) + "\n")
     return written

@@ -167,7 +167,9 @@ class Scenario(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     name: str = Field("default", description="free-form scenario name")
-    seed: int = Field(1, ge=0, description="master seed; every random stream is spawned from it")
+    seed: int = Field(1, ge=0, lt=2**63,
+                      description="master seed; every random stream is spawned from it (below 2^63: results store "
+                                  "it as a 64-bit integer)")
     nav: Literal["truth", "estimator"] = Field(
         "estimator", description="navigation given to guidance: the truth state, or the filter's estimate"
     )

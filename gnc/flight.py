@@ -48,7 +48,7 @@ import numpy as np
 
 from gnc.control import ActuatorCommand, Controller, VehicleParams
 from gnc.estimator import IDX_BA, IDX_C, IDX_G, IDX_H, IDX_R, IDX_SV, IDX_V, NavFilter, UpdateRecord, quat_to_matrix
-from gnc.fdir import HealthMonitor, line_fit
+from gnc.fdir import NAVIGATION, HealthMonitor, line_fit
 from gnc.guidance import GuidanceCommand, GuidanceLaw, LandingTarget
 from gnc.hda import HazardAvoidance
 from gnc.map_nav import MapNavigator
@@ -373,6 +373,7 @@ class FlightSoftware:
             self.fdir.image(msg.t_ns, float(msg.image.mean()))
         if self.map_nav is not None:
             self.map_nav.on_frame(msg.t_ns, msg.image, self.filter)
+            self._check_map_lock(msg.t_ns)
         if not self.wants_image():
             self._end_vision()
             return None
@@ -560,6 +561,20 @@ class FlightSoftware:
             raise  # already names the law (GuidanceLaw.update's check of accel_L and its kin)
         except Exception as exc:  # noqa: BLE001 - any error in the user's plug-in is one line, chained
             raise plugin_raised(field, law, "update", t_ns, exc) from exc
+
+    def _check_map_lock(self, t_ns: int) -> None:
+        """Below the map fixes' height window without a lock, declare it (once): the landing is then flown on
+        the hand-over position, and the map's target is reached only within the hand-over error."""
+        st, cfg = self.map_nav.stats, self.map_nav.cfg
+        if st.locked or float(self.filter.ekf.x[2]) >= cfg.min_altitude_m:
+            return
+        if not st.never_locked:
+            st.never_locked = True
+        if self._monitoring():
+            refused = sum(st.refused.values())
+            self.fdir.note(t_ns, NAVIGATION, f"map-relative navigation never locked ({st.attempts} fixes tried, "
+                                             f"{refused} refused by the matcher, {st.unconfirmed} unconfirmed)",
+                           "no keyframe; the landing is flown on the hand-over position", once_key="map_no_lock")
 
     def _check_guidance_output(self, cmd: object, t_ns: int) -> None:
         """Raise :class:`gnc.plugins.LawOutputError` when the guidance law's command cannot be flown (a law that

@@ -93,7 +93,7 @@ from typing import Literal
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from gnc.hazard import HazardConfig, HazardMap, SafeSite, _disk, choose_site, hazard_map
 from gnc.messages import LidarScanMessage, lidar_ray_dirs_S
@@ -112,9 +112,10 @@ class HdaConfig(BaseModel):
     scan_altitude_m: float = Field(100.0, gt=0.0, description="estimated height above the target of the one scan [m]")
     dem_spacing_m: float = Field(0.1, gt=0.0, le=2.0, description="post spacing of the DEM built from the scan [m]")
     mean_descent_mps: float = Field(
-        2.0, gt=0.0, description="height over this is the time left to touchdown, for the drift margin [m/s]")
+        2.0, ge=0.01, description="height over this is the time left to touchdown, for the drift margin [m/s]")
     attitude_sigma_rad: float = Field(1e-4, ge=0.0, description="star tracker's attitude 1-sigma (specification) [rad]")
-    nav_sigma_floor_m: float = Field(0.1, ge=0.0, description="floor of the navigation sigma of the margin [m]")
+    nav_sigma_floor_m: float = Field(0.1, ge=0.0, le=1000.0,
+                                     description="floor of the navigation sigma of the margin [m]")
     flashes: int = Field(
         8, ge=1, le=16, description="flashes per scan, one per control tick, mosaicked into one DEM: each flash "
                                     "samples the ground at another sub-pixel phase (the lander moves and turns "
@@ -139,6 +140,22 @@ class HdaConfig(BaseModel):
     no_site_action: Literal["abort", "land"] = Field(
         "abort", description="no safe site: the safe-abort hover, or land at the current target")
     map: HazardConfig = Field(HazardConfig(), description="hazard thresholds, legs and site-choice weights")
+
+    @model_validator(mode="after")
+    def _margin_below_the_rock(self) -> HdaConfig:
+        """With the sampling margin, a rock counts from roughness_max_m less the margin: posts so coarse that the
+        margin is half the rock or more would make every bump a rock (a false 'no safe site')."""
+        if self.sampling_margin == "on":
+            h = self.map.roughness_max_m
+            widest = h * math.sqrt(3.0 / (2.0 * ROCK_TOP_CURVATURE_X_HEIGHT))  # margin(s) = h / 2
+            for name in ("dem_spacing_m", "rescan_dem_spacing_m"):
+                s = getattr(self, name)
+                if sampling_margin_m(s, h) >= 0.5 * h:
+                    raise ValueError(f"hazard.hda.{name} = {s} makes a rock of roughness_max_m = {h} m count from "
+                                     f"{h - sampling_margin_m(s, h):.3f} m (the sampling margin); allowed: posts "
+                                     f"finer than {widest:.3f} m, a larger roughness_max_m, or sampling_margin = "
+                                     "'off'")
+        return self
 
 
 @dataclass

@@ -115,7 +115,7 @@ class OnboardMap:
 
 # ------------------------------------------------------------------ the map fix
 import cv2  # noqa: E402  (kept next to its users; the map container above needs only NumPy)
-from pydantic import BaseModel, ConfigDict, Field  # noqa: E402
+from pydantic import BaseModel, ConfigDict, Field, model_validator  # noqa: E402
 
 # Why a fix is refused: MapFix.reason, and its identifier for summaries (MapNavStats.refused).
 REFUSALS = {
@@ -165,13 +165,13 @@ class MapFixConfig(BaseModel):
     outlier_mad_k: float = Field(3.0, gt=0.0, description="reject patches beyond this many robust sigmas [-]")
     min_inliers: int = Field(12, ge=4, description="fewest inlier patches for a fix [-]")
     subpixel_floor_px: float = Field(
-        0.02, ge=0.0, description="floor of the 1-sigma per axis of the fix's error independent from fix to fix [work px]"
+        0.02, ge=0.0, le=100.0, description="floor of the 1-sigma per axis of the fix's error independent from fix to fix [work px]"
     )
     outlier_floor_px: float = Field(
         0.05, gt=0.0, description="floor of the robust sigma that patches are rejected against [work px]"
     )
     common_mode_sigma_px: float = Field(
-        0.03, ge=0.0,
+        0.03, ge=0.0, le=100.0,
         description="floor of the error common to all patches that their scatter cannot show (the frame's and "
                     "the map's different illumination and blur), 1-sigma per axis [work px]; it is common to "
                     "consecutive fixes too, so the filter carries it as a state (MapNavConfig.common_time_s), "
@@ -549,7 +549,7 @@ class MapNavConfig(BaseModel):
                     "sigmas of their difference [-]",
     )
     confirm_drift_m: float = Field(
-        1.0, ge=0.0,
+        1.0, ge=0.0, le=1000.0,
         description="1-sigma per axis of the filter's own drift between two fixes, added to the difference's "
                     "covariance in the confirmation [m]",
     )
@@ -580,6 +580,17 @@ class MapNavConfig(BaseModel):
     )
     fix: MapFixConfig = MapFixConfig()
 
+    @model_validator(mode="after")
+    def _windows_in_order(self) -> MapNavConfig:
+        if self.min_altitude_m >= self.max_altitude_m:
+            raise ValueError(f"map_nav.min_altitude_m = {self.min_altitude_m} must be below map_nav.max_altitude_m = "
+                             f"{self.max_altitude_m}: no height would take a map fix; allowed: min < max")
+        if self.keyframe and self.keyframe_min_altitude_m >= self.min_altitude_m:
+            raise ValueError(f"map_nav.keyframe_min_altitude_m = {self.keyframe_min_altitude_m} must be below "
+                             f"map_nav.min_altitude_m = {self.min_altitude_m}: the keyframe would take no fix; "
+                             "allowed: a lower keyframe_min_altitude_m, or keyframe = false")
+        return self
+
 
 # Refusals a wider search window may cure: the true offset lay outside the window, so the correlation
 # surface had no clear peak inside it, or its best was on the window's edge.
@@ -596,6 +607,7 @@ class MapNavStats:
     updates: int = 0  # handed to the filter
     gate_rejected: int = 0
     locked: bool = False
+    never_locked: bool = False  # the fixes' height window was left without a lock (no keyframe then)
     search_sigmas_max: float = 0.0  # the widest coarse search window used [sigma of the prior]
     log: list = None  # type: ignore[assignment]  # (t_ns, MapFix, used: bool, gate_accepted: bool | None)
     frames_used: int = 0  # frames taken: map-fix attempts, the keyframe, keyframe-fix attempts
@@ -783,6 +795,14 @@ class MapNavigator:
         if self._keyframe is None:
             if not nav_filter.has_map_bias:
                 self._keyframe_possible = False
+                return None
+            if not stats.locked:
+                # The map never located the lander: a keyframe laid through the unlocked pose would carry the
+                # hand-over error as if it were the map's, and its fixes would pull the filter to it. None is made
+                # (the flight software declares the missing lock: FlightSoftware.on_image).
+                self._keyframe_possible = False
+                stats.keyframe_refused += 1
+                stats.never_locked = True
                 return None
             stats.frames_used += 1
             made = make_keyframe(self.matcher.map, frame, self.K, R_LC, r_C, self.cfg.fix.max_ortho_px)

@@ -170,3 +170,16 @@ def test_no_safe_site_is_reported_as_none():
     steep = math.tan(math.radians(20.0)) * X
     hm = hazard_map(steep, SPACING)
     assert hm.unsafe.all() and choose_site(hm, np.array([15.0, 15.0]), 1.0) is None
+
+
+def test_hda_post_spacings_that_turn_the_rock_threshold_negative_are_refused():
+    # 0.3 m posts made a 0.3 m rock count from -0.10 m: every post a rock, a false 'no safe site' and a safe abort.
+    from gnc.hda import HdaConfig, sampling_margin_m
+
+    with pytest.raises(ValueError, match=r"dem_spacing_m = 0.3 makes a rock of roughness_max_m = 0.3 m count from "
+                                         r"-0.100 m"):
+        HdaConfig(dem_spacing_m=0.3)
+    widest = 0.3 * (3.0 / 8.0) ** 0.5  # margin(s) = 4 s^2 / (3 h) = h / 2
+    assert sampling_margin_m(widest, 0.3) == pytest.approx(0.15)
+    HdaConfig(dem_spacing_m=0.95 * widest)
+    HdaConfig(dem_spacing_m=0.3, sampling_margin="off")

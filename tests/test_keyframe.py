@@ -120,9 +120,15 @@ def test_the_navigator_takes_a_keyframe_below_its_fix_window_then_fixes_against_
     e = np.array([0.6, -0.4, 0.0])
     f = make_estimator(None, r_B + e, np.zeros(3), 0, altimeter_mount_B_m=np.zeros(3), map_bias_sigma_m=0.5)
     f.set_attitude(AttitudeMessage(0, q))
-    nav = MapNavigator(onboard, MapNavConfig(period_ns=100_000_000), K, R_BC, np.zeros(3))
-    assert nav.wants_frame(0, 40.0) and not nav.wants_frame(0, 4.0)  # below 50 m: the keyframe's window
     frame = render_map_frame(onboard, K, r_B, R_LB @ R_BC, np.random.default_rng(0))
+    # A navigator whose map fixes never locked takes no keyframe: laid through the unlocked pose it would carry
+    # the hand-over error as the map's (a 100 m georeferencing error: 32 keyframe fixes, NIS 208, 196 m miss).
+    unlocked = MapNavigator(onboard, MapNavConfig(period_ns=100_000_000), K, R_BC, np.zeros(3))
+    assert unlocked.on_frame(0, frame, f) is None and unlocked.stats.keyframe_t_ns is None
+    assert unlocked.stats.never_locked and not unlocked.wants_frame(100_000_000, 40.0)
+    nav = MapNavigator(onboard, MapNavConfig(period_ns=100_000_000), K, R_BC, np.zeros(3))
+    nav.stats.locked = True  # its map fixes above 50 m had located the lander
+    assert nav.wants_frame(0, 40.0) and not nav.wants_frame(0, 4.0)  # below 50 m: the keyframe's window
     assert nav.on_frame(0, frame, f) is None  # the keyframe
     assert nav.stats.keyframe_t_ns == 0 and nav.stats.attempts == 0 and nav.stats.frames_used == 1
     np.testing.assert_allclose(nav.stats.keyframe_r_C_m, r_B + e)
@@ -142,6 +148,7 @@ def test_the_navigator_takes_a_keyframe_below_its_fix_window_then_fixes_against_
     plain = make_estimator(None, r_B, np.zeros(3), 0, altimeter_mount_B_m=np.zeros(3))
     plain.set_attitude(AttitudeMessage(0, q))
     nav2 = MapNavigator(onboard, MapNavConfig(), K, R_BC, np.zeros(3))
+    nav2.stats.locked = True
     assert nav2.on_frame(0, frame, plain) is None and nav2.stats.keyframe_t_ns is None
     assert not nav2.wants_frame(2_000_000_000, 40.0)
     # Switched off: no frame below the fix window.

@@ -62,6 +62,18 @@ def test_a_boolean_for_a_number_names_the_field(assignment, path, shown):
                    "that is what you meant)"), msg
 
 
+@pytest.mark.parametrize("assignment, needle", [
+    ("map_nav.min_altitude_m=700.0", "map_nav.min_altitude_m = 700.0 must be below map_nav.max_altitude_m"),
+    ("map_nav.keyframe_min_altitude_m=80.0", "map_nav.keyframe_min_altitude_m = 80.0 must be below"),
+    ("map_nav.fix.subpixel_floor_px=1e200", "map_nav.fix.subpixel_floor_px = 1e+200"),  # overflowed in flight
+    ("map_nav.fix.common_mode_sigma_px=1e200", "map_nav.fix.common_mode_sigma_px = 1e+200"),
+    ("map_nav.confirm_drift_m=1e200", "map_nav.confirm_drift_m = 1e+200"),
+])
+def test_map_nav_settings_that_cannot_fly_are_refused(assignment, needle):
+    msg = _err([assignment])
+    assert msg.startswith(needle), msg
+
+
 def test_a_seed_fits_a_64_bit_integer():
     assert load_scenario(None, [f"seed={2**63 - 1}"]).seed == 2**63 - 1
     msg = _err([f"seed={2**63}"])  # was a traceback when a replay wrote it to an int64 column

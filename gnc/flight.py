@@ -61,6 +61,8 @@ from vision.tracks import Tracks
 
 NS_PER_S = 1_000_000_000
 HAZARD = "hazard"  # the subsystem of a "no safe site" event
+RESCAN_DEADLINE_FRAC = 0.5  # a second hazard scan still due below this fraction of its height is given up [-]
+RESCAN_LAST_CALL_M = 5.0  # ... or below this height above the target, where no divert is left to fly [m]
 G0_MPS2 = 9.80665  # defines Isp
 
 
@@ -481,8 +483,36 @@ class FlightSoftware:
             return False
         target = np.asarray(self.target.r_L, float)
         height = float(self.filter.ekf.x[2]) - float(target[2])
+        self._hda_deadlines(int(self.last_guidance.t_ns), height, self.last_guidance.phase)
+        if self.fdir is not None and self.fdir.abort is not None:
+            return False
         return self.hda.wants_scan(height, self.last_guidance.phase, self.filter.ekf.x[:3],
                                    quat_to_matrix(self.filter.q_LB), target)
+
+    def _hda_deadlines(self, t_ns: int, height_m: float, phase: str) -> None:
+        """Hazard avoidance that cannot happen is declared, not left to a blind landing: a second scan still due
+        below ``RESCAN_DEADLINE_FRAC`` of its height, or below ``RESCAN_LAST_CALL_M`` (the target never came into
+        its view) gives no safe site; an approach that ended before the first scan's height is noted."""
+        hda = self.hda
+        deadline_m = max(RESCAN_DEADLINE_FRAC * hda.cfg.rescan_altitude_m, RESCAN_LAST_CALL_M)
+        if hda.awaiting_rescan and height_m < deadline_m:
+            hda.abandon_rescan()
+            self._declare_no_site(t_ns, f"no safe site: the second scan was not made above {deadline_m:g} m "
+                                        "(the target never in its view, or its height too low)")
+        if not hda.scanned and phase == "terminal" and self.fdir is not None:
+            self.fdir.note(t_ns, HAZARD, f"no hazard scan: the approach ended above its height "
+                                         f"(hazard.hda.scan_altitude_m = {hda.cfg.scan_altitude_m:g} m)",
+                           "landing at the current target without a hazard map", once_key="no_scan")
+
+    def _declare_no_site(self, t_ns: int, reason: str = "no safe site within the divert limit") -> None:
+        """No safe site: the safe abort (``no_site_action = 'abort'``), or a declared landing at the current target."""
+        if self.fdir is None:
+            return
+        if self.hda.cfg.no_site_action == "abort":
+            self.fdir.declare_abort(t_ns, HAZARD, reason)
+        else:
+            self.fdir.note(t_ns, HAZARD, reason, "landing at the current target (no_site_action = 'land')",
+                           once_key="no_site")
 
     def on_lidar(self, msg: LidarScanMessage) -> None:
         """A hazard flash: kept until its scan is complete; then map the hazards through the estimate, retarget
@@ -503,8 +533,7 @@ class FlightSoftware:
             return
         if not self.hda.no_safe_site:  # the first scan's no-site: a second scan follows
             return
-        if self.hda.cfg.no_site_action == "abort" and self.fdir is not None:
-            self.fdir.declare_abort(msg.t_ns, HAZARD, "no safe site within the divert limit")
+        self._declare_no_site(msg.t_ns)
 
     def _t_go_plan_s(self) -> float | None:
         """The guidance plan's time left to touchdown [s]: to the gate plus the terminal descent (None: unknown)."""

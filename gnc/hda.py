@@ -340,6 +340,13 @@ class HazardAvoidance:
         self._mount: tuple[np.ndarray, np.ndarray, float] | None = None  # (R_BS, r_SB_m, fov_deg), nominal
         self._first_t_ns: int | None = None
 
+    def abandon_rescan(self) -> None:
+        """The second scan did not come in time (the target never in its view, or the descent already below its
+        height): declare no safe site, as a second scan that found none would."""
+        if self.awaiting_rescan:
+            self.awaiting_rescan = False
+            self.no_safe_site = True
+
     def wants_scan(self, height_above_target_m: float, phase: str | None, r_BL_L: np.ndarray | None = None,
                    R_LB: np.ndarray | None = None, target_L: np.ndarray | None = None) -> bool:
         """A flash now: a scan under way, the first scan due (on the approach, at or below its height), or the

@@ -190,6 +190,14 @@ class MapFixConfig(BaseModel):
         description="power of (1 - peak) / peak in the common error's peak term [-]",
     )
 
+    @model_validator(mode="after")
+    def _inliers_fit_the_grid(self) -> MapFixConfig:
+        if self.min_inliers > self.patch_grid**2:
+            raise ValueError(f"map_nav.fix.min_inliers = {self.min_inliers} exceeds the {self.patch_grid ** 2} "
+                             f"patches of patch_grid = {self.patch_grid}: every fix would be refused; allowed: at "
+                             f"most patch_grid^2")
+        return self
+
 
 @dataclass(frozen=True)
 class MapFix:

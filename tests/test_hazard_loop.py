@@ -211,6 +211,36 @@ def test_retarget_picks_the_only_safe_site_and_declares_none_when_there_is_none(
     assert hda2.on_scan(msg2, r_true + e, R_LB, 0.01, 0.5, target) is None and hda2.stats.no_safe_site
 
 
+def test_an_abandoned_second_scan_declares_no_safe_site():
+    hda = HazardAvoidance(HdaConfig())
+    hda.scanned, hda.awaiting_rescan = True, True  # the first scan found no site
+    hda.abandon_rescan()
+    assert hda.no_safe_site and not hda.awaiting_rescan and not hda.wants_scan(10.0, "terminal")
+    fresh = HazardAvoidance(HdaConfig())
+    fresh.abandon_rescan()  # nothing was due: nothing declared
+    assert not fresh.no_safe_site
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sets, reason, outcome", [
+    # The second scan's view never held the target before touchdown: it waited and the lander landed blind.
+    (["hazard.hda.map.nav_sigmas=30.0", "hazard.hda.rescan_altitude_m=0.5"], "the second scan was not made",
+     "safe_abort"),
+    # No site, and the user chose to land anyway: declared, not silent.
+    (["hazard.hda.map.nav_sigmas=30.0", "hazard.hda.rescan=off", "hazard.hda.no_site_action=land"],
+     "no safe site within the divert limit", "landed"),
+    (["hazard.hda.scan_altitude_m=1.0"], "no hazard scan: the approach ended above its height", "landed"),
+])
+def test_hazard_avoidance_that_cannot_act_is_declared(sets, reason, outcome):
+    from bench.sim.run import run
+
+    small = [f"terrain.{k}={v}" for k, v in dict(size_m=512.0, texture_px=2048, geometry_px=65).items()]
+    summary = run(load_scenario(None, ["hazard.avoidance=on", *small, *sets], "hazardous")).summary
+    events = [e for e in summary["fdir_events"] if e["subsystem"] == "hazard"]
+    assert events and reason in events[0]["reason"], summary["fdir_events"]
+    assert summary["outcome"] == outcome
+
+
 # ----------------------------------------------------------------- scenario
 def test_hazard_switches_default_off_and_a_bad_combination_is_one_line(tmp_path):
     sc = load_scenario(None)

@@ -68,6 +68,7 @@ def test_a_boolean_for_a_number_names_the_field(assignment, path, shown):
     ("map_nav.fix.subpixel_floor_px=1e200", "map_nav.fix.subpixel_floor_px = 1e+200"),  # overflowed in flight
     ("map_nav.fix.common_mode_sigma_px=1e200", "map_nav.fix.common_mode_sigma_px = 1e+200"),
     ("map_nav.confirm_drift_m=1e200", "map_nav.confirm_drift_m = 1e+200"),
+    ("map_nav.fix.min_inliers=200", "map_nav.fix.min_inliers = 200 exceeds the 49 patches"),
 ])
 def test_map_nav_settings_that_cannot_fly_are_refused(assignment, needle):
     msg = _err([assignment])
@@ -135,6 +136,18 @@ def test_dem_path_is_relative_to_the_scenario_file(tmp_path):
     f.write_text('[terrain]\nkind = "dem"\ndem_path = "site.npy"\ndem_spacing_m = 4.0\n')
     sc = load_scenario(f)
     assert sc.terrain.dem_path == tmp_path / "site.npy"
+
+
+def test_a_scenario_loaded_by_a_relative_path_writes_one_that_reruns_elsewhere(tmp_path, monkeypatch):
+    (tmp_path / "geo").mkdir()
+    np.save(tmp_path / "geo" / "site.npy", np.random.default_rng(0).normal(0, 2, (64, 64)).astype(np.float32))
+    (tmp_path / "geo" / "s.toml").write_text('[terrain]\nkind = "dem"\ndem_path = "site.npy"\ndem_spacing_m = 4.0\n')
+    monkeypatch.chdir(tmp_path)
+    written = scenario_to_toml(load_scenario("geo/s.toml"))  # as run writes it into --out
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "scenario.toml").write_text(written)
+    monkeypatch.chdir(tmp_path / "out")  # was 'out/geo/site.npy': not found
+    assert load_scenario("scenario.toml").terrain.dem_path == tmp_path / "geo" / "site.npy"
 
 
 def test_every_field_declares_a_unit_or_description():

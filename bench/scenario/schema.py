@@ -475,7 +475,9 @@ def read_scenario_data(path: str | Path | None) -> tuple[dict[str, Any], Path]:
     if path is None:
         return tomllib.loads(default_scenario_text()), Path.cwd()
     path = Path(path)
-    return _read_toml(path), path.parent
+    # Absolute: a relative dem_path resolved against it is written back into scenario.toml absolute, so that
+    # the written scenario reruns from any folder (a relative base gave 'runs/g_rel/geo/good.tif': not found).
+    return _read_toml(path), path.resolve().parent
 
 
 def scenario_from_data(data: dict[str, Any], base: Path, overrides: list[str] | tuple[str, ...] = (),

@@ -97,8 +97,9 @@ class HazardTruth:
         pads = np.asarray(r_BL_L, float) + footpad_positions_B(lander) @ R_LB.T
         axis = np.asarray(r_BL_L, float)[:2]
         try:
-            dem = self.ground.dem((float(axis[0]), float(axis[1])), TOUCHDOWN_DEM_HALF_M + lander.leg_radius_m,
-                                  self.cfg.site_spacing_m)
+            # Wide enough for the pads and for the body's radius (a large body_radius_m left it unjudged).
+            half = max(TOUCHDOWN_DEM_HALF_M, self.cfg.criteria.body_radius_m + 1.0) + lander.leg_radius_m
+            dem = self.ground.dem((float(axis[0]), float(axis[1])), half, self.cfg.site_spacing_m)
         except ValueError:
             return {"hazard_free": None, "hazards": ["outside_terrain"]}
         out = score_footprint(dem, pads[:, :2], axis, lander.footpad_radius_m, self.cfg.criteria)

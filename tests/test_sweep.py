@@ -101,6 +101,8 @@ def test_an_invalid_point_is_refused_before_anything_runs(grid, needle, tmp_path
     (["--grid", "a=1", "--lhs", "3", "--runs", "2"], "give one design"),
     (["--lhs", "3", "--runs", "2"], "needs ranges"),
     (["--sobol", "4", "--range", "guidance.gate_altitude_m=20:40", "--runs", "2"], "at least two --range"),
+    (["--sobol", "1", "--range", "guidance.gate_altitude_m=20:40", "--range", "control.attitude_bandwidth_radps=1:4",
+      "--runs", "2"], "need at least 8 base points"),  # N = 1 gave indices of 2 +- 0
     (["--lhs", "3", "--range", "guidance.gate_altitude_m=40:20", "--runs", "2"], "LOW < HIGH"),
     (["--grid", "guidance.law=zem_zev", "--runs", "2", "--require", "fuel<3"], "unknown metric 'fuel'"),
     (["--grid", "guidance.law=zem_zev,zem_zev", "--runs", "2"], "repeated"),
@@ -156,6 +158,15 @@ def test_sobol_wiring_recovers_the_ishigami_indices():
         assert 0.0 < got[k]["S1_conf"] < 0.1 and 0.0 < got[k]["ST_conf"] < 0.1
 
 
+def test_an_integer_range_gives_each_integer_an_equal_share():
+    # Rounding lo + u (hi - lo) gave 1:4's ends half a share each (P(1) = P(4) = 1/6).
+    d = sweep.lhs_design({"k": (1, 4), "x": (0.0, 1.0)}, 400, seed=2)
+    counts = np.bincount([p["k"] for p in d.points], minlength=5)[1:]
+    assert counts.tolist() == [100, 100, 100, 100]  # stratified: each quarter of the unit interval 100 times
+    assert sweep._typed({"k": 4.0}, {"k": (1, 4)}) == {"k": 4} and sweep._typed({"k": 1.0}, {"k": (1, 4)}) == {"k": 1}
+    assert sweep._typed({"k": 3.0}, {"k": (3, 3)}) == {"k": 3}
+
+
 def test_sobol_indices_of_a_constant_response_are_undefined_not_zero():
     pytest.importorskip("SALib")
     d = sweep.sobol_design({"x1": (0.0, 1.0), "x2": (0.0, 1.0)}, 64, seed=1)
@@ -207,6 +218,11 @@ def test_fuel_ratio_to_gfold_is_case_by_case_at_the_same_other_design_values(tmp
 
     html = render_sweep_html(doc)
     assert "scatter-matrix" in html and "pareto-0" in html
+    # Points that meet the requirements but lack an objective (no touchdown in their cases): the front is empty
+    # for that reason, not because "no point meets the requirements" (which the page had said beside "3 of 4").
+    blind = {**doc, "points": [{**q, "pareto": False, "miss_p95_m": None} for q in doc["points"]]}
+    html = render_sweep_html(blind)
+    assert "no point meets the requirements" not in html and "3 points meeting the requirements lack a value" in html
 
 
 def test_the_design_can_be_a_sweep_table_in_the_scenario_file(tmp_path):

@@ -59,6 +59,7 @@ POINTS_PARQUET = "points.parquet"
 CASES_PARQUET = "cases.parquet"
 POINT_JSON = "point.json"
 KINDS = ("grid", "lhs", "sobol")
+SOBOL_MIN_N = 8  # fewest base points of a Sobol design [-]
 GFOLD = "gfold"
 CONFIDENCE = 0.95
 # Point metrics the Sobol indices are computed for, and the Pareto objectives (all minimised).
@@ -204,10 +205,16 @@ def _scaled(unit: np.ndarray, ranges: Mapping[str, tuple[float, float]]) -> list
 
 
 def _typed(point: Mapping[str, float], ranges: Mapping[str, tuple[float, float]]) -> dict[str, Any]:
+    """A sampled point in its fields' types: an integer range ``lo:hi`` gives each of its hi - lo + 1 integers an
+    equal share of the range (rounding gave its two ends half a share each)."""
     out = {}
     for k, v in point.items():
         lo, hi = ranges[k]
-        out[k] = int(round(v)) if isinstance(lo, int) and isinstance(hi, int) else float(v)
+        if isinstance(lo, int) and isinstance(hi, int):
+            u = (float(v) - lo) / (hi - lo) if hi > lo else 0.0
+            out[k] = min(lo + int(math.floor(u * (hi - lo + 1))), hi)
+        else:
+            out[k] = float(v)
     return out
 
 
@@ -231,7 +238,7 @@ def lhs_design(ranges: Mapping[str, tuple[float, float]], n: int, seed: int) -> 
 def sobol_design(ranges: Mapping[str, tuple[float, float]], n: int, seed: int) -> Design:
     """Saltelli's scheme for first-order and total Sobol' indices: ``n (d + 2)`` points (SALib).
 
-    Integer ranges are sampled as reals and rounded for the scenario; the
+    Integer ranges are sampled as reals and mapped to integers (equal shares, :func:`_typed`); the
     indices are computed on the real-valued sample (the design's).
     """
     try:
@@ -310,6 +317,10 @@ def design_from_args(grids: Sequence[str], lhs: int | None, sobol: int | None, r
         raise ValueError(f"--range: a field is given twice ({', '.join(keys)}); give each field once")
     if sobol is not None and len(parsed) < 2:
         raise ValueError("--sobol needs at least two --range factors (indices of one factor are trivial)")
+    if sobol is not None and n < SOBOL_MIN_N:
+        raise ValueError(f"--sobol {n}: Saltelli's estimates and their bootstrap intervals need at least "
+                         f"{SOBOL_MIN_N} base points (N = 1 gave indices of 2 +- 0); allowed: {SOBOL_MIN_N} or more, "
+                         "a power of 2")
     return (lhs_design if lhs is not None else sobol_design)(dict(parsed), n, seed)
 
 

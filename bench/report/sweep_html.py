@@ -21,7 +21,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from bench.campaign.sweep import format_point_cell
+from bench.campaign.sweep import PARETO_OBJECTIVES, format_point_cell
 from bench.report.compare_html import _environment
 from bench.report.io import atomic_write_text
 
@@ -126,7 +126,12 @@ def render_sweep_html(doc: Mapping[str, Any]) -> str:
 
     factors = doc["design"]["factors"]
     front = [p for p in doc["points"] if p["pareto"]]
-    front_text = "; ".join(_label(p, factors) for p in front) or "no point meets the requirements"
+    front_text = "; ".join(_label(p, factors) for p in front)
+    if not front:  # say why: none meets the requirements, or those that do lack an objective (no touchdown)
+        ok = [p for p in doc["points"] if p["meets_require"]]
+        front_text = ("no point meets the requirements" if not ok else
+                      f"none: the {len(ok)} point{'s' if len(ok) > 1 else ''} meeting the requirements lack a value "
+                      f"of the objectives ({', '.join(PARETO_OBJECTIVES)}; no touchdown in their cases)")
     return _environment().get_template(TEMPLATE).render(
         doc=doc, columns=[*factors, *COLUMNS], cell=_cell, n_ok=sum(p["meets_require"] for p in doc["points"]),
         front_text=front_text, pareto_plots=pareto_plots(doc), matrix=scatter_matrix(doc),

@@ -163,6 +163,11 @@ def restart_flight_software(scenario: Scenario, old: FlightSoftware, t_ns: int) 
     new.filter.ekf.P[:, keep] = 0.0
     new.filter.ekf.P[np.ix_(keep, keep)] = P[np.ix_(keep, keep)]
     new.mass_kg = mass
+    if old.map_nav is not None and new.map_nav is not None:
+        # Its bookkeeping and its lock survive: the checkpointed position is the locked, map-relative one (a
+        # fresh record dropped every earlier fix from the summary, and an unlocked one would re-confirm, or
+        # declare a lock missing below the fixes' window). The keyframe image is volatile: made again if due.
+        new.map_nav.stats = old.map_nav.stats
     if old.hda is not None:  # the scan's result (the retargeted site) is kept in non-volatile memory
         new.hda = old.hda
         new.target = old.target

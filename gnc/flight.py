@@ -597,8 +597,7 @@ class FlightSoftware:
         st, cfg = self.map_nav.stats, self.map_nav.cfg
         if st.locked or float(self.filter.ekf.x[2]) >= cfg.min_altitude_m:
             return
-        if not st.never_locked:
-            st.never_locked = True
+        st.never_locked = True
         if self._monitoring():
             refused = sum(st.refused.values())
             self.fdir.note(t_ns, NAVIGATION, f"map-relative navigation never locked ({st.attempts} fixes tried, "

@@ -184,8 +184,13 @@ def test_a_plugin_raising_in_flight_is_one_line_naming_its_exception_and_line(ca
 
 
 def test_a_controller_torque_given_as_a_list_is_flown_as_an_array():
-    sc = load_scenario(None, [*NO_CAMERA, 'control.law="plugin_bad_outputs:TorqueListController"'])
-    assert run(sc).summary["outcome"] == "landed"  # before: AttributeError in the telemetry row
+    # Before: an AttributeError in the first tick's telemetry row. Two seconds of flight tell.
+    sc = load_scenario(None, [*NO_CAMERA, 'control.law="plugin_bad_outputs:TorqueListController"',
+                              "sim.t_max_ns=2_000_000_000"])
+    result = run(sc)
+    assert result.summary["outcome"] == "timeout"
+    torque = np.column_stack([result.telemetry[f"torque_{a}_Nm"] for a in "xyz"])
+    assert np.isfinite(torque).all() and np.abs(torque).max() > 0.0
 
 
 def test_a_plugin_whose_constructor_raises_is_one_line(capsys, tmp_path):

@@ -35,10 +35,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from gnc.messages import LidarScanMessage, lidar_ray_dirs_S
 from models.site_dem import SiteDem
+
+
+MOUNT_MAX_M = 10.0  # the lidar sits on the vehicle: each mount axis within this of the body origin [m]
 
 
 class FlashLidarConfig(BaseModel):
@@ -51,8 +54,18 @@ class FlashLidarConfig(BaseModel):
     range_sigma_m: float = Field(0.03, ge=0.0, le=1.0, description="1-sigma white range noise [m]")
     max_range_m: float = Field(1000.0, gt=0.0, description="no return beyond this range [m]")
     mount_B_m: tuple[float, float, float] = Field(
-        (0.0, 0.0, -0.5), description="sensor position in the body frame [m] (boresight = the camera's)")
+        (0.0, 0.0, -0.5), description="sensor position in the body frame [m] (boresight = the camera's); on the "
+                                      "vehicle: each axis within 10 m of the body origin")
     march_step_m: float = Field(0.05, gt=0.0, le=1.0, description="ray-march step in height [m]")
+
+    @field_validator("mount_B_m")
+    @classmethod
+    def _on_the_vehicle(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        # 150 m below the body put the sensor under the ground: its site DEM had a negative size mid-flight.
+        if max(abs(c) for c in v) > MOUNT_MAX_M:
+            raise ValueError(f"{list(v)} puts the lidar off the vehicle; allowed: each axis within {MOUNT_MAX_M:g} m "
+                             "of the body origin")
+        return v
 
 
 def ray_ranges(origin_L: np.ndarray, dirs_L: np.ndarray, dem: SiteDem, step_m: float = 0.05) -> np.ndarray:

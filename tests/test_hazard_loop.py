@@ -241,6 +241,24 @@ def test_hazard_avoidance_that_cannot_act_is_declared(sets, reason, outcome):
     assert summary["outcome"] == outcome
 
 
+def test_a_lidar_off_the_vehicle_or_a_footprint_off_the_terrain_is_one_line_naming_the_fields(tmp_path, capsys):
+    from bench.cli import main
+
+    with pytest.raises(ScenarioError, match=r"hazard.lidar.mount_B_m = \[0.0, 0.0, -150.0\]: .* off the vehicle"):
+        load_scenario(None, ["hazard.avoidance=on", "hazard.lidar.mount_B_m=[0.0, 0.0, -150.0]"], "hazardous")
+    # Found only in flight (the footprint at the scan's height): it named no field before.
+    small = [f"terrain.{k}={v}" for k, v in dict(size_m=256.0, texture_px=1024, geometry_px=33, patch_size_m=0.0).items()]
+    out = tmp_path / "r"
+    argv = ["run", "--no-video", "--preset", "hazardous", "--out", str(out)]
+    for a in ["hazard.avoidance=on", *small, "hazard.hda.scan_altitude_m=1000.0"]:
+        argv += ["--set", a]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("landbench: error: hazard.hda.scan_altitude_m = 1000") and \
+        "larger terrain.size_m" in err, err
+    assert not out.exists()
+
+
 # ----------------------------------------------------------------- scenario
 def test_hazard_switches_default_off_and_a_bad_combination_is_one_line(tmp_path):
     sc = load_scenario(None)

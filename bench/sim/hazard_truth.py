@@ -82,7 +82,15 @@ class HazardTruth:
             height = float(r_SL_L[2])
             tilt = math.degrees(math.acos(min(1.0, abs(float(R_LS[2, 2])))))
             half = self.lidar.footprint_half_m(height, tilt)
-            dem = self.ground.dem((float(nadir[0]), float(nadir[1])), half, self.cfg.site_spacing_m)
+            try:
+                dem = self.ground.dem((float(nadir[0]), float(nadir[1])), half, self.cfg.site_spacing_m)
+            except ValueError as exc:  # a user's settings, found in flight: name them (the truth has no ground there)
+                raise ValueError(
+                    f"hazard.hda.scan_altitude_m = {self.scenario.hazard.hda.scan_altitude_m:g} (rescan "
+                    f"{self.scenario.hazard.hda.rescan_altitude_m:g}): the lidar's footprint at {height:.0f} m, "
+                    f"+-{half:.0f} m about ({nadir[0]:.0f}, {nadir[1]:.0f}) m, leaves the ground modelled for it "
+                    f"({exc}); allowed: a lower scan altitude, a narrower hazard.lidar.fov_deg, or a larger "
+                    "terrain.size_m") from None
             self.scans.append({"t_ns": int(t_ns), "r_BL_L": np.asarray(r_BL_L, float).copy(),
                                "nav_err_xy_m": (np.asarray(nav_r_L, float) - np.asarray(r_BL_L, float))[:2],
                                "dem": dem})

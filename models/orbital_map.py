@@ -49,8 +49,20 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from models.terrain import (SHADE_MAX, SHADOW_FLOOR, UINT8_MAX, Surface, _lit_fraction, _relative_shading,
                             _sun_vector)
 
+
 PIXEL_AREA_SIGMA_PX = 1.0 / math.sqrt(12.0)  # a box pixel's footprint as a Gaussian of equal variance [px]
 DEM_LOWPASS_SIGMA_POSTS = 0.5  # a stereo DEM resolves about two posts: Gaussian low-pass of this sigma [posts]
+
+
+def _common_size_m(size_m: float, image_res_m: float, dem_spacing_m: float) -> float:
+    """The nearest size at or above ``size_m`` that is a whole number of both pixels and posts [m] (for messages;
+    the suggestion was the posts' multiple alone, which the pixels could refuse again)."""
+    from fractions import Fraction
+
+    a = Fraction(image_res_m).limit_denominator(10**6)
+    b = Fraction(dem_spacing_m).limit_denominator(10**6)
+    step = Fraction(math.lcm(a.numerator * b.denominator, b.numerator * a.denominator), a.denominator * b.denominator)
+    return float(math.ceil(Fraction(size_m) / step) * step)
 
 
 class OrbitalMapConfig(BaseModel):
@@ -87,7 +99,8 @@ class OrbitalMapConfig(BaseModel):
         if not (math.isclose(n_px * self.image_res_m, s, rel_tol=1e-9)
                 and math.isclose(n_posts * self.dem_spacing_m, s, rel_tol=1e-9)):
             raise ValueError(f"onboard_map.size_m = {s} must be a whole number of image pixels ({self.image_res_m} m) "
-                             f"and DEM posts ({self.dem_spacing_m} m); e.g. {n_posts * self.dem_spacing_m:g}")
+                             f"and DEM posts ({self.dem_spacing_m} m); e.g. "
+                             f"{_common_size_m(s, self.image_res_m, self.dem_spacing_m):g}")
         return self
 
 
@@ -176,7 +189,8 @@ def render_orbital_map(surface: Surface, cfg: OrbitalMapConfig, shift_xy_m: tupl
     if not (math.isclose(n_px * cfg.image_res_m, s, rel_tol=1e-9) and
             math.isclose(n_posts * cfg.dem_spacing_m, s, rel_tol=1e-9)):
         raise ValueError(f"onboard_map.size_m={s} must be a whole number of image pixels ({cfg.image_res_m} m) "
-                         f"and DEM posts ({cfg.dem_spacing_m} m); e.g. {n_posts * cfg.dem_spacing_m:g}")
+                         f"and DEM posts ({cfg.dem_spacing_m} m); e.g. "
+                         f"{_common_size_m(s, cfg.image_res_m, cfg.dem_spacing_m):g}")
     dx, dy = float(shift_xy_m[0]), float(shift_xy_m[1])
     texel = surface.texel_m
 

@@ -952,12 +952,13 @@ def load_geotiff(path: str | pathlib.Path, target_xy: tuple[float, float] | None
                 f"(at most {2 * fits * spacing:g} m there); choose a smaller tile or another target"
             )
         if 2 * half + 1 < MIN_DEM_PX:
-            raise ValueError(f"dem_path='{p}': the tile around the target is {2 * half + 1} px; "
-                             f"need at least {MIN_DEM_PX} px per side")
+            field = f"dem_tile_m={tile_m}" if tile_m is not None else f"dem_path='{p}'"
+            raise ValueError(f"{field}: the tile around the target is {2 * half + 1} px; need at least {MIN_DEM_PX} "
+                             "px per side" + ("; give a larger dem_tile_m" if tile_m is not None else ""))
         band = ds.read(1, window=Window(c_c - half, r_c - half, 2 * half + 1, 2 * half + 1), masked=True)
-    nodata = int(np.count_nonzero(np.ma.getmaskarray(band)))
     heights = np.ma.getdata(band).astype(np.float64) * z_scale_m
-    bad = nodata + int(np.count_nonzero(~np.isfinite(heights)))
+    # A post that is both nodata and NaN (NaN declared as nodata) counts once.
+    bad = int(np.count_nonzero(np.ma.getmaskarray(band) | ~np.isfinite(heights)))
     if bad:
         raise ValueError(f"dem_path='{p}': {bad} nodata or non-finite posts in the tile around the target; "
                          "fill the voids first (e.g. gdal_fillnodata.py) or choose another target")

@@ -99,6 +99,22 @@ def test_target_outside_tile_too_large_and_nodata_are_refused(tmp_path, site):
             load_scenario(None, ['terrain.kind="dem"', f'terrain.dem_path="{path}"', *sets])
 
 
+def test_nan_voids_declared_as_nodata_are_counted_once(tmp_path):
+    x, y = post_xy()
+    h = relief(x, y)
+    h[59:62, 69:72] = np.nan  # a 3 x 3 void of NaN, NaN declared as nodata: 9 posts, not 18
+    path = write_tif(tmp_path / "nan.tif", h, nodata=np.nan)
+    with pytest.raises(ScenarioError, match=r": 9 nodata or non-finite posts"):
+        load_scenario(None, ['terrain.kind="dem"', f'terrain.dem_path="{path}"'])
+
+
+def test_the_onboard_map_size_suggestion_fits_both_grids():
+    # image 0.7 m and posts 2 m: 768 fits neither; the suggestion was 768 (posts only), refused again.
+    with pytest.raises(ScenarioError, match=r"e\.g\. 770$"):
+        load_scenario(None, ["onboard_map.image_res_m=0.7"])
+    load_scenario(None, ["onboard_map.image_res_m=0.7", "onboard_map.size_m=770.0"])
+
+
 def test_a_degree_raster_gives_one_error_line_and_writes_nothing(tmp_path, capsys):
     path = write_tif(tmp_path / "deg.tif", np.zeros((40, 40)), crs="EPSG:4326", res_x=0.001, res_y=0.001)
     out = tmp_path / "out"

@@ -139,7 +139,8 @@ def check_initial_position(scenario: Scenario, terrain: Terrain) -> None:
     half = terrain.size_m / 2.0
     if abs(x) >= half or abs(y) >= half:
         raise ScenarioError(f"initial.r_BL_L_m = {list(scenario.initial.r_BL_L_m)}: the start is outside the "
-                            f"{terrain.size_m:g} m terrain tile; give |x|, |y| < {half:g} m (or a larger terrain.size_m)")
+                            f"{terrain.size_m:g} m terrain tile; give |x|, |y| < {half:g} m (or a larger "
+                            f"{'terrain.dem_tile_m, or a larger DEM' if scenario.terrain.kind == 'dem' else 'terrain.size_m'})")
     ground_m = float(terrain.surface_height(x, y))
     need_m = ground_m + scenario.lander.footpad_clearance_m
     if not z > need_m:

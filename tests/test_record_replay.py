@@ -128,6 +128,21 @@ def test_a_replay_reproduces_the_fault_detection_acting_on_navigation(tmp_path):
     assert m["identical_to_recording"], m.get("differing_nav_columns")
 
 
+def test_a_stuck_throttle_replays_the_flight_softwares_own_commands(tmp_path):
+    # The telemetry's thrust_cmd_N was the stuck engine's command, not the computer's: the replay's mass gauge
+    # (fed thrust_cmd_N) drifted from the one that flew, and the replay was not identical.
+    ds, out = tmp_path / "ds", tmp_path / "replay"
+    stuck = 'faults=[{kind="stuck_throttle", target="engine", t_s=2.0}]'
+    assert main(["record", *_sets([*SEGMENT, stuck, 'vision="off"', "camera.enabled=false"]), "--seeds", "1",
+                 "--out", str(ds)]) == 0
+    assert main(["replay", str(ds), "--out", str(out)]) == 0
+    (m,) = json.loads((out / "metrics.json").read_text())["sequences"]
+    assert m["identical_to_recording"], m.get("differing_nav_columns")
+    tel = read_telemetry_parquet(ds / "seed_001" / "telemetry.parquet")
+    after = tel["t_s"] > 3.0  # the engine held its command; the computer's went on changing
+    assert np.ptp(tel["thrust_cmd_N"][after]) > 1.0 and np.ptp(tel["thrust_applied_cmd_N"][after]) < 1e-9
+
+
 def test_a_replay_with_map_fixes_scores_in_the_maps_frame(tmp_path):
     # With nav_map on the flight software navigates in the map's frame (truth + the map's shift); the replay
     # took its errors against the plain truth: nav_err_r_x/y and nees_r_h differed by the shift (2.7, -1.8) m.

@@ -417,8 +417,9 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                     act = ActuatorCommand(0.0, np.zeros(3), False, t_ns)
                 else:
                     act = fsw.control(t_ns, contact, truth_nav)
-                    if faults is not None:
-                        act = _engine_command(faults, t_ns, act)
+                commanded = act  # the flight software's command: telemetry thrust_cmd_N (a replay's mass gauge)
+                if not down and faults is not None:
+                    act = _engine_command(faults, t_ns, act)  # what the engine acts on (a stuck throttle)
                 if abort_ns is None and fsw.fdir is not None and fsw.fdir.abort is not None:
                     abort_ns = t_ns
                 if not pipeline:
@@ -427,7 +428,7 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
                 applied = pipeline.popleft()
                 guid = fsw.last_guidance  # None until guidance first runs (a computer down from the start)
                 phase = PHASE_TOUCHDOWN if touchdown is not None else guid.phase if guid is not None else PHASE_OFF
-                tel.rows.append(_row(t_ns, truth, act, guid, legs, imu_msg, alt_msg, st_msg, thrust_max,
+                tel.rows.append(_row(t_ns, truth, commanded, guid, legs, imu_msg, alt_msg, st_msg, thrust_max,
                                      world.propulsion.delivered_thrust_N(applied.thrust_N), phase,
                                      fsw, sensors.imu.accel_bias, applied, tel, nav_offset_L))
             # End conditions.

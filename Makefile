@@ -14,9 +14,9 @@ bootstrap:
 
 ## demo: fly the default scenario (vision camera on) and write its results, plus the terrain map
 demo: bootstrap
-	@mkdir -p $(OUT)
-	$(LB) world --out $(OUT)/world.png
-	$(LB) run --out $(OUT)
+	@mkdir -p "$(OUT)"
+	$(LB) world --out "$(OUT)/world.png"
+	$(LB) run --out "$(OUT)"
 	@echo "demo: results in $(OUT)/ (summary.json, telemetry.parquet, scenario.toml, plots.png, camera.mp4, world.png)"
 
 ## test: the fast suite (CI runs this); the 15 slowest tests are listed so the time budget stays visible.

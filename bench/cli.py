@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import sys
 from pathlib import Path
 from typing import NoReturn
@@ -60,12 +62,24 @@ def _add_preset_arg(p: argparse.ArgumentParser) -> None:
                         "or the hazardous terrain of issue 14 (hazardous)")
 
 
+def _json(doc: object) -> str:
+    """``--json`` output: valid JSON (a NaN or an infinity, say an error median over no tracks, is null)."""
+    from bench.report.io import json_safe
+
+    return json.dumps(json_safe(doc), indent=2, allow_nan=False)
+
+
 def _check_out(path: str, suffixes: tuple[str, ...], flag: str) -> Path:
     out = Path(path)
     if out.suffix.lower() not in suffixes:
         raise ValueError(f"{flag} {path!r}: expected a file ending in {' or '.join(suffixes)}")
     if out.exists() and out.is_dir():
         raise ValueError(f"{flag} {path!r} is a folder; give a file name")
+    # Its folder must be one that can be made and written: checked before any work, so that a second output
+    # that cannot be written does not leave the first one written (or replaced) by a failed command.
+    folder = next(p for p in out.absolute().parents if p.exists())
+    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+        raise ValueError(f"{flag} {path!r}: {folder} is not a folder this user can write in; give another path")
     return out
 
 
@@ -81,8 +95,8 @@ def cmd_render(args: argparse.Namespace) -> int:
 
     out = _check_out(args.out, (".png",), "--out")
     depth_out = _check_out(args.depth, (".npy",), "--depth") if args.depth else None
-    if not args.altitude > 0:
-        raise ValueError(f"--altitude {args.altitude}: must be > 0 m above the landing site")
+    if not (math.isfinite(args.altitude) and args.altitude > 0):
+        raise ValueError(f"--altitude {args.altitude}: must be a finite height > 0 m above the landing site")
     scenario = load_scenario(args.scenario, args.overrides)
     written = render_view(scenario, args.altitude, out, depth_out, noise=not args.no_noise)
     for p in written:
@@ -107,12 +121,15 @@ def cmd_perf(args: argparse.Namespace) -> int:
         from bench.evaluation.perf import format_campaign_perf, run_campaign_perf
 
         workers = _int_list(args.campaign_workers, "--campaign-workers")
+        if len(set(workers)) != len(workers):  # each count flies the cases into its own folder: found after flying
+            raise ValueError(f"--campaign-workers {args.campaign_workers}: a worker count is repeated; give each "
+                             "once, e.g. 1,2")
         result = run_campaign_perf(scenario, args.campaign, workers, campaign_seed=scenario.seed,
                                    backend=args.backend)
-        print(json.dumps(result, indent=2) if args.json else format_campaign_perf(result))
+        print(_json(result) if args.json else format_campaign_perf(result))
         return 0 if all(v["identical_to_baseline"] for v in result["results"].values()) else 1
     result = run_perf(scenario, frames=args.frames)
-    print(json.dumps(result, indent=2) if args.json else format_perf(result))
+    print(_json(result) if args.json else format_perf(result))
     return 0
 
 
@@ -139,12 +156,12 @@ def cmd_track_eval(args: argparse.Namespace) -> int:
         reports = [run_textures_eval(size, frames, args.repeats, tracker_config=scenario.tracker)
                    for size in (args.size or [256])]
         if args.json:
-            print(json.dumps(reports[0] if len(reports) == 1 else reports, indent=2))
+            print(_json(reports[0] if len(reports) == 1 else reports))
         else:
             print("\n\n".join(format_textures_eval(r, REPORT_KEYS) for r in reports))
         return 0
     report = run_track_eval(scenario, args.size or [256, 512], frames, args.repeats, tracker_config=scenario.tracker)
-    print(json.dumps(report, indent=2) if args.json else format_track_eval(report))
+    print(_json(report) if args.json else format_track_eval(report))
     return 0
 
 

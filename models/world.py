@@ -388,11 +388,16 @@ class World:
         cfg = self.camera_cfg
         return visual_digest(self.model, cfg.width_px, cfg.height_px, self._texture_key())
 
+    @property
+    def clip_far_m(self) -> float:
+        """The camera's far clip plane [m]: 4 x the terrain's size."""
+        return 4.0 * self.terrain.size_m
+
     def _set_clip_planes(self) -> None:
         """Near/far planes in metres (MuJoCo stores them relative to the model extent)."""
         extent = float(self.model.stat.extent)
         self.model.vis.map.znear = self.camera_cfg.near_m / extent
-        self.model.vis.map.zfar = 4.0 * self.terrain.size_m / extent
+        self.model.vis.map.zfar = self.clip_far_m / extent
 
     # ----------------------------------------------------------------- state
     @property

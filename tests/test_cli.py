@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -51,11 +52,17 @@ def test_world_map(tmp_path):
         (["render", "--altitude", "100", "--set", "bogus=1"], "bogus"),
         (["render", "--altitude", "-3"], "--altitude"),
         (["render", "--altitude", "100", "--set", "sensors.imu.period_ns=3000001"], "sensors.imu.period_ns"),
+        (["render", "--altitude", "inf"], "--altitude inf: must be a finite height"),  # was a black frame
+        (["render", "--altitude", "5000"], "--altitude 5000: the camera draws from"),  # beyond the far plane
+        (["render", "--altitude", "0.01"], "--altitude 0.01: the camera draws from"),  # inside the near plane
+        # the depth's folder cannot be made: refused before the frame is written (it replaced the PNG before)
+        (["render", "--altitude", "100", "--depth", "{tmp}/frame.png/d.npy"], "--depth"),
     ],
 )
 def test_errors_are_one_line_and_write_nothing(tmp_path, capsys, argv, needle):
     out = tmp_path / "frame.png"
     out.write_bytes(b"previous result")  # an earlier result must survive a bad run
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
     assert main([*argv, "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and err.startswith("landbench: error:") and needle in err
@@ -192,3 +199,21 @@ def test_a_flag_mistake_is_one_error_line(argv, needle, capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("landbench: error: ") and needle in err, err
+
+
+def test_json_outputs_are_valid_json_and_worker_counts_are_checked_first(capsys):
+    # 3 frames over the whole descent leave nothing to score: its medians are NaN, which json.dumps wrote as a
+    # bare NaN (not JSON); they are null now.
+    assert main(["track-eval", "--size", "256", "--frames", "3", "--repeats", "1", "--json", *_sets()]) == 0
+    doc = json.loads(capsys.readouterr().out, parse_constant=lambda c: pytest.fail(f"{c} in --json output"))
+    assert "epe_median_px" in doc["results"]["256"]["tracker"]
+    # A repeated worker count failed after the cases had flown, naming a temporary folder.
+    assert main(["perf", "--campaign", "1", "--campaign-workers", "1,1", *_sets()]) == 2
+    assert "--campaign-workers 1,1: a worker count is repeated" in capsys.readouterr().err
+
+
+def test_world_refuses_a_start_off_the_tile_as_run_does(tmp_path, capsys):
+    out = tmp_path / "w.png"
+    assert main(["world", "--out", str(out), "--set", "terrain.size_m=64", "--set",
+                 "terrain.target_clear_radius_m=10"]) == 2
+    assert "the start is outside the 64 m terrain tile" in capsys.readouterr().err and not out.exists()

@@ -7,7 +7,8 @@ from pathlib import Path
 
 from bench.report.io import save_figure, write_npy, write_png
 from bench.scenario import Scenario
-from bench.sim.world_builder import build_sensors, build_terrain, build_world, place_above_target
+from bench.sim.world_builder import (build_sensors, build_terrain, build_world, check_initial_position,
+                                     place_above_target)
 from models.camera import apply_detector_noise
 
 
@@ -26,6 +27,10 @@ def render_view(scenario: Scenario, altitude_m: float, out: Path, depth_out: Pat
         The paths written.
     """
     with build_world(scenario) as world:
+        near, far = world.camera_cfg.near_m, world.clip_far_m
+        if not near < altitude_m < far:  # outside the clip planes the frame is black and the depth the far plane
+            raise ValueError(f"--altitude {altitude_m:g}: the camera draws from camera.near_m = {near:g} m to "
+                             f"{far:g} m (4 x the terrain's size); allowed: an altitude between them")
         place_above_target(world, altitude_m)
         signal = world.render_signal()
         frame = apply_detector_noise(signal, scenario.camera, build_sensors(scenario).camera_rng) if noise else signal
@@ -44,6 +49,7 @@ def draw_world(scenario: Scenario, out: Path) -> Path:
     import matplotlib.pyplot as plt
 
     terrain = build_terrain(scenario)
+    check_initial_position(scenario, terrain)  # as run refuses it: a start off the tile, or in the ground
     shade = terrain.hillshade(scenario.sun.elevation_deg, scenario.sun.azimuth_deg)
     half = terrain.size_m / 2.0
     fig, ax = plt.subplots(figsize=(7.5, 7))

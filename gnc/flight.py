@@ -550,28 +550,39 @@ class FlightSoftware:
     def control(self, t_ns: int, contact: ContactMessage, nav: NavState | None = None) -> ActuatorCommand:
         """One control step; ``nav`` overrides the filter (perfect navigation)."""
         self._advance_mass_gauge(t_ns)
-        if self.fdir is not None and np.any(contact.legs):
-            self._on_ground = True
-        if self._monitoring():
-            self._fdir_tick(t_ns, contact, oracle=nav is not None)
+        self._monitor_before_command(t_ns, contact, oracle=nav is not None)
         nav = nav if nav is not None else self.filter.nav_state(self.mass_kg)
         if self.fdir is not None and self.fdir.abort is not None:
             cmd = self._abort_command(nav)
         else:
             cmd = self._law_call(self.guidance, "guidance.law", t_ns, nav, self.target)
-            self._check_guidance_output(cmd, t_ns)
+            # GuidanceLaw.update checks its formulas' output itself; a law that overrides it is checked here.
+            if type(self.guidance).update is not GuidanceLaw.update:
+                self._check_guidance_output(cmd, t_ns)
         act = self._law_call(self.controller, "control.law", t_ns, nav, cmd, contact)
         act = self._checked_controller_output(act, t_ns)
         self.last_guidance = cmd
-        self._hold_thrust(t_ns, act.thrust_N if act.engine_on else 0.0)
-        if self._monitoring():
-            self.fdir.control_tick(t_ns, act.thrust_N if act.engine_on else 0.0, self._thrust_scale, self.mass_kg,
-                                   bool(np.any(contact.legs)))
-            veh = self.controller.vehicle
-            self.fdir.torque_check(t_ns, act.torque_B_Nm, act.thrust_N if act.engine_on else 0.0,
-                                   veh.inertia_B_kgm2(self.mass_kg), veh.rcs_torque_max_Nm)
-            self.checkpoint = self._checkpoint(t_ns)
+        self._command_issued(t_ns, act.thrust_N if act.engine_on else 0.0, act.torque_B_Nm, contact)
         return act
+
+    def _monitor_before_command(self, t_ns: int, contact: ContactMessage, oracle: bool) -> None:
+        """A control tick's health monitoring before the command is made (:meth:`control`, and a replay's
+        :meth:`on_flown_command`): the first leg contact ends it; the clocked checks and recoveries."""
+        if self.fdir is not None and np.any(contact.legs):
+            self._on_ground = True
+        if self._monitoring():
+            self._fdir_tick(t_ns, contact, oracle=oracle)
+
+    def _command_issued(self, t_ns: int, thrust_N: float, torque_B_Nm: np.ndarray, contact: ContactMessage) -> None:
+        """The command of a control tick was issued (``thrust_N``: 0 with the engine off): the mass gauge holds
+        its thrust; the accelerometer and torque checks take it; the checkpoint is written."""
+        self._hold_thrust(t_ns, thrust_N)
+        if self._monitoring():
+            self.fdir.control_tick(t_ns, thrust_N, self._thrust_scale, self.mass_kg, bool(np.any(contact.legs)))
+            veh = self.controller.vehicle
+            self.fdir.torque_check(t_ns, torque_B_Nm, thrust_N, veh.inertia_B_kgm2(self.mass_kg),
+                                   veh.rcs_torque_max_Nm)
+            self.checkpoint = self._checkpoint(t_ns)
 
     @staticmethod
     def _law(component: object) -> str:
@@ -605,8 +616,8 @@ class FlightSoftware:
                            "no keyframe; the landing is flown on the hand-over position", once_key="map_no_lock")
 
     def _check_guidance_output(self, cmd: object, t_ns: int) -> None:
-        """Raise :class:`gnc.plugins.LawOutputError` when the guidance law's command cannot be flown (a law that
-        overrides ``update`` is checked here; :meth:`GuidanceLaw.update` checks its formulas' output itself)."""
+        """Raise :class:`gnc.plugins.LawOutputError` when the command of a law that overrides ``update`` cannot
+        be flown (:meth:`GuidanceLaw.update` checks its formulas' output itself)."""
         law = self._law(self.guidance)
         head = f"guidance.law = {law!r}: update returned"
         if not isinstance(cmd, GuidanceCommand):
@@ -756,17 +767,8 @@ class FlightSoftware:
         if contact is None:
             self._hold_thrust(t_ns, thrust_N)
             return
-        if self.fdir is not None and np.any(contact.legs):
-            self._on_ground = True
-        if self._monitoring():
-            self._fdir_tick(t_ns, contact, oracle=oracle)
-        self._hold_thrust(t_ns, thrust_N)
-        if self._monitoring():
-            self.fdir.control_tick(t_ns, thrust_N, self._thrust_scale, self.mass_kg, bool(np.any(contact.legs)))
-            veh = self.controller.vehicle
-            self.fdir.torque_check(t_ns, np.asarray(torque_B_Nm, float), thrust_N, veh.inertia_B_kgm2(self.mass_kg),
-                                   veh.rcs_torque_max_Nm)
-            self.checkpoint = self._checkpoint(t_ns)
+        self._monitor_before_command(t_ns, contact, oracle)
+        self._command_issued(t_ns, thrust_N, np.asarray(torque_B_Nm, float), contact)
 
     def _advance_mass_gauge(self, t_ns: int) -> None:
         """Burn the held thrust command's propellant up to ``t_ns`` (rocket equation, nominal Isp)."""

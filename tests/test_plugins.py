@@ -143,16 +143,21 @@ def test_check_law_vector_passes_finite_vectors_and_names_law_value_and_time():
         check_law_vector(float("nan"), 0, "control.law", "x:Y", "update", 0, "N")
 
 
-def test_a_law_turning_nan_in_flight_ends_the_run_with_one_error_line(capsys, tmp_path):
+@pytest.mark.parametrize("law, start", [
     # Before the check, the controller held its last good command and the run went on to a
     # fuel-exhausted or hard landing, with nothing naming the law.
+    ("NanLateLaw", "accel_L returned [nan, nan, nan] at t = "),
+    # A plug-in raising in flight: its exception and its own line, on one line.
+    ("RaisingLaw", "update raised ZeroDivisionError: float division by zero (plugin_bad_outputs.py:"),
+])
+def test_a_law_failing_in_flight_ends_the_run_with_one_error_line(law, start, capsys, tmp_path):
     out = tmp_path / "run"
-    sets = [a for s in [*NO_CAMERA, 'guidance.law="plugin_bad_outputs:NanLateLaw"'] for a in ("--set", s)]
+    sets = [a for s in [*NO_CAMERA, f'guidance.law="plugin_bad_outputs:{law}"'] for a in ("--set", s)]
     assert main(["run", *sets, "--out", str(out)]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and err.startswith("landbench: error: guidance.law = 'plugin_bad_outputs:NanLateLaw': "
-                                                   "accel_L returned [nan, nan, nan] at t = "), err
-    assert not out.exists()  # nothing written
+    assert err.count("\n") == 1 and err.startswith(f"landbench: error: guidance.law = 'plugin_bad_outputs:{law}': "
+                                                   + start), err
+    assert " at t = " in err and not out.exists()  # nothing written
 
 
 @pytest.mark.parametrize("sets, needle", [
@@ -170,17 +175,6 @@ def test_a_law_output_that_cannot_be_flown_stops_the_run(sets, needle):
     with pytest.raises(LawOutputError) as exc:
         run(load_scenario(None, [*NO_CAMERA, *sets]))
     assert needle in str(exc.value), str(exc.value)
-
-
-def test_a_plugin_raising_in_flight_is_one_line_naming_its_exception_and_line(capsys, tmp_path):
-    out = tmp_path / "run"
-    sets = [a for s in [*NO_CAMERA, 'guidance.law="plugin_bad_outputs:RaisingLaw"'] for a in ("--set", s)]
-    assert main(["run", *sets, "--out", str(out)]) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and err.startswith("landbench: error: guidance.law = 'plugin_bad_outputs:RaisingLaw': "
-                                                   "update raised ZeroDivisionError: float division by zero "
-                                                   "(plugin_bad_outputs.py:"), err
-    assert " at t = " in err and not out.exists()
 
 
 def test_a_controller_torque_given_as_a_list_is_flown_as_an_array():

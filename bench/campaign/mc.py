@@ -85,7 +85,11 @@ def is_run_dependent(key: str) -> bool:
 
 def case_scenario(base: Scenario, campaign_seed: int, n_cases: int, index: int) -> tuple[Scenario, dict[str, Any]]:
     """The dispersed scenario of case ``index`` and the values drawn for it."""
-    seed = case_seeds(campaign_seed, n_cases)[index]
+    return seeded_case(base, case_seeds(campaign_seed, n_cases)[index])
+
+
+def seeded_case(base: Scenario, seed: int) -> tuple[Scenario, dict[str, Any]]:
+    """The dispersed scenario of the case of seed ``seed`` and the values drawn for it."""
     return apply_dispersions(base.model_copy(update={"seed": seed}))
 
 
@@ -128,7 +132,7 @@ def check_cases(base: Scenario, runs: int, campaign_seed: int) -> None:
         return  # every case is the base scenario with its own seed
     for i, seed in enumerate(case_seeds(campaign_seed, runs)):
         try:
-            apply_dispersions(base.model_copy(update={"seed": seed}))
+            seeded_case(base, seed)
         except ValueError as exc:
             raise ValueError(f"case {i} of --seed {campaign_seed}: its dispersed draw is refused: {exc}; "
                              "keep that field's [dispersions] entry within the field's limits") from None
@@ -268,10 +272,8 @@ def _case_row(base_data: dict, campaign_seed: int, n_cases: int, index: int, cas
     t0 = time.perf_counter()
     row: dict[str, Any] = {"case": index}
     try:
-        row["seed"] = case_seeds(campaign_seed, n_cases)[index]  # kept by a case whose draw fails validation
-        base = scenario_from_dict(base_data)
-        scenario, drawn = case_scenario(base, campaign_seed, n_cases, index)
-        row["seed"] = scenario.seed
+        row["seed"] = seed = case_seeds(campaign_seed, n_cases)[index]  # kept by a case whose draw fails validation
+        scenario, drawn = seeded_case(scenario_from_dict(base_data), seed)
         disp: dict[str, Any] = {}
         _flatten("", {f"disp_{k}": v for k, v in drawn.items()}, disp)
         row.update(disp)

@@ -54,7 +54,7 @@ from gnc.hda import HazardAvoidance
 from gnc.map_nav import MapNavigator
 from gnc.messages import AltimeterMessage, AttitudeMessage, ContactMessage, ImageMessage, ImuMessage, LidarScanMessage
 from gnc.navstate import NavState
-from gnc.plugins import LawOutputError, check_law_vector, is_plugin, plugin_raised
+from gnc.plugins import LawOutputError, call_law, check_law_vector
 from gnc.vision_nav import VisionMeasurement, VisionNavConfig, vision_measurement
 from vision.tracker import Tracker
 from vision.tracks import Tracks
@@ -592,15 +592,8 @@ class FlightSoftware:
     def _law_call(self, component: object, field: str, t_ns: int, *args: object) -> object:
         """``component.update(*args)``; a plug-in's exception becomes one line (:func:`gnc.plugins.plugin_raised`).
         A built-in's exception propagates as it is, with its traceback (a defect of this software)."""
-        law = self._law(component)
-        if not is_plugin(law):
-            return component.update(*args)
-        try:
-            return component.update(*args)
-        except LawOutputError:
-            raise  # already names the law (GuidanceLaw.update's check of accel_L and its kin)
-        except Exception as exc:  # noqa: BLE001 - any error in the user's plug-in is one line, chained
-            raise plugin_raised(field, law, "update", t_ns, exc) from exc
+        # A LawOutputError passes: it names the law already (GuidanceLaw.update's check of accel_L and its kin).
+        return call_law(self._law(component), field, "update", t_ns, LawOutputError, component.update, *args)
 
     def _check_map_lock(self, t_ns: int) -> None:
         """Below the map fixes' height window without a lock, declare it (once): the landing is then flown on

@@ -150,9 +150,10 @@ class HdaConfig(BaseModel):
             widest = h * math.sqrt(3.0 / (2.0 * ROCK_TOP_CURVATURE_X_HEIGHT))  # margin(s) = h / 2
             for name in ("dem_spacing_m", "rescan_dem_spacing_m"):
                 s = getattr(self, name)
-                if sampling_margin_m(s, h) >= 0.5 * h:
+                margin = sampling_margin_m(s, h)
+                if margin >= 0.5 * h:
                     raise ValueError(f"hazard.hda.{name} = {s} makes a rock of roughness_max_m = {h} m count from "
-                                     f"{h - sampling_margin_m(s, h):.3f} m (the sampling margin); allowed: posts "
+                                     f"{h - margin:.3f} m (the sampling margin); allowed: posts "
                                      f"finer than {widest:.3f} m, a larger roughness_max_m, or sampling_margin = "
                                      "'off'")
         return self

@@ -93,20 +93,26 @@ def plugin_raised(field: str, law: str, what: str, t_ns: int | None, exc: BaseEx
     return LawOutputError(f"{field} = {law!r}: {what} raised {type(exc).__name__}: {text}{where}{when}")
 
 
-def build_law(cls: type, law: str, field: str, *args: object) -> object:
-    """``cls(*args)``; a plug-in whose constructor raises gets one line (:func:`plugin_raised`).
+def call_law(law: str, field: str, what: str, t_ns: int | None, keep: type[BaseException], fn, *args: object):
+    """``fn(*args)`` for the law ``law``: a plug-in's exception becomes one line (:func:`plugin_raised`), chained.
 
-    A ValueError passes as it is (the options' validation names its field already), and so does
-    any exception of a built-in law (a defect of this software, with its traceback).
+    An exception of type ``keep`` passes as it is (it names its field already), and so does any exception
+    of a built-in law (a defect of this software, with its traceback).
     """
     if not is_plugin(law):
-        return cls(*args)
+        return fn(*args)
     try:
-        return cls(*args)
-    except ValueError:
+        return fn(*args)
+    except keep:
         raise
     except Exception as exc:  # noqa: BLE001 - any error in the user's plug-in is one line, chained
-        raise plugin_raised(field, law, "__init__", None, exc) from exc
+        raise plugin_raised(field, law, what, t_ns, exc) from exc
+
+
+def build_law(cls: type, law: str, field: str, *args: object) -> object:
+    """``cls(*args)``; a plug-in whose constructor raises gets one line (:func:`call_law`); a ValueError passes
+    as it is (the options' validation names its field already)."""
+    return call_law(law, field, "__init__", None, ValueError, cls, *args)
 
 
 def is_plugin(law: str) -> bool:

@@ -54,6 +54,20 @@ PIXEL_AREA_SIGMA_PX = 1.0 / math.sqrt(12.0)  # a box pixel's footprint as a Gaus
 DEM_LOWPASS_SIGMA_POSTS = 0.5  # a stereo DEM resolves about two posts: Gaussian low-pass of this sigma [posts]
 
 
+def grid_counts(size_m: float, image_res_m: float, dem_spacing_m: float) -> tuple[int, int]:
+    """The map's image pixels and DEM post intervals per side, (n_px, n_posts).
+
+    Raises:
+        ValueError: ``size_m`` is not a whole number of both (one line, with the nearest size that is).
+    """
+    n_px, n_posts = int(round(size_m / image_res_m)), int(round(size_m / dem_spacing_m))
+    if not (math.isclose(n_px * image_res_m, size_m, rel_tol=1e-9)
+            and math.isclose(n_posts * dem_spacing_m, size_m, rel_tol=1e-9)):
+        raise ValueError(f"onboard_map.size_m = {size_m} must be a whole number of image pixels ({image_res_m} m) "
+                         f"and DEM posts ({dem_spacing_m} m); e.g. {_common_size_m(size_m, image_res_m, dem_spacing_m):g}")
+    return n_px, n_posts
+
+
 def _common_size_m(size_m: float, image_res_m: float, dem_spacing_m: float) -> float:
     """The nearest size at or above ``size_m`` that is a whole number of both pixels and posts [m] (for messages;
     the suggestion was the posts' multiple alone, which the pixels could refuse again)."""
@@ -94,13 +108,7 @@ class OrbitalMapConfig(BaseModel):
 
     @model_validator(mode="after")
     def _whole_pixels_and_posts(self) -> "OrbitalMapConfig":
-        s = self.size_m
-        n_px, n_posts = round(s / self.image_res_m), round(s / self.dem_spacing_m)
-        if not (math.isclose(n_px * self.image_res_m, s, rel_tol=1e-9)
-                and math.isclose(n_posts * self.dem_spacing_m, s, rel_tol=1e-9)):
-            raise ValueError(f"onboard_map.size_m = {s} must be a whole number of image pixels ({self.image_res_m} m) "
-                             f"and DEM posts ({self.dem_spacing_m} m); e.g. "
-                             f"{_common_size_m(s, self.image_res_m, self.dem_spacing_m):g}")
+        grid_counts(self.size_m, self.image_res_m, self.dem_spacing_m)
         return self
 
 
@@ -184,13 +192,7 @@ def render_orbital_map(surface: Surface, cfg: OrbitalMapConfig, shift_xy_m: tupl
     if s > surface.size_m:
         raise ValueError(f"onboard_map.size_m={s} is larger than the terrain ({surface.size_m:g} m); "
                          f"give at most {surface.size_m:g}")
-    n_px = int(round(s / cfg.image_res_m))
-    n_posts = int(round(s / cfg.dem_spacing_m))
-    if not (math.isclose(n_px * cfg.image_res_m, s, rel_tol=1e-9) and
-            math.isclose(n_posts * cfg.dem_spacing_m, s, rel_tol=1e-9)):
-        raise ValueError(f"onboard_map.size_m={s} must be a whole number of image pixels ({cfg.image_res_m} m) "
-                         f"and DEM posts ({cfg.dem_spacing_m} m); e.g. "
-                         f"{_common_size_m(s, cfg.image_res_m, cfg.dem_spacing_m):g}")
+    n_px, n_posts = grid_counts(s, cfg.image_res_m, cfg.dem_spacing_m)  # again: a model_copy skips the validator
     dx, dy = float(shift_xy_m[0]), float(shift_xy_m[1])
     texel = surface.texel_m
 

@@ -174,16 +174,28 @@ def cmd_vision_figures(args: argparse.Namespace) -> int:
         raise ValueError(f"--out {args.out!r} is a file; give a folder")
     if args.frames < 3:
         raise ValueError(f"--frames {args.frames}: the figures need 3 consecutive frames; give --frames 3 or more")
+    if args.start is not None and not 0 <= args.start <= args.frames - 3:
+        raise ValueError(f"--start {args.start}: the figures show frames START..START+2 of the {args.frames} rendered; "
+                         f"give --start from 0 to {args.frames - 3} (or more --frames)")
     scenario = load_scenario(args.scenario, args.overrides)
+    # The tracker's configuration for this camera (as the tracker scales it), checked before anything is rendered.
+    cam = scenario.camera
+    cfg = scenario.tracker.for_side(min(cam.width_px, cam.height_px))
+    if min(cam.width_px, cam.height_px) < cfg.template_size:
+        raise ValueError(f"camera.width_px x camera.height_px = {cam.width_px} x {cam.height_px}: the figures' "
+                         f"templates are tracker.template_size = {cfg.template_size} px; give a camera of at least "
+                         f"{cfg.template_size} px a side (or a smaller tracker.template_size)")
     descent = render_descent(scenario, args.frames, with_depth=False)
-    # Three consecutive frames from the middle of the descent, as in the paper's Fig. 2.
-    k = min(max(0, args.start), args.frames - 3)
-    for p in write_vision_figures(list(descent.frames[k:]), out):
+    # Three consecutive frames from the middle of the descent, as in the paper's Fig. 2 (by default frame 20,
+    # or the last three of a shorter descent).
+    k = min(DEFAULT_FIGURE_START, args.frames - 3) if args.start is None else args.start
+    for p in write_vision_figures(list(descent.frames[k:]), out, config=cfg):
         print(p)
     return 0
 
 
 EXIT_NOT_LANDED = 3
+DEFAULT_FIGURE_START = 20  # vision-figures: the first frame shown by default
 
 
 def _start_helper_server() -> None:
@@ -339,6 +351,16 @@ def cmd_faults(args: argparse.Namespace) -> int:
     from bench.campaign import faults
 
     if args.action == "list":
+        # Listing runs nothing: an option for the matrix given beside it would be dropped without a word.
+        given = [flag for flag, attr, default in (
+            ("a scenario file", "scenario", None), ("--set", "overrides", None), ("--preset", "preset", None),
+            ("--presets", "presets", "all"), ("--runs", "runs", None), ("--workers", "workers", None),
+            ("--backend", "backend", "local"), ("--address", "address", None), ("--seed", "seed", None),
+            ("--out", "out", None), ("--resume", "resume", None), ("--retention", "retention", "summary"),
+            ("--case-timeout", "case_timeout", None)) if getattr(args, attr, default) not in (default, [], ())]
+        if given:
+            raise ValueError(f"faults list prints the presets and runs nothing; drop {', '.join(given)} "
+                             f"(or run the matrix: landbench faults run ...)")
         print(faults.list_presets())
         return 0
     if args.resume:
@@ -618,7 +640,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_scenario_args(p)
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--frames", type=int, default=60, help="frames of the rendered descent")
-    p.add_argument("--start", type=int, default=20, help="first of the frames shown")
+    p.add_argument("--start", type=int, default=None,
+                   help=f"first of the three frames shown (default {DEFAULT_FIGURE_START}, or the last three of fewer frames)")
     p.set_defaults(func=cmd_vision_figures)
 
     p = sub.add_parser("perf", help="benchmark rendering and physics speed")

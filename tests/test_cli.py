@@ -186,6 +186,20 @@ def test_vision_figures_with_too_few_frames_names_the_flag(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("argv, needle", [
+    # Frames 57..59 were shown for --start 100 without a word; a negative start showed frame 0.
+    (["--frames", "60", "--start", "100"], "--start 100: the figures show frames START..START+2 of the 60 rendered; "
+                                           "give --start from 0 to 57"),
+    (["--start", "-1"], "give --start from 0 to 57"),
+    # A camera smaller than a template failed inside the variance map, naming no field.
+    (["--set", "camera.width_px=16", "--set", "camera.height_px=16"],
+     "camera.width_px x camera.height_px = 16 x 16: the figures' templates are tracker.template_size = 30 px"),
+])
+def test_vision_figures_refuses_what_it_cannot_show_before_rendering(tmp_path, capsys, argv, needle):
+    _refused(capsys, ["vision-figures", *argv, "--out", str(tmp_path / "v")], needle)
+    assert not (tmp_path / "v").exists()
+
+
+@pytest.mark.parametrize("argv, needle", [
     (["run", "--bogus"], "unrecognized arguments: --bogus; see 'landbench run --help'"),
     (["mc", "--runs", "x"], "argument --runs: invalid int value: 'x'; see 'landbench mc --help'"),
     (["sweep", "--lhs"], "argument --lhs: expected one argument; see 'landbench sweep --help'"),

@@ -157,6 +157,21 @@ def test_paired_differences_wilcoxon_and_holm_against_independent_computations(p
     assert doc["schema"] == cmp.SCHEMA and doc["version"] == cmp.VERSION
 
 
+@pytest.mark.parametrize("n", [4, 5, 6, 8])
+def test_success_verdict_follows_the_paired_exact_test(n):
+    """Every case lands on one side and fails on the other: the two Wilson intervals part already at four
+    cases, but four or five discordant pairs cannot reject equal rates at 5 % (p = 2 / 2^n); the verdict is
+    the paired test's, recomputed here with scipy's binomial test."""
+    base, cand = np.ones(n, bool), np.zeros(n, bool)
+    s = cmp._success(base, cand)
+    (bl, _), (_, ch) = wilson_interval(n, n), wilson_interval(0, n)
+    assert ch < bl and not s["intervals_overlap"]  # the intervals part at every n here
+    p = binomtest(0, n, 0.5).pvalue
+    assert s["mcnemar"]["pvalue"] == pytest.approx(p, abs=1e-12)
+    assert s["resolved"] is bool(p < 0.05) and s["resolved"] is (n >= 6)
+    assert s["verdict"].startswith(f"{n} cases cannot resolve") is (n < 6)
+
+
 def test_success_rates_flips_and_replay_commands(pair):
     doc = cmp.compare_campaigns(*pair, replay_root="out/replay")
     s = doc["success"]

@@ -113,6 +113,8 @@ def test_too_small_a_campaign_is_said_plainly_with_its_wilson_intervals():
     lost[:40] = False
     resolved = compare_html.success_statement(cmp._success(np.ones(100, bool), lost), 100)
     assert "is resolved" in resolved and "too few" not in resolved
+    apart = compare_html.success_statement(cmp._success(np.ones(4, bool), np.zeros(4, bool)), 4)
+    assert "4 cases are too few" in apart and "do not overlap, but the cases are paired" in apart
 
 
 def test_a_replay_report_has_the_per_frame_tables(replay_cmp):

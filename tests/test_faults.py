@@ -388,6 +388,12 @@ def test_faults_list_and_bad_names_get_one_line(capsys, tmp_path):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("landbench: error:") and "\n" not in err
+    # Listing runs nothing: a matrix option beside it is named, not dropped.
+    for extra, named in ((["--runs", "5"], "--runs"), (["--set", "seed=3", "--out", str(tmp_path / "m")], "--set, --out"),
+                         (["--presets", "im1"], "--presets"), (["--seed", "2"], "--seed")):
+        assert main(["faults", "list", *extra]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("landbench: error: faults list") and f"drop {named} " in err and "\n" not in err
     assert not any(tmp_path.iterdir())
 
 

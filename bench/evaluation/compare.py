@@ -22,8 +22,9 @@ Output: :func:`compare_campaigns` returns one JSON-ready dict (schema
 ``SCHEMA``, ``version`` ``VERSION``):
     * ``success``: each side's success rate (``landed``) with its Wilson 95 %
       interval, the exact McNemar test on the landed/not-landed pairs, and a
-      plain verdict (``resolved``: False when the intervals overlap and
-      McNemar is not significant, i.e. the campaign is too small to tell);
+      plain verdict (``resolved``: whether the exact McNemar test rejects
+      equal rates at ``ALPHA``; False means the campaign is too small to
+      tell, whether or not the two intervals overlap);
     * ``flipped``: the cases that landed on one side only, each with the
       ``landbench mc --replay`` command of both sides;
     * ``metrics``: for every numeric per-case metric present on both sides
@@ -600,14 +601,17 @@ def _success(base_ok: np.ndarray, cand_ok: np.ndarray) -> dict[str, Any]:
     diff_pp = 100.0 * (sides["cand"]["rate"] - sides["base"]["rate"])
     (bl, bh), (cl, ch) = sides["base"]["wilson95"], sides["cand"]["wilson95"]
     overlap = bl <= ch and cl <= bh
-    significant = mcn["pvalue"] < ALPHA
-    resolved = significant or not overlap
+    # The cases are paired (the same draws on both sides), so the paired exact test decides. Two separate
+    # Wilson intervals can part where it does not: 4/4 against 0/4 gives [51, 100] and [0, 49] % but
+    # p = 0.125 (four discordant pairs cannot reach 0.05; five give 0.0625).
+    resolved = mcn["pvalue"] < ALPHA
     if resolved:
         verdict = (f"CAND's success rate differs from BASE's by {diff_pp:+.1f} pp (McNemar p = {mcn['pvalue']:.3g}"
                    f"{'' if overlap else ', the Wilson intervals do not overlap'})")
     else:
-        verdict = (f"{n} cases cannot resolve a difference in success rate (observed {diff_pp:+.1f} pp; the Wilson "
-                   f"95 % intervals overlap and McNemar p = {mcn['pvalue']:.3g} >= {ALPHA:g}): run more cases")
+        why = "the Wilson 95 % intervals overlap and " if overlap else ""
+        verdict = (f"{n} cases cannot resolve a difference in success rate (observed {diff_pp:+.1f} pp; {why}"
+                   f"McNemar p = {mcn['pvalue']:.3g} >= {ALPHA:g}): run more cases")
     return {**sides, "difference_pp": diff_pp, "mcnemar": mcn, "intervals_overlap": overlap,
             "resolved": resolved, "verdict": verdict}
 

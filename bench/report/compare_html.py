@@ -92,11 +92,12 @@ def success_statement(success: Mapping[str, Any], n_cases: int) -> str:
     p = success["mcnemar"]["pvalue"]
     both = f"{side('BASE', b)}; {side('CAND', c)}."
     if success["resolved"]:
-        why = "the Wilson intervals do not overlap" if not success["intervals_overlap"] else \
-            f"the exact McNemar test gives p = {p:.3g} < {ALPHA:g}"
-        return (f"{both} The difference, {success['difference_pp']:+.1f} percentage points, is resolved: {why}.")
-    return (f"{both} {n_cases} cases are too few to resolve a difference in success rate: the intervals overlap "
-            f"and the exact McNemar test gives p = {p:.3g} ≥ {ALPHA:g} (observed difference "
+        return (f"{both} The difference, {success['difference_pp']:+.1f} percentage points, is resolved: "
+                f"the exact McNemar test on the paired cases gives p = {p:.3g} < {ALPHA:g}.")
+    apart = "the intervals overlap and " if success["intervals_overlap"] else \
+        "the intervals do not overlap, but the cases are paired and "
+    return (f"{both} {n_cases} cases are too few to resolve a difference in success rate: {apart}"
+            f"the exact McNemar test gives p = {p:.3g} ≥ {ALPHA:g} (observed difference "
             f"{success['difference_pp']:+.1f} percentage points). Run more cases to tell.")
 
 

@@ -43,6 +43,8 @@ CONTACT_DAMPING_RATIO = 1.0
 CONTACT_SOLREF = f"{CONTACT_TIMECONST_S} {CONTACT_DAMPING_RATIO}"
 
 
+COM_OFFSET_MAX_M = 10.0  # largest dry centre-of-mass offset per body axis a lander config may give [m]
+
 class EngineConfig(BaseModel):
     """Throttleable main engine, thrust along body +z."""
 
@@ -109,14 +111,21 @@ class RcsConfig(BaseModel):
     isp_s: float = Field(220.0, gt=0.0, description="RCS specific impulse [s] (hydrazine monopropellant class)")
     draws_propellant: bool = Field(True, description="the thrusters burn propellant from the main tanks")
 
+    @model_validator(mode="after")
+    def _a_pulse_fits_its_period(self) -> "RcsConfig":
+        if self.mode == "pwm" and self.min_on_ns > self.pwm_period_ns:
+            raise ValueError(f"rcs.min_on_ns = {self.min_on_ns} is longer than rcs.pwm_period_ns = "
+                             f"{self.pwm_period_ns}: no pulse could ever fire; allowed: min_on_ns <= pwm_period_ns")
+        return self
+
 
 class LanderConfig(BaseModel):
     """Mass properties, geometry and actuator limits of the lander."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    dry_mass_kg: float = Field(1500.0, gt=0, description="dry mass [kg]")
-    propellant_kg: float = Field(600.0, ge=0, description="initial propellant mass [kg]")
+    dry_mass_kg: float = Field(1500.0, gt=0, le=1e6, description="dry mass [kg]")
+    propellant_kg: float = Field(600.0, ge=0, le=1e6, description="initial propellant mass [kg]")
     body_half_extents_m: tuple[float, float, float] = Field(
         (1.0, 1.0, 0.75), description="half sizes of the main body box along body x, y, z [m]"
     )
@@ -127,10 +136,19 @@ class LanderConfig(BaseModel):
     friction: float = Field(0.8, gt=0, description="footpad-regolith Coulomb friction coefficient [-]")
     rcs_torque_max_Nm: float = Field(200.0, gt=0, description="RCS torque saturation per body axis [N m]")
     com_offset_B_m: tuple[float, float, float] = Field(
-        (0.0, 0.0, 0.0), description="dry body's centre of mass relative to the body origin, in B [m]"
+        (0.0, 0.0, 0.0), description="dry body's centre of mass relative to the body origin, in B [m] (each "
+                                     "component within COM_OFFSET_MAX_M)"
     )
     engine: EngineConfig = EngineConfig()
     rcs: RcsConfig = RcsConfig()
+
+    @model_validator(mode="after")
+    def _com_near_the_body(self) -> "LanderConfig":
+        if max(abs(c) for c in self.com_offset_B_m) > COM_OFFSET_MAX_M:
+            raise ValueError(f"lander.com_offset_B_m = {list(self.com_offset_B_m)} puts the dry centre of mass beyond "
+                             f"{COM_OFFSET_MAX_M:g} m of the body origin; allowed: each component within "
+                             f"+-{COM_OFFSET_MAX_M:g} m")
+        return self
 
     def ideal(self) -> "LanderConfig":
         """This lander with idealised actuators (``realism = "ideal"``).

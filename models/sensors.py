@@ -37,9 +37,9 @@ class ImuConfig(BaseModel):
 
     period_ns: int = Field(10_000_000, gt=0, description="sample period [ns] (default 100 Hz)")
     accel_noise_density: float = Field(
-        1e-3, ge=0, description="accelerometer white noise density [m/s^2/sqrt(Hz)]"
+        1e-3, ge=0, le=10.0, description="accelerometer white noise density [m/s^2/sqrt(Hz)]"
     )
-    gyro_noise_density: float = Field(1e-5, ge=0, description="gyro white noise density [rad/s/sqrt(Hz)]")
+    gyro_noise_density: float = Field(1e-5, ge=0, le=1.0, description="gyro white noise density [rad/s/sqrt(Hz)]")
     accel_bias_sigma: float = Field(5e-3, ge=0, description="accelerometer turn-on bias, 1-sigma per axis [m/s^2]")
     gyro_bias_sigma: float = Field(1e-5, ge=0, description="gyro turn-on bias, 1-sigma per axis [rad/s]")
     accel_bias_walk: float = Field(1e-4, ge=0, description="accelerometer bias random walk [m/s^2/sqrt(s)]")
@@ -53,8 +53,8 @@ class AltimeterConfig(BaseModel):
 
     period_ns: int = Field(50_000_000, gt=0, description="sample period [ns] (default 20 Hz)")
     max_range_m: float = Field(3000.0, gt=0, description="maximum range; beyond it the sample is invalid [m]")
-    noise_sigma_m: float = Field(0.05, ge=0, description="range noise floor, 1-sigma [m]")
-    noise_frac: float = Field(1e-3, ge=0, description="range noise proportional to range, 1-sigma [-]")
+    noise_sigma_m: float = Field(0.05, ge=0, le=1000.0, description="range noise floor, 1-sigma [m]")
+    noise_frac: float = Field(1e-3, ge=0, le=10.0, description="range noise proportional to range, 1-sigma [-]")
     dropout_prob: float = Field(0.01, ge=0, le=1, description="probability that a sample is dropped [-]")
 
 

@@ -311,6 +311,7 @@ class World:
         self._site_alt = m.site("altimeter").id
         self._geom_terrain = m.geom("terrain").id
         self._foot_geoms = np.array([m.geom(n).id for n in FOOTPAD_NAMES])
+        self._geom_hull = m.geom("hull").id
         self._lander_geoms = np.flatnonzero(m.geom_bodyid == self._body_lander)
         self._act_engine = m.actuator("engine").id
         self._act_rcs = np.array([m.actuator(n).id for n in ("rcs_x", "rcs_y", "rcs_z")])
@@ -656,13 +657,19 @@ class World:
 
     def footpad_contacts(self) -> np.ndarray:
         """Which footpads touch the terrain, (4,) bool, order FOOTPAD_NAMES."""
+        return self.ground_contacts()[0]
+
+    def ground_contacts(self) -> tuple[np.ndarray, bool]:
+        """Which footpads touch the terrain, (4,) bool (order FOOTPAD_NAMES), and whether the hull does."""
         touching = np.zeros(len(self._foot_geoms), bool)
+        hull = False
         con = self.data.contact
         for i in range(self.data.ncon):
             g1, g2 = con.geom1[i], con.geom2[i]
             other = g2 if g1 == self._geom_terrain else (g1 if g2 == self._geom_terrain else -1)
             touching |= self._foot_geoms == other
-        return touching
+            hull |= other == self._geom_hull
+        return touching, bool(hull)
 
     # ----------------------------------------------------------------- camera
     @property

@@ -174,6 +174,16 @@ def test_resume_refuses_settings_it_would_ignore(tmp_path, capsys):
     [
         ("onboard_map.size_m=230.4", "whole number of image pixels"),  # checked at load, not 9 s into the run
         ("terrain.size_m=100000.0", "lower the density"),  # 2e8 craters: hours of generation
+        # An RCS whose shortest pulse outlasts its period never fired: the lander drifted off the terrain.
+        ("lander.rcs.min_on_ns=40000000", "no pulse could ever fire; allowed: min_on_ns <= pwm_period_ns"),
+        # MuJoCo's "zero norm quaternions" (two lines, no field) or a drift off the terrain before.
+        ("lander.com_offset_B_m=[1e300, 0.0, 0.0]", "lander.com_offset_B_m = [1e+300, 0.0, 0.0]"),
+        ("lander.dry_mass_kg=1e308", "lander.dry_mass_kg = 1e+308"),  # named an internal inertia before
+        # Noise that overflowed inside the flight software (tracebacks, or "math domain error" naming nothing).
+        ("sensors.imu.gyro_noise_density=1e200", "sensors.imu.gyro_noise_density = 1e+200"),
+        ("sensors.imu.accel_noise_density=1e200", "sensors.imu.accel_noise_density = 1e+200"),
+        ("sensors.altimeter.noise_sigma_m=1e200", "sensors.altimeter.noise_sigma_m = 1e+200"),
+        ("sensors.altimeter.noise_frac=1e308", "sensors.altimeter.noise_frac = 1e+308"),
     ],
 )
 def test_settings_that_would_fail_or_stall_the_run_are_refused_at_load(capsys, setting, needle):

@@ -74,10 +74,40 @@ def test_bad_dispersions_give_one_line_errors():
         (['dispersions."initial.r_BL_L_m"={dist="normal", sigma=[1.0, 2.0]}'], "3"),
         (['dispersions."sun.elevation_deg"={dist="uniform", low=40.0, high=20.0}'], "low"),
         (['dispersions."sun.elevation_deg"={dist="gauss", sigma=1.0}'], "dist"),
+        # A table drawn whole replaced the fields other paths draw into (a KeyError traceback at draw time).
+        (['dispersions."lander.engine"={dist="choice", values=[{thrust_max_N=7000.0}]}'],
+         "dispersions.'lander.engine' is a table; disperse its fields one by one"),
+        # The budget sets the nominal load before the draw: a drawn budget changed nothing, silently.
+        (['dispersions."propellant.nominal_need_kg"={dist="uniform", low=10.0, high=20.0}'],
+         "disperse the loaded propellant, 'lander.propellant_kg'"),
+        (['dispersions."lander.dry_mass_kg"={dist="uniform", low=-1.7e308, high=1.7e308}'],
+         "spans more than the largest float"),  # NumPy's OverflowError at draw time before
+        # A field of whole numbers: 2.6-2.9 rounded to 3 every time, outside its own bounds.
+        (['dispersions."sim.compute_latency_ticks"={dist="uniform", low=2.6, high=2.9}'],
+         "no whole number lies between its bounds"),
+        (['dispersions."sim.compute_latency_ticks"={dist="uniform", low=0.0, high=1e30}'],
+         "bounds beyond the 64-bit whole numbers"),
     ):
         with pytest.raises(ScenarioError) as exc:
             load_scenario(None, sets)
         assert needle in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_a_field_of_whole_numbers_draws_each_one_in_its_bounds_alike():
+    # uniform over [0.5, 3.5] on an integer field: 1, 2 and 3 equally (rounding a continuous draw gave 0 or 4 to
+    # the bounds' halves: [0.5, 0.5] drew 0, outside its own bounds); truncnorm stays inside its bounds too.
+    sc = load_scenario(None, ['dispersions."sim.compute_latency_ticks"={dist="uniform", low=0.5, high=3.5}',
+                              'dispersions."terrain.seed"={dist="integers", low=1, high=1}',
+                              'dispersions."sim.t_max_ns"={dist="truncnorm", sigma=1.0, low=0.4, high=1.2}'])
+    draws = [apply_dispersions(sc, np.random.default_rng(k))[1] for k in range(600)]
+    ticks = np.array([d["sim.compute_latency_ticks"] for d in draws])
+    assert set(ticks.tolist()) == {1, 2, 3}
+    counts = np.bincount(ticks, minlength=4)[1:]
+    from scipy.stats import chisquare
+    assert chisquare(counts).pvalue > 0.01, counts  # each a third
+    # Offsets 0.4-1.2 ns from the nominal: rounding took the lower part to 0, outside; 1 is the one whole number.
+    t_max = np.array([d["sim.t_max_ns"] for d in draws]) - sc.sim.t_max_ns
+    assert set(t_max.tolist()) == {1}
 
 
 SHORT = ["sim.t_max_ns=3_000_000_000", 'vision="off"', "camera.enabled=false"]  # 3 s of flight, no frames
@@ -136,6 +166,29 @@ def test_no_dispersed_truth_reaches_the_flight_software():
     # The walk would see a leak: flight software built from the dispersed lander differs.
     leaky = case.model_copy(update={"knowledge": case.knowledge.model_copy(update={"lander": case.lander})})
     assert _held_values(build_flight_software(leaky, r0, v0)) != held_nominal
+
+
+def test_dispersed_sensor_specification_stays_out_of_the_flight_software():
+    # The sensors' periods and the altimeter's range are what the fault monitor expects of them: a campaign that
+    # disperses them (an altimeter of 100-200 m range, a star tracker at another rate, a slower camera) flies a
+    # flight software that still holds the nominal specification. It held the drawn values before.
+    nominal = load_scenario(None, [
+        "seed=11",
+        'dispersions."sensors.altimeter.max_range_m"={dist="uniform",low=100.0,high=200.0}',
+        'dispersions."sensors.star_tracker.period_ns"={dist="choice",values=[200000000]}',
+        'dispersions."camera.period_ns"={dist="choice",values=[400000000]}',
+    ])
+    case, drawn = apply_dispersions(nominal)
+    assert 100.0 <= case.sensors.altimeter.max_range_m <= 200.0 and case.camera.period_ns == 400_000_000
+    assert case.sensors.star_tracker.period_ns == 200_000_000 != nominal.sensors.star_tracker.period_ns
+    r0, v0 = np.array([-100.0, 70.0, 490.0]), np.array([5.0, -4.0, -15.0])
+    fsw_case, fsw_nominal = build_flight_software(case, r0, v0), build_flight_software(nominal, r0, v0)
+    spec = fsw_case.fdir.spec
+    assert spec.altimeter_max_range_m == nominal.sensors.altimeter.max_range_m
+    assert spec.star_tracker_period_ns == nominal.sensors.star_tracker.period_ns
+    assert spec.camera_period_ns == nominal.camera.period_ns
+    assert _held_values(fsw_case) == _held_values(fsw_nominal)
+    assert case.knowledge.sensors == nominal.sensors  # pinned, and written into the case's scenario.toml
 
 
 def test_mass_gauge_starts_from_the_nominal_and_drifts_with_the_thrust_error():

@@ -55,6 +55,22 @@ def test_free_fall_impact_speed_matches_sqrt_2gh(flat_terrain):
     assert world.footpad_contacts().all()
 
 
+def test_an_upside_down_fall_meets_the_ground_with_the_hull(flat_terrain):
+    # Upside down (180 deg about x), the hull is the lowest part: it touches first, and the footpads never
+    # have (the run's touchdown counts this contact; a footpad-only touchdown missed a 52 m/s crash).
+    world = _world(flat_terrain)
+    world.reset(np.array([0.0, 0.0, 10.0]), np.zeros(3), np.array([0.0, 1.0, 0.0, 0.0]), np.zeros(3))
+    feet_ever = False
+    for _ in range(20000):
+        feet, hull = world.ground_contacts()
+        feet_ever |= bool(feet.any())
+        if hull:
+            break
+        world.step(1)
+    assert hull and not feet_ever
+    assert world.truth().r_BL_L[2] < 10.0 and np.array_equal(world.footpad_contacts(), feet)
+
+
 def test_propellant_flow_matches_thrust_over_isp_g0(flat_terrain):
     cfg = LanderConfig()
     world = _world(flat_terrain, cfg)

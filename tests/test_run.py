@@ -164,6 +164,22 @@ def test_every_failure_outcome_is_reachable(sets, outcome):
         assert s["touchdown"]["t_s"] is None and s["sim_time_s"] == pytest.approx(256.0 / 40.0, abs=0.05)
 
 
+def test_a_body_first_fall_is_a_hard_landing_at_its_impact_speed():
+    # Upside down, engine off (no deep-throttle floor), no RCS authority to turn over: the hull meets the ground first. Touchdown was the
+    # first footpad contact only, so such a crash went unseen (the probe's 52 m/s impact bounced and was judged a
+    # "safe_abort" later); it is the hull's contact, a hard landing at the free-fall speed.
+    sc = load_scenario(None, [*NO_CAMERA, *SMALL_SET, *LOW, 'guidance.law="off"', "initial.euler_LB_deg=[180.0, 0.0, 0.0]",
+                              "lander.engine.thrust_min_N=0", "lander.rcs_torque_max_Nm=1e-6"])
+    res = run(sc)
+    s, tel = res.summary, res.telemetry
+    assert s["outcome"] == "hard_landing" and s["touchdown"]["first_contact"] == "hull", s["touchdown"]
+    k = int(np.searchsorted(tel["t_s"], s["touchdown"]["t_s"])) - 1  # the tick the speed is read at
+    z0, vz0 = sc.initial.r_BL_L_m[2], sc.initial.v_BL_L_mps[2]
+    expected = math.sqrt(vz0**2 + 2.0 * sc.sim.gravity_mps2 * (z0 - tel["r_z_m"][k]))
+    assert s["touchdown"]["v_vertical_mps"] == pytest.approx(expected, rel=0.01)
+    assert s["touchdown"]["tilt_deg"] > 170.0
+
+
 def test_unstable_timestep_is_refused_at_load():
     with pytest.raises(ScenarioError, match=r"sim.physics_dt_ns = 20000000 is too large.*<= 10000000"):
         load_scenario(None, ["sim.physics_dt_ns=20000000"])

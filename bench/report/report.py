@@ -962,7 +962,8 @@ def summary_table(summary: Mapping[str, Any], outputs: Mapping[str, str | Path] 
     if t_td is None:
         lines.append("touchdown: none")
     else:
-        lines.append(f"touchdown at t = {_fmt(t_td, '.2f', 's')}")
+        hull = " on the hull, body first (a crash)" if td.get("first_contact") == "hull" else ""
+        lines.append(f"touchdown at t = {_fmt(t_td, '.2f', 's')}{hull}")
     lines.append(_limit_row("vertical speed", td.get("v_vertical_mps"), crit.get("v_vertical_max_mps"), ".2f", "m/s"))
     lines.append(_limit_row("horizontal speed", td.get("v_horizontal_mps"), crit.get("v_horizontal_max_mps"),
                             ".2f", "m/s"))

@@ -6,8 +6,9 @@ campaign draws each case's values and applies them **to the scenario object
 itself** (then re-validates it), so the truth (world, sensors) sees the
 dispersed values and a case is reproduced by its own resolved
 ``scenario.toml``. The flight software does not: before drawing, the nominal
-lander and camera are pinned into ``knowledge.lander`` and
-``knowledge.camera``, which the flight software is built from; the filter's
+lander, camera and sensors are pinned into ``knowledge.lander``,
+``knowledge.camera`` and ``knowledge.sensors``, which the flight software is
+built from (the sensors' periods and the altimeter's range); the filter's
 noise model is the sensors' specification (``estimator``), never the drawn
 sensor values.
 
@@ -18,7 +19,9 @@ Distributions (``dist``):
     * ``uniform``: U(low, high), absolute values.
     * ``integers``: an integer in [low, high], uniformly (e.g. terrain seeds).
     * ``choice``: one of ``values``, uniformly.
-Integer fields (e.g. ``terrain.seed``) take rounded draws.
+Integer fields (e.g. ``terrain.seed``) take rounded draws that stay inside
+their bounds; a ``uniform`` over one draws each whole number between its
+bounds alike.
 
 Streams: paths are drawn in sorted order from the case's "dispersions" stream,
 so adding a path reshuffles the draws of the paths after it. A path with
@@ -48,7 +51,7 @@ from bench.scenario.seeding import component_rng, component_seed
 
 SEED_BITS = 63  # case seeds fit TOML's signed 64-bit integers
 # Truth sections whose nominal values the flight software keeps (scenario.knowledge.<part>).
-PINNED_KNOWLEDGE = ("lander", "camera")
+PINNED_KNOWLEDGE = ("lander", "camera", "sensors")
 
 
 class _Dist(BaseModel):
@@ -108,6 +111,11 @@ class Uniform(_Dist):
     def _ordered(self) -> "Uniform":
         if np.any(np.asarray(self.low, float) > np.asarray(self.high, float)):
             raise ValueError(f"uniform low = {self.low} must not exceed high = {self.high}")
+        with np.errstate(over="ignore"):
+            span = np.asarray(self.high, float) - np.asarray(self.low, float)
+        if not np.all(np.isfinite(span)):  # NumPy cannot draw over a span beyond the largest float
+            raise ValueError(f"uniform from low = {self.low} to high = {self.high} spans more than the largest "
+                             f"float; allowed: high - low below {np.finfo(float).max:.3g}")
         return self
 
 
@@ -173,6 +181,14 @@ def check_dispersion_paths(scenario_data: dict[str, Any], dispersions: dict[str,
                 f"dispersions.'{path}': no such scenario field; allowed: a dotted path to a numeric field, "
                 "e.g. 'initial.r_BL_L_m' or 'lander.dry_mass_kg'"
             ) from None
+        if isinstance(nominal, dict):  # a table drawn whole would replace the fields the other paths draw into
+            example = next(iter(nominal), "FIELD")
+            raise ValueError(f"dispersions.'{path}' is a table; disperse its fields one by one (e.g. "
+                             f"'{path}.{example}')")
+        if path.split(".")[0] == "propellant":
+            raise ValueError(f"dispersions.'{path}': the propellant budget sets the nominal load before a campaign "
+                             f"draws, so a draw of it would change nothing; disperse the loaded propellant, "
+                             f"'lander.propellant_kg'")
         if spec.dist in ("choice", "integers"):
             continue  # absolute draws: the nominal may be anything, even unset
         values = nominal if isinstance(nominal, (list, tuple)) else [nominal]
@@ -188,6 +204,14 @@ def check_dispersion_paths(scenario_data: dict[str, Any], dispersions: dict[str,
                 raise ValueError(
                     f"dispersions.'{path}'.{name} has {len(v)} components; the field has {n}"
                 )
+        if _is_integer(nominal, isinstance(nominal, (list, tuple))) and spec.dist in ("uniform", "truncnorm"):
+            lo, hi = _integer_bounds(spec, np.asarray(values, float))
+            if np.any(np.abs(np.concatenate([np.ravel(lo), np.ravel(hi)])) >= 2.0**63):
+                raise ValueError(f"dispersions.'{path}': bounds beyond the 64-bit whole numbers the field holds; "
+                                 f"allowed: bounds within +-9.2e18")
+            if np.any(lo > hi):
+                raise ValueError(f"dispersions.'{path}': no whole number lies between its bounds (the field holds "
+                                 f"whole numbers); allowed: bounds around at least one, or dist = 'integers'")
 
 
 def _draw(spec: Any, nominal: Any, rng: np.random.Generator) -> Any:
@@ -207,13 +231,34 @@ def _draw(spec: Any, nominal: Any, rng: np.random.Generator) -> Any:
         from scipy.stats import truncnorm  # here, not at import: scipy.stats costs every command about 0.6 s
 
         value = nom + sigma * truncnorm.rvs(lo, hi, size=shape, random_state=rng)
+    elif _is_integer(nominal, vector):  # uniform over a field of whole numbers: each one in the bounds alike
+        lo, hi = _integer_bounds(spec, nom)
+        value = rng.integers(lo.astype(np.int64), hi.astype(np.int64), endpoint=True)
     else:  # uniform
         value = rng.uniform(np.broadcast_to(np.asarray(spec.low, float), shape),
                             np.broadcast_to(np.asarray(spec.high, float), shape))
-    if all(isinstance(v, int) and not isinstance(v, bool) for v in (nominal if vector else [nominal])):
+    if _is_integer(nominal, vector):
         value = np.rint(value).astype(np.int64)
+        if spec.dist == "truncnorm":  # rounding may not leave the bounds: the nearest whole number inside them
+            value = np.clip(value, *(b.astype(np.int64) for b in _integer_bounds(spec, nom)))
     out = [v.item() for v in value]
     return out if vector else out[0]
+
+
+def _is_integer(nominal: Any, vector: bool) -> bool:
+    """Does the field hold whole numbers (its draws are rounded)?"""
+    return all(isinstance(v, int) and not isinstance(v, bool) for v in (nominal if vector else [nominal]))
+
+
+def _integer_bounds(spec: Any, nom: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The whole numbers a ``uniform`` (absolute bounds) or ``truncnorm`` (offsets from ``nom``) draw may take:
+    the smallest and largest inside its bounds, per component."""
+    shape = np.shape(nom)
+    lo = np.broadcast_to(np.asarray(spec.low, float), shape)
+    hi = np.broadcast_to(np.asarray(spec.high, float), shape)
+    if spec.dist == "truncnorm":
+        lo, hi = nom + lo, nom + hi
+    return np.ceil(lo), np.floor(hi)
 
 
 def draw_dispersions(scenario, rng: np.random.Generator | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -233,7 +278,7 @@ def draw_dispersions(scenario, rng: np.random.Generator | None = None) -> tuple[
     """
     rng = component_rng(scenario.seed, "dispersions") if rng is None else rng
     data = scenario.model_dump(mode="json")
-    # The flight software keeps the nominal vehicle and camera: pin them before the truth is drawn.
+    # The flight software keeps the nominal vehicle, camera and sensors: pin them before the truth is drawn.
     knowledge = data["knowledge"]
     for part in PINNED_KNOWLEDGE:
         if knowledge[part] is None:

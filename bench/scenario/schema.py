@@ -131,11 +131,11 @@ class LandingCriteria(BaseModel):
 class KnowledgeConfig(BaseModel):
     """What the flight software knows of its vehicle, and how wrong that knowledge is.
 
-    The flight software is built from the **nominal** vehicle and camera, never
-    from a campaign case's drawn values: a campaign pins ``lander`` and
-    ``camera`` here to the nominal ones before it disperses the truth. A single
-    run leaves them unset, and the flight software then knows the scenario's own
-    (nominal) lander and camera. The error fields model what a real team gets
+    The flight software is built from the **nominal** vehicle, camera and
+    sensors, never from a campaign case's drawn values: a campaign pins
+    ``lander``, ``camera`` and ``sensors`` here to the nominal ones before it
+    disperses the truth. A single run leaves them unset, and the flight software
+    then knows the scenario's own (nominal) lander, camera and sensors. The error fields model what a real team gets
     wrong on top (mass properties measured on the ground, engine calibration);
     they can be dispersed like any other field.
     """
@@ -147,6 +147,10 @@ class KnowledgeConfig(BaseModel):
     )
     camera: CameraConfig | None = Field(
         None, description="the camera calibration the flight software holds; unset: the scenario's camera"
+    )
+    sensors: SensorsConfig | None = Field(
+        None, description="the sensors' specification the flight software holds (their periods, the altimeter's "
+                          "range); unset: the scenario's sensors"
     )
     dry_mass_error_kg: float = Field(0.0, description="flight software's dry-mass estimate minus the nominal [kg]")
     propellant_error_kg: float = Field(
@@ -346,6 +350,10 @@ class Scenario(BaseModel):
     def nominal_camera(self) -> CameraConfig:
         """The camera calibration the flight software holds (``knowledge.camera``, else ``camera``)."""
         return self.knowledge.camera if self.knowledge.camera is not None else self.camera
+
+    def nominal_sensors(self) -> SensorsConfig:
+        """The sensors' specification the flight software holds (``knowledge.sensors``, else ``sensors``)."""
+        return self.knowledge.sensors if self.knowledge.sensors is not None else self.sensors
 
     def terrain_seed(self) -> int:
         """The terrain's seed: its own when set, else derived from the master seed."""

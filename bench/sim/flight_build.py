@@ -84,11 +84,13 @@ def handover_estimate(scenario: Scenario, truth: Any) -> tuple[np.ndarray, np.nd
 
 
 def sensor_spec(scenario: Scenario) -> SensorSpec:
-    """The sensors' periods and the altimeter's range, as their specification gives them to the flight software."""
-    s = scenario.sensors
+    """The sensors' periods and the altimeter's range, as their specification gives them to the flight software:
+    the nominal sensors and camera (``knowledge.sensors`` / ``.camera``, pinned by a campaign), never a case's
+    drawn values."""
+    s, camera = scenario.nominal_sensors(), scenario.nominal_camera()
     return SensorSpec(imu_period_ns=s.imu.period_ns, altimeter_period_ns=s.altimeter.period_ns,
                       star_tracker_period_ns=s.star_tracker.period_ns,
-                      camera_period_ns=scenario.camera.period_ns if scenario.camera.enabled else None,
+                      camera_period_ns=camera.period_ns if camera.enabled else None,
                       altimeter_max_range_m=s.altimeter.max_range_m)
 
 

@@ -17,7 +17,9 @@ Loop (integer-nanosecond scheduler):
   message, and the controller cuts the engine on them.
 * Sensors are sampled after ``mj_forward``, so each sample describes the
   state at its time tag.
-* Touchdown is the first footpad contact. Its velocity and tilt are those of
+* Touchdown is the first footpad contact, or the hull's if the body meets the
+  ground first (``touchdown.first_contact``; a hull-first touchdown is a
+  ``hard_landing`` whatever its speed). Its velocity and tilt are those of
   the last instant before contact forces acted (the previous event), its
   miss distance the horizontal distance from the target. The run goes on for
   ``landing.settle_s`` to see whether the lander stays upright.
@@ -228,7 +230,7 @@ def run(scenario: Scenario, frame_sink: FrameSink | RenderingFrameSink | None = 
 
     Returns:
         The summary (keys: ``outcome``, ``landed``, ``touchdown`` {``t_s``,
-        ``v_vertical_mps``, ``v_horizontal_mps``, ``tilt_deg``,
+        ``first_contact``, ``v_vertical_mps``, ``v_horizontal_mps``, ``tilt_deg``,
         ``miss_distance_m``}, ``fuel_used_kg``, ``sim_time_s``,
         ``wall_time_s``, ``realtime_factor``, ``seed``, and more), the
         telemetry and the terrain.
@@ -322,10 +324,10 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
     try:
         while True:
             truth = world.truth()
-            legs = world.footpad_contacts()
-            if touchdown is None and legs.any():
+            legs, hull = world.ground_contacts()
+            if touchdown is None and (legs.any() or hull):
                 touchdown_ns = t_ns
-                touchdown = _touchdown_metrics(prev_truth, t_ns)
+                touchdown = _touchdown_metrics(prev_truth, t_ns, "footpad" if legs.any() else "hull")
                 touchdown_pose = (np.array(prev_truth.r_BL_L, float), np.array(prev_truth.q_LB, float))
             if faults is not None:
                 faults.update(t_ns, _truth_height(terrain, truth) if faults.needs_altitude() else None,
@@ -470,8 +472,8 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
     summary: dict[str, Any] = {
         "outcome": outcome,
         "landed": outcome == "landed",
-        "touchdown": touchdown or {k: None for k in ("t_s", "v_vertical_mps", "v_horizontal_mps", "tilt_deg",
-                                                      "miss_distance_m", "x_m", "y_m")},
+        "touchdown": touchdown or {k: None for k in ("t_s", "first_contact", "v_vertical_mps", "v_horizontal_mps",
+                                                      "tilt_deg", "miss_distance_m", "x_m", "y_m")},
         "final_tilt_deg": final_tilt,
         "stability": stability,
         "realism": scenario.realism,
@@ -789,10 +791,13 @@ def _vision_summary(fsw: FlightSoftware) -> dict[str, float | int | None]:
     }
 
 
-def _touchdown_metrics(before: TruthState, t_ns: int) -> dict[str, float]:
+def _touchdown_metrics(before: TruthState, t_ns: int, first_contact: str = "footpad") -> dict[str, Any]:
+    """The touchdown's figures from the truth just before contact; ``first_contact``: "footpad", or "hull"
+    (the lander met the ground with its body first: a crash, however slow)."""
     v = before.v_BL_L
     return {
         "t_s": t_ns / NS_PER_S,
+        "first_contact": first_contact,
         "v_vertical_mps": float(abs(v[2])),
         "v_horizontal_mps": float(math.hypot(v[0], v[1])),
         "tilt_deg": tilt_deg(before.q_LB),
@@ -824,7 +829,7 @@ def _classify(touchdown: dict | None, exhausted_ns: int | None, touchdown_ns: in
     if touchdown is None:
         return "off_terrain" if off_terrain else "timeout"
     if (touchdown["v_vertical_mps"] > crit.v_vertical_max_mps or touchdown["v_horizontal_mps"] > crit.v_horizontal_max_mps
-            or touchdown["tilt_deg"] > crit.tilt_max_deg):
+            or touchdown["tilt_deg"] > crit.tilt_max_deg or touchdown.get("first_contact") == "hull"):
         return "hard_landing"
     if final_tilt > stability["static_tipover_deg"] or stability["support_margin_m"] < 0.0:
         return "tipped_over"

@@ -87,6 +87,8 @@ def test_bad_dispersions_give_one_line_errors():
          "no whole number lies between its bounds"),
         (['dispersions."sim.compute_latency_ticks"={dist="uniform", low=0.0, high=1e30}'],
          "bounds beyond the 64-bit whole numbers"),
+        (['dispersions."knowledge.lander.dry_mass_kg"={dist="normal", sigma=10.0}'],
+         "knowledge.lander is the nominal lander the campaign pins for the flight software"),
     ):
         with pytest.raises(ScenarioError) as exc:
             load_scenario(None, sets)

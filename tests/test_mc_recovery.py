@@ -37,6 +37,19 @@ def test_a_raising_case_and_a_timeout_are_recorded_and_the_campaign_goes_on(tmp_
     assert [r["outcome"] for r in slow] == ["error", "error"] and all("timeout" in r["error"] for r in slow)
 
 
+def test_a_table_no_case_can_draw_is_refused_before_anything_is_written(tmp_path, capsys):
+    # Gravity drawn away from the flight software's model: every case's draw is refused. The campaign flew
+    # and wrote four error rows, exit 0; now it is one line naming the first case's reason, nothing written.
+    out = tmp_path / "c"
+    argv = ["mc", "--runs", "4", "--workers", "1", "--out", str(out), *_sets(),
+            "--set", 'dispersions."sim.gravity_mps2"={dist="uniform", low=1.5, high=1.7}']
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("landbench: error: every one of the 4 cases' dispersed draws is refused (case 0: ")
+    assert "sim.gravity_mps2" in err and "\n" not in err
+    assert not out.exists()
+
+
 def test_kill_and_resume_loses_and_duplicates_nothing(tmp_path):
     # Three cases, one worker, killed once the first has finished: the resume must run the other two.
     out = tmp_path / "camp"

@@ -138,6 +138,27 @@ def check_cases(base: Scenario, runs: int, campaign_seed: int) -> None:
                              "keep that field's [dispersions] entry within the field's limits") from None
 
 
+def check_some_case(base: Scenario, runs: int, campaign_seed: int) -> None:
+    """Before a campaign flies: refuse it when no case's dispersed draw is a valid scenario.
+
+    A case whose draw is refused is an error row and the campaign goes on (a tail of a wide
+    distribution may leave a field's limits); when every case is refused the table itself is
+    wrong, and the campaign would write nothing but error rows. Draws until the first valid case
+    (one draw, about 3 ms, for a sound table).
+    """
+    if not base.dispersions:
+        return
+    first = None
+    for i, seed in enumerate(case_seeds(campaign_seed, runs)):
+        try:
+            seeded_case(base, seed)
+            return
+        except ValueError as exc:
+            first = first or f"case {i}: {exc}"
+    raise ValueError(f"every one of the {runs} cases' dispersed draws is refused ({first}); keep that field's "
+                     "[dispersions] entry within the field's limits (landbench mc --dry-run checks a table)")
+
+
 def _flatten(prefix: str, value: Any, out: dict[str, Any]) -> None:
     if isinstance(value, dict):
         for k, v in value.items():
@@ -430,6 +451,8 @@ def run_campaign(base: Scenario, runs: int, out: Path, campaign_seed: int, worke
     else:
         if dry_run:  # its job is writing every case's scenario: a draw that cannot be one is refused first
             check_cases(base, runs, campaign_seed)
+        else:
+            check_some_case(base, runs, campaign_seed)
         cases_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out / BASE_SCENARIO, scenario_to_toml(base))
         atomic_write_text(meta_path, json.dumps(meta, indent=2) + "\n")

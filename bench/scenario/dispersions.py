@@ -177,6 +177,13 @@ def check_dispersion_paths(scenario_data: dict[str, Any], dispersions: dict[str,
         try:
             nominal = _get(scenario_data, path)
         except KeyError:
+            parts = path.split(".")
+            if parts[0] == "knowledge" and len(parts) > 2 and parts[1] in PINNED_KNOWLEDGE:
+                raise ValueError(
+                    f"dispersions.'{path}': knowledge.{parts[1]} is the nominal {parts[1]} the campaign pins for "
+                    "the flight software, not drawn; disperse what the flight software gets wrong with the "
+                    "knowledge errors (e.g. 'knowledge.dry_mass_error_kg', 'knowledge.thrust_calibration_error_frac')"
+                ) from None
             raise ValueError(
                 f"dispersions.'{path}': no such scenario field; allowed: a dotted path to a numeric field, "
                 "e.g. 'initial.r_BL_L_m' or 'lander.dry_mass_kg'"

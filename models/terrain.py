@@ -63,6 +63,10 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 # ----------------------------------------------------------------- constants
 M2_PER_KM2 = 1.0e6
 MAX_CATALOG_FEATURES = 2.0e6  # craters (or boulders) one terrain may stamp; 250 000 took 6 s to generate (1024² texture)
+# Texels the craters and boulders are stamped over at texture resolution, expected (stamped_texels_expected): about
+# 80 million a second on the 2-core reference machine (3.5e9 took 46 s, 2e10 about 4 min); the default terrain's 7.9e7 is 1 s.
+MAX_STAMPED_TEXELS = 2.0e10
+STAMPED_TEXELS_PER_S = 8.0e7
 MIN_DEM_PX = 16  # smallest DEM side accepted [px]
 # Crater shape, in crater radii R = D/2 (see crater_profile):
 CRATER_EJECTA_DECAY_R = 0.35  # e-folding distance of the ejecta blanket beyond the rim [R]
@@ -242,6 +246,18 @@ class TerrainConfig(BaseModel):
                     f"{what}s (from {lo:g} m); allowed: at most {MAX_CATALOG_FEATURES:.0e}: lower the density or "
                     f"raise {what}_min_diameter_m"
                 )
+        # Each feature is stamped over its own support, so the cost is their area, not their count (large
+        # craters at a high density passed the count check and took hours).
+        texels = stamped_texels_expected(self)
+        if texels > MAX_STAMPED_TEXELS:
+            raise ValueError(
+                f"craters and boulders would be stamped over about {texels:.3g} texels (their areas at texture_px = "
+                f"{self.texture_px} over size_m = {self.size_m:g} m: crater_density_per_km2 = "
+                f"{self.crater_density_per_km2:g}, crater diameters {self.crater_min_diameter_m:g}-"
+                f"{self.crater_max_diameter_m:g} m), about {texels / STAMPED_TEXELS_PER_S / 60.0:.2g} min of "
+                f"generation on a 2-core machine; allowed: at most {MAX_STAMPED_TEXELS:.0e}: "
+                f"lower the density or crater_max_diameter_m, or raise crater_sfd_exponent"
+            )
         if self.kind == "procedural":
             if self.target_clear_radius_m >= self.size_m / 2:
                 raise ValueError(
@@ -431,6 +447,26 @@ class Terrain:
 
 
 # ------------------------------------------------------------------ profiles
+def _power_law_moment(lo: float, hi: float, b: float, k: int) -> float:
+    """E[D^k] of diameters with the cumulative law N(>=D) ~ D^-b truncated to [lo, hi] (as _power_law_catalog)."""
+    c = b * lo**b / (1.0 - (lo / hi) ** b)
+    return c * (math.log(hi / lo) if abs(k - b) < 1e-12 else (hi ** (k - b) - lo ** (k - b)) / (k - b))
+
+
+def stamped_texels_expected(cfg: "TerrainConfig") -> float:
+    """Expected texels the craters and boulders are stamped over at texture resolution (_stamp_radial: each
+    feature over a square of its support, ``(2 support R / texel + 1)^2``), the terrain generation's main cost."""
+    texel_m = cfg.size_m / cfg.texture_px
+    total = 0.0
+    for what, support_r in (("crater", CRATER_SUPPORT_R), ("boulder", BOULDER_SUPPORT_R)):
+        lo, hi = getattr(cfg, f"{what}_min_diameter_m"), getattr(cfg, f"{what}_max_diameter_m")
+        b = getattr(cfg, f"{what}_sfd_exponent")
+        n = getattr(cfg, f"{what}_density_per_km2") * cfg.size_m**2 / M2_PER_KM2 * (1.0 - (hi / lo) ** -b)
+        a = support_r / texel_m  # texels per unit diameter across the square (2 support R = support D)
+        total += n * (a * a * _power_law_moment(lo, hi, b, 2) + 2.0 * a * _power_law_moment(lo, hi, b, 1) + 1.0)
+    return total
+
+
 def crater_profile(r_over_R: np.ndarray, depth_ratio: float, rim_height_ratio: float) -> np.ndarray:
     """Height of a simple crater relative to the pre-crater surface, over its diameter.
 

@@ -88,6 +88,13 @@ class PhysicsDivergedError(RuntimeError):
     """The physics state became invalid; the run must not continue."""
 
 
+# World.step's check on the velocity: a change beyond this factor times what the engine and gravity can give,
+# plus a floor for rounding, is a broken integration [-], [m/s].
+VELOCITY_JUMP_FACTOR = 3.0
+VELOCITY_JUMP_FLOOR_MPS = 0.05
+CONTACT_FREE_MARGIN_M = 10.0  # the check holds only this far above where any part of the lander could touch [m]
+
+
 @dataclass(frozen=True)
 class TruthState:
     """Truth state of the lander (for ``bench/`` scoring only).
@@ -303,6 +310,11 @@ class World:
             world_mjcf(terrain, lander, camera, sun, self.dt_s, gravity_mps2, tiles)
         )
         self._write_terrain(terrain)
+        # Above this height of the body origin no part of the lander can touch the ground (its highest point
+        # plus the lander's largest extent and a margin): World.step's velocity check holds there.
+        reach_m = math.hypot(max(lander.leg_radius_m, *lander.body_half_extents_m),
+                             lander.leg_drop_m + lander.footpad_radius_m + max(lander.body_half_extents_m))
+        self._contact_free_z_m = float(np.max(terrain.height_m)) + reach_m + CONTACT_FREE_MARGIN_M
         self.data = mujoco.MjData(self.model)
         m = self.model
         self._body_lander = m.body("lander").id
@@ -464,11 +476,55 @@ class World:
         """Advance ``n_steps`` physics steps with the commands held.
 
         Raises:
-            PhysicsDivergedError: MuJoCo flagged a bad qacc, qpos or qvel.
+            PhysicsDivergedError: MuJoCo flagged a bad qacc, qpos or qvel, or the velocity changed by more than
+                the engine and gravity can change it with nothing touching the ground
+                (:meth:`_check_velocity_change`).
         """
+        d = self.data
+        v0 = (d.qvel.item(0), d.qvel.item(1), d.qvel.item(2))
+        self._z_before = d.qpos.item(2)
+        w0 = d.qvel.item(3) ** 2 + d.qvel.item(4) ** 2 + d.qvel.item(5) ** 2
         torque = np.zeros(3) if torque_cmd_B_Nm is None else torque_cmd_B_Nm
-        if not self.propulsion.instant:
-            return self._step_each(n_steps, thrust_cmd_N, torque)
+        out = self._step_each(n_steps, thrust_cmd_N, torque) if not self.propulsion.instant else \
+            self._step_instant(n_steps, thrust_cmd_N, torque)
+        self._check_velocity_change(v0, w0, n_steps)
+        return out
+
+    def _check_velocity_change(self, v0: tuple[float, float, float], w0_sq: float, n_steps: int) -> None:
+        """Where no part of the lander can touch the ground (the body origin above the terrain's highest point by
+        the lander's reach and CONTACT_FREE_MARGIN_M, at both ends of the interval), the velocity can change over
+        ``n_steps`` by at most what the strongest thrust the engine can deliver and gravity give, plus the body
+        origin's turn about an offset centre of mass; a change
+        of VELOCITY_JUMP_FACTOR times that is a broken integration MuJoCo does not flag (seen: a tumbling lander
+        near an empty tank gaining 350 m/s in 20 ms while its accelerometer read 1 m/s^2).
+
+        Raises:
+            PhysicsDivergedError: Naming the change, the bound and the time.
+        """
+        d = self.data
+        if d.ncon or min(self._z_before, d.qpos.item(2)) <= self._contact_free_z_m:
+            return  # contact forces (a touchdown, a bounce inside the interval) have no bound here
+        dv = math.sqrt(sum((d.qvel.item(i) - v0[i]) ** 2 for i in range(3)))
+        dt_s = n_steps * self.dt_s
+        if dv <= VELOCITY_JUMP_FLOOR_MPS:
+            return
+        eng = self.lander_cfg.engine
+        mass = self.lander_cfg.dry_mass_kg + max(self.propulsion.propellant_kg, 0.0)
+        thrust = eng.thrust_max_N * (1.0 + max(eng.thrust_error_frac, 0.0)) * max(self.propulsion.fault_gain, 1.0)
+        w_sq = max(w0_sq, d.qvel.item(3) ** 2 + d.qvel.item(4) ** 2 + d.qvel.item(5) ** 2)
+        r_com = math.sqrt(sum(c * c for c in self.lander_cfg.com_offset_B_m))
+        accel = thrust / mass + abs(float(self.model.opt.gravity[2])) + w_sq * r_com
+        bound = VELOCITY_JUMP_FACTOR * accel * dt_s + VELOCITY_JUMP_FLOOR_MPS
+        if dv > bound:
+            raise PhysicsDivergedError(
+                f"physics diverged at t = {self.t_ns / NS_PER_S:.3f} s: with nothing touching the ground the velocity "
+                f"changed by {dv:.3g} m/s in {dt_s * 1e3:.3g} ms, more than {bound:.3g} m/s (the engine's strongest "
+                f"thrust and gravity, {VELOCITY_JUMP_FACTOR:g} times over): the integration broke down without a "
+                f"MuJoCo warning, and nothing after it would be physical"
+            )
+
+    def _step_instant(self, n_steps: int, thrust_cmd_N: float, torque: np.ndarray) -> PropulsionOutput:
+        """The idealised actuators: the held command's thrust and torque over the interval."""
         out = self.propulsion.apply(thrust_cmd_N, torque, n_steps, self.dt_s)
         self.data.ctrl[self._act_rcs] = out.torque_B_Nm
         self.data.ctrl[self._act_engine] = out.thrust_N

@@ -184,6 +184,9 @@ def test_resume_refuses_settings_it_would_ignore(tmp_path, capsys):
         ("sensors.imu.accel_noise_density=1e200", "sensors.imu.accel_noise_density = 1e+200"),
         ("sensors.altimeter.noise_sigma_m=1e200", "sensors.altimeter.noise_sigma_m = 1e+200"),
         ("sensors.altimeter.noise_frac=1e308", "sensors.altimeter.noise_frac = 1e+308"),
+        # Criteria without an upper bound counted a 17 m/s impact as landed (exit 0).
+        ("landing.v_vertical_max_mps=1e9", "landing.v_vertical_max_mps = 1000000000.0"),
+        ("landing.v_horizontal_max_mps=11", "landing.v_horizontal_max_mps = 11"),
     ],
 )
 def test_settings_that_would_fail_or_stall_the_run_are_refused_at_load(capsys, setting, needle):

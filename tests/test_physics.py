@@ -71,6 +71,27 @@ def test_an_upside_down_fall_meets_the_ground_with_the_hull(flat_terrain):
     assert world.truth().r_BL_L[2] < 10.0 and np.array_equal(world.footpad_contacts(), feet)
 
 
+def test_a_velocity_change_no_force_can_make_is_declared(flat_terrain, monkeypatch):
+    # A tumbling lander near an empty tank once gained 350 m/s in 20 ms with no contact and no MuJoCo warning
+    # (its accelerometer read 1 m/s^2): World.step bounds the change by the strongest thrust and gravity.
+    import mujoco
+
+    world = _world(flat_terrain)
+    world.reset(np.array([0.0, 0.0, 300.0]), np.zeros(3), LEVEL, np.array([0.0, 0.0, 3.0]))
+    # Full thrust, spinning at 3 rad/s: a legitimate hard change passes for 2 s.
+    for _ in range(200):
+        world.step(5, world.lander_cfg.engine.thrust_max_N, np.array([0.0, 0.0, 200.0]))
+    real_step = mujoco.mj_step
+
+    def broken(m, d, *a, **k):  # an integration that adds 1 m/s to a call (one call here steps all five)
+        real_step(m, d, *a, **k)
+        d.qvel[2] += 1.0
+
+    monkeypatch.setattr(mujoco, "mj_step", broken)
+    with pytest.raises(PhysicsDivergedError, match=r"with nothing touching the ground the velocity changed by 0.99\d* m/s in 5 ms"):
+        world.step(5, 0.0)
+
+
 def test_propellant_flow_matches_thrust_over_isp_g0(flat_terrain):
     cfg = LanderConfig()
     world = _world(flat_terrain, cfg)

@@ -445,3 +445,32 @@ def test_terrain_arrays_are_read_only():
         t.height_m[0, 0] = 1.0
     with pytest.raises(ValueError):
         t.albedo[0, 0] = 1
+
+
+@pytest.mark.parametrize("sets", [
+    {},  # the default terrain
+    {"crater_density_per_km2": 2000.0, "crater_min_diameter_m": 20.0, "crater_sfd_exponent": 0.1},  # large craters
+    {"size_m": 256.0, "texture_px": 2048, "geometry_px": 65, "boulder_density_per_km2": 20000.0},
+])
+def test_the_expected_stamping_work_matches_a_drawn_catalog(sets):
+    # The load check's estimate of the texels stamped (its cost) against the squares _stamp_radial stamps for an
+    # actual catalog, counted one by one (no cleared target: every feature is stamped).
+    import models.terrain as terrain_mod
+
+    cfg = TerrainConfig(**{"target_clear_radius_m": 0.0, **sets})
+    craters, _, boulders = terrain_mod._catalogs(cfg, np.random.default_rng(1), np.random.default_rng(2), cfg.size_m,
+                                                 cfg.crater_max_diameter_m)
+    texel_m = cfg.size_m / cfg.texture_px
+    counted = sum(float(((2 * np.ceil(support * cat[:, 2] / 2 / texel_m) + 1) ** 2).sum())
+                  for cat, support in ((craters, terrain_mod.CRATER_SUPPORT_R), (boulders, terrain_mod.BOULDER_SUPPORT_R)))
+    assert 0.8 < counted / terrain_mod.stamped_texels_expected(cfg) < 1.25
+
+
+def test_terrain_whose_stamping_would_take_hours_is_refused_at_load():
+    # 1.9 million craters of 20-200 m passed the count check (under 2e6) and ran for hours; their area is refused.
+    with pytest.raises(ValidationError, match=r"stamped over about 1.56e\+12 texels.*at most 2e\+10"):
+        TerrainConfig(crater_density_per_km2=9e6, crater_min_diameter_m=20.0, crater_sfd_exponent=0.1)
+    with pytest.raises(ValidationError, match=r"stamped over about 3.47e\+10 texels"):  # 43 000 craters, > 330 s
+        TerrainConfig(crater_density_per_km2=2e5, crater_min_diameter_m=20.0, crater_sfd_exponent=0.1)
+    TerrainConfig(crater_density_per_km2=2e4, crater_min_diameter_m=20.0, crater_sfd_exponent=0.1)  # 46 s: allowed
+    TerrainConfig(crater_density_per_km2=1e6)  # fifty times the default's craters of every size (3.9e9): allowed

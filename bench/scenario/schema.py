@@ -117,13 +117,20 @@ class InitialState(BaseModel):
         return Rotation.from_euler("xyz", self.euler_LB_deg, degrees=True).as_quat(scalar_first=True)
 
 
+# A landing criterion's largest speed: beyond it a touchdown is a crash whatever the table says (landing legs
+# are built for a few m/s; 1e9 m/s counted a 17 m/s impact as landed) [m/s].
+LANDING_SPEED_MAX_MPS = 10.0
+
+
 class LandingCriteria(BaseModel):
     """What counts as a safe landing (checked at first footpad contact and after settling)."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    v_vertical_max_mps: float = Field(1.0, gt=0, description="largest vertical speed at touchdown [m/s]")
-    v_horizontal_max_mps: float = Field(0.5, gt=0, description="largest horizontal speed at touchdown [m/s]")
+    v_vertical_max_mps: float = Field(1.0, gt=0, le=LANDING_SPEED_MAX_MPS,
+                                      description="largest vertical speed at touchdown [m/s]")
+    v_horizontal_max_mps: float = Field(0.5, gt=0, le=LANDING_SPEED_MAX_MPS,
+                                        description="largest horizontal speed at touchdown [m/s]")
     tilt_max_deg: float = Field(10.0, gt=0, lt=90, description="largest tilt from vertical at touchdown and after settling [deg]")
     settle_s: float = Field(5.0, ge=0, description="time after touchdown the lander must stay upright [s]")
 

@@ -225,12 +225,19 @@ def _output_folder(value: str, own: str) -> Path:
     return out
 
 
+def _flags_given(args: argparse.Namespace, *flags: str, defaults: dict[str, object] | None = None) -> list[str]:
+    """The scenario arguments (a scenario file, ``--set``, ``--preset``) and the ``flags`` given on this command
+    line: set, and not at their default (``defaults``: by attribute, for those whose default is not None)."""
+    defaults = defaults or {}
+    named = (("a scenario file", "scenario"), ("--set", "overrides"), ("--preset", "preset"),
+             *((f, f.lstrip("-").replace("-", "_")) for f in flags))
+    return [name for name, attr in named if getattr(args, attr, None) not in (None, [], (), defaults.get(attr))]
+
+
 def _resume_takes_nothing_else(args: argparse.Namespace, *flags: str, mode: str = "--resume") -> None:
     """``--resume DIR`` (or ``mc --replay DIR``) reads the scenario and the design from DIR: a scenario file,
     ``--set``, ``--preset`` or a design flag given beside it would be ignored, so it is refused."""
-    given = [name for name, attr in (("a scenario file", "scenario"), ("--set", "overrides"), ("--preset", "preset"),
-                                     *((f, f.lstrip("-").replace("-", "_")) for f in flags))
-             if getattr(args, attr, None) not in (None, [], ())]
+    given = _flags_given(args, *flags)
     if given:
         folder = getattr(args, mode.lstrip("-"))
         anew = "start anew with --out" if mode == "--resume" else "run the changed case with landbench run"
@@ -352,12 +359,9 @@ def cmd_faults(args: argparse.Namespace) -> int:
 
     if args.action == "list":
         # Listing runs nothing: an option for the matrix given beside it would be dropped without a word.
-        given = [flag for flag, attr, default in (
-            ("a scenario file", "scenario", None), ("--set", "overrides", None), ("--preset", "preset", None),
-            ("--presets", "presets", "all"), ("--runs", "runs", None), ("--workers", "workers", None),
-            ("--backend", "backend", "local"), ("--address", "address", None), ("--seed", "seed", None),
-            ("--out", "out", None), ("--resume", "resume", None), ("--retention", "retention", "summary"),
-            ("--case-timeout", "case_timeout", None)) if getattr(args, attr, default) not in (default, [], ())]
+        given = _flags_given(args, "--presets", "--runs", "--workers", "--backend", "--address", "--seed", "--out",
+                             "--resume", "--retention", "--case-timeout",
+                             defaults={"presets": "all", "backend": "local", "retention": "summary"})
         if given:
             raise ValueError(f"faults list prints the presets and runs nothing; drop {', '.join(given)} "
                              f"(or run the matrix: landbench faults run ...)")

@@ -45,6 +45,7 @@ CONTACT_SOLREF = f"{CONTACT_TIMECONST_S} {CONTACT_DAMPING_RATIO}"
 
 COM_OFFSET_MAX_M = 10.0  # largest dry centre-of-mass offset per body axis a lander config may give [m]
 
+
 class EngineConfig(BaseModel):
     """Throttleable main engine, thrust along body +z."""
 

@@ -239,7 +239,7 @@ class TerrainConfig(BaseModel):
                 )
             # The catalog's expected size (_power_law_catalog): each feature is stamped one by one.
             density = getattr(self, f"{what}_density_per_km2")
-            mean = density * self.size_m**2 / M2_PER_KM2 * (1.0 - (hi / lo) ** -getattr(self, f"{what}_sfd_exponent"))
+            mean = expected_feature_count(self, what)
             if mean > MAX_CATALOG_FEATURES:
                 raise ValueError(
                     f"{what}_density_per_km2={density:g} over size_m={self.size_m:g} m gives about {mean:.3g} "
@@ -453,6 +453,13 @@ def _power_law_moment(lo: float, hi: float, b: float, k: int) -> float:
     return c * (math.log(hi / lo) if abs(k - b) < 1e-12 else (hi ** (k - b) - lo ** (k - b)) / (k - b))
 
 
+def expected_feature_count(cfg: "TerrainConfig", what: str) -> float:
+    """Expected number of craters or boulders (``what``) on the tile, as _power_law_catalog draws them."""
+    lo, hi = getattr(cfg, f"{what}_min_diameter_m"), getattr(cfg, f"{what}_max_diameter_m")
+    return (getattr(cfg, f"{what}_density_per_km2") * cfg.size_m**2 / M2_PER_KM2
+            * (1.0 - (hi / lo) ** -getattr(cfg, f"{what}_sfd_exponent")))
+
+
 def stamped_texels_expected(cfg: "TerrainConfig") -> float:
     """Expected texels the craters and boulders are stamped over at texture resolution (_stamp_radial: each
     feature over a square of its support, ``(2 support R / texel + 1)^2``), the terrain generation's main cost."""
@@ -461,7 +468,7 @@ def stamped_texels_expected(cfg: "TerrainConfig") -> float:
     for what, support_r in (("crater", CRATER_SUPPORT_R), ("boulder", BOULDER_SUPPORT_R)):
         lo, hi = getattr(cfg, f"{what}_min_diameter_m"), getattr(cfg, f"{what}_max_diameter_m")
         b = getattr(cfg, f"{what}_sfd_exponent")
-        n = getattr(cfg, f"{what}_density_per_km2") * cfg.size_m**2 / M2_PER_KM2 * (1.0 - (hi / lo) ** -b)
+        n = expected_feature_count(cfg, what)
         a = support_r / texel_m  # texels per unit diameter across the square (2 support R = support D)
         total += n * (a * a * _power_law_moment(lo, hi, b, 2) + 2.0 * a * _power_law_moment(lo, hi, b, 1) + 1.0)
     return total

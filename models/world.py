@@ -482,27 +482,28 @@ class World:
         """
         d = self.data
         v0 = (d.qvel.item(0), d.qvel.item(1), d.qvel.item(2))
-        self._z_before = d.qpos.item(2)
         w0 = d.qvel.item(3) ** 2 + d.qvel.item(4) ** 2 + d.qvel.item(5) ** 2
+        z0 = d.qpos.item(2)
         torque = np.zeros(3) if torque_cmd_B_Nm is None else torque_cmd_B_Nm
         out = self._step_each(n_steps, thrust_cmd_N, torque) if not self.propulsion.instant else \
             self._step_instant(n_steps, thrust_cmd_N, torque)
-        self._check_velocity_change(v0, w0, n_steps)
+        self._check_velocity_change(v0, w0, z0, n_steps)
         return out
 
-    def _check_velocity_change(self, v0: tuple[float, float, float], w0_sq: float, n_steps: int) -> None:
+    def _check_velocity_change(self, v0: tuple[float, float, float], w0_sq: float, z0_m: float, n_steps: int) -> None:
         """Where no part of the lander can touch the ground (the body origin above the terrain's highest point by
         the lander's reach and CONTACT_FREE_MARGIN_M, at both ends of the interval), the velocity can change over
         ``n_steps`` by at most what the strongest thrust the engine can deliver and gravity give, plus the body
-        origin's turn about an offset centre of mass; a change
-        of VELOCITY_JUMP_FACTOR times that is a broken integration MuJoCo does not flag (seen: a tumbling lander
-        near an empty tank gaining 350 m/s in 20 ms while its accelerometer read 1 m/s^2).
+        origin's turn about an offset centre of mass; a change of VELOCITY_JUMP_FACTOR times that is a broken
+        integration MuJoCo does not flag (seen: a tumbling lander near an empty tank gaining 350 m/s in 20 ms
+        while its accelerometer read 1 m/s^2). ``v0``, ``w0_sq`` and ``z0_m``: the velocity [m/s], the squared
+        body rate [rad^2/s^2] and the height [m] before the interval.
 
         Raises:
             PhysicsDivergedError: Naming the change, the bound and the time.
         """
         d = self.data
-        if d.ncon or min(self._z_before, d.qpos.item(2)) <= self._contact_free_z_m:
+        if d.ncon or min(z0_m, d.qpos.item(2)) <= self._contact_free_z_m:
             return  # contact forces (a touchdown, a bounce inside the interval) have no bound here
         dv = math.sqrt(sum((d.qvel.item(i) - v0[i]) ** 2 for i in range(3)))
         dt_s = n_steps * self.dt_s

@@ -119,44 +119,33 @@ def check_seed(campaign_seed: object) -> None:
         raise ValueError(f"--seed {campaign_seed!r}: a campaign seed is a non-negative integer")
 
 
-def check_cases(base: Scenario, runs: int, campaign_seed: int) -> None:
-    """Draw every case's dispersions and validate its scenario, before a dry run writes anything.
+def check_cases(base: Scenario, runs: int, campaign_seed: int, every: bool = True) -> None:
+    """Draw the cases' dispersions and validate their scenarios, before anything is written.
 
-    A dry run writes each case's dispersed scenario, so a draw outside a field's limits
-    is refused here, in one line naming the case and the field, instead of after the
-    campaign's folder exists. (A campaign that flies records such a case as an error row
-    and goes on.) Costs about 3 ms per case with dispersions.
+    ``every`` (a dry run, which writes each case's dispersed scenario): a draw outside a field's
+    limits is refused here, in one line naming the case and the field, instead of after the
+    campaign's folder exists; about 3 ms per case with dispersions. Otherwise (a campaign that
+    flies, which records a refused case as an error row and goes on): the campaign is refused only
+    when no case can be drawn, the table itself being wrong; the draws stop at the first valid case.
     """
     check_seed(campaign_seed)
     if not base.dispersions:
         return  # every case is the base scenario with its own seed
-    for i, seed in enumerate(case_seeds(campaign_seed, runs)):
-        try:
-            seeded_case(base, seed)
-        except ValueError as exc:
-            raise ValueError(f"case {i} of --seed {campaign_seed}: its dispersed draw is refused: {exc}; "
-                             "keep that field's [dispersions] entry within the field's limits") from None
-
-
-def check_some_case(base: Scenario, runs: int, campaign_seed: int) -> None:
-    """Before a campaign flies: refuse it when no case's dispersed draw is a valid scenario.
-
-    A case whose draw is refused is an error row and the campaign goes on (a tail of a wide
-    distribution may leave a field's limits); when every case is refused the table itself is
-    wrong, and the campaign would write nothing but error rows. Draws until the first valid case
-    (one draw, about 3 ms, for a sound table).
-    """
-    if not base.dispersions:
-        return
     first = None
     for i, seed in enumerate(case_seeds(campaign_seed, runs)):
         try:
             seeded_case(base, seed)
-            return
         except ValueError as exc:
+            if every:
+                raise ValueError(f"case {i} of --seed {campaign_seed}: its dispersed draw is refused: {exc}; "
+                                 "keep that field's [dispersions] entry within the field's limits") from None
             first = first or f"case {i}: {exc}"
-    raise ValueError(f"every one of the {runs} cases' dispersed draws is refused ({first}); keep that field's "
-                     "[dispersions] entry within the field's limits (landbench mc --dry-run checks a table)")
+        else:
+            if not every:
+                return
+    if first is not None:
+        raise ValueError(f"every one of the {runs} cases' dispersed draws is refused ({first}); keep that field's "
+                         "[dispersions] entry within the field's limits (landbench mc --dry-run checks a table)")
 
 
 def _flatten(prefix: str, value: Any, out: dict[str, Any]) -> None:
@@ -449,10 +438,9 @@ def run_campaign(base: Scenario, runs: int, out: Path, campaign_seed: int, worke
     elif meta_path.exists():
         raise ValueError(f"--out {out} already holds a campaign; use --resume, or another folder")
     else:
-        if dry_run:  # its job is writing every case's scenario: a draw that cannot be one is refused first
-            check_cases(base, runs, campaign_seed)
-        else:
-            check_some_case(base, runs, campaign_seed)
+        # A dry run's job is writing every case's scenario: a draw that cannot be one is refused first. A
+        # campaign that flies is refused only when no case can be drawn.
+        check_cases(base, runs, campaign_seed, every=dry_run)
         cases_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out / BASE_SCENARIO, scenario_to_toml(base))
         atomic_write_text(meta_path, json.dumps(meta, indent=2) + "\n")

@@ -211,7 +211,7 @@ def check_dispersion_paths(scenario_data: dict[str, Any], dispersions: dict[str,
                 raise ValueError(
                     f"dispersions.'{path}'.{name} has {len(v)} components; the field has {n}"
                 )
-        if _is_integer(nominal, isinstance(nominal, (list, tuple))) and spec.dist in ("uniform", "truncnorm"):
+        if _is_integer(nominal) and spec.dist in ("uniform", "truncnorm"):
             lo, hi = _integer_bounds(spec, np.asarray(values, float))
             if np.any(np.abs(np.concatenate([np.ravel(lo), np.ravel(hi)])) >= 2.0**63):
                 raise ValueError(f"dispersions.'{path}': bounds beyond the 64-bit whole numbers the field holds; "
@@ -228,7 +228,7 @@ def _draw(spec: Any, nominal: Any, rng: np.random.Generator) -> Any:
         return spec.values[int(rng.integers(len(spec.values)))]
     if spec.dist == "integers":
         return int(rng.integers(spec.low, spec.high, endpoint=True))
-    shape = nom.shape
+    shape, integer = nom.shape, _is_integer(nominal)
     if spec.dist == "normal":
         value = nom + rng.normal(0.0, 1.0, shape) * np.broadcast_to(np.asarray(spec.sigma, float), shape)
     elif spec.dist == "truncnorm":
@@ -238,13 +238,13 @@ def _draw(spec: Any, nominal: Any, rng: np.random.Generator) -> Any:
         from scipy.stats import truncnorm  # here, not at import: scipy.stats costs every command about 0.6 s
 
         value = nom + sigma * truncnorm.rvs(lo, hi, size=shape, random_state=rng)
-    elif _is_integer(nominal, vector):  # uniform over a field of whole numbers: each one in the bounds alike
+    elif integer:  # uniform over a field of whole numbers: each one in the bounds alike
         lo, hi = _integer_bounds(spec, nom)
         value = rng.integers(lo.astype(np.int64), hi.astype(np.int64), endpoint=True)
     else:  # uniform
         value = rng.uniform(np.broadcast_to(np.asarray(spec.low, float), shape),
                             np.broadcast_to(np.asarray(spec.high, float), shape))
-    if _is_integer(nominal, vector):
+    if integer:
         value = np.rint(value).astype(np.int64)
         if spec.dist == "truncnorm":  # rounding may not leave the bounds: the nearest whole number inside them
             value = np.clip(value, *(b.astype(np.int64) for b in _integer_bounds(spec, nom)))
@@ -252,9 +252,10 @@ def _draw(spec: Any, nominal: Any, rng: np.random.Generator) -> Any:
     return out if vector else out[0]
 
 
-def _is_integer(nominal: Any, vector: bool) -> bool:
-    """Does the field hold whole numbers (its draws are rounded)?"""
-    return all(isinstance(v, int) and not isinstance(v, bool) for v in (nominal if vector else [nominal]))
+def _is_integer(nominal: Any) -> bool:
+    """Does the field (a number or a vector of them) hold whole numbers (its draws are rounded)?"""
+    values = nominal if isinstance(nominal, (list, tuple)) else [nominal]
+    return all(isinstance(v, int) and not isinstance(v, bool) for v in values)
 
 
 def _integer_bounds(spec: Any, nom: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -791,7 +791,7 @@ def _vision_summary(fsw: FlightSoftware) -> dict[str, float | int | None]:
     }
 
 
-def _touchdown_metrics(before: TruthState, t_ns: int, first_contact: str = "footpad") -> dict[str, Any]:
+def _touchdown_metrics(before: TruthState, t_ns: int, first_contact: str) -> dict[str, Any]:
     """The touchdown's figures from the truth just before contact; ``first_contact``: "footpad", or "hull"
     (the lander met the ground with its body first: a crash, however slow)."""
     v = before.v_BL_L
@@ -829,7 +829,7 @@ def _classify(touchdown: dict | None, exhausted_ns: int | None, touchdown_ns: in
     if touchdown is None:
         return "off_terrain" if off_terrain else "timeout"
     if (touchdown["v_vertical_mps"] > crit.v_vertical_max_mps or touchdown["v_horizontal_mps"] > crit.v_horizontal_max_mps
-            or touchdown["tilt_deg"] > crit.tilt_max_deg or touchdown.get("first_contact") == "hull"):
+            or touchdown["tilt_deg"] > crit.tilt_max_deg or touchdown["first_contact"] == "hull"):
         return "hard_landing"
     if final_tilt > stability["static_tipover_deg"] or stability["support_margin_m"] < 0.0:
         return "tipped_over"

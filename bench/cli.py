@@ -2,7 +2,9 @@
 
 Every sub-command validates all of its input (scenario, overrides, paths)
 before it writes anything; a user mistake prints one ``landbench: error:``
-line and exits with status 2.
+line and exits with status 2. A defect found while flying (an error no input
+check foresaw) prints its traceback and one ``landbench: internal error:``
+line, and exits with status 70 (``EX_SOFTWARE``).
 """
 
 from __future__ import annotations
@@ -12,10 +14,14 @@ import json
 import math
 import os
 import sys
+import traceback
 from pathlib import Path
 from typing import NoReturn
 
+from bench.sim.errors import SimulationDefectError
+
 EXIT_USAGE = 2
+EXIT_INTERNAL = 70  # sysexits.h EX_SOFTWARE: a defect of landbench, not of the input
 
 
 # The scenario's schema imports the flight software's filter, and with it filterpy and scipy.stats
@@ -687,6 +693,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"landbench: error: cannot write or read{where}: {exc.strerror or exc}; "
               "give a folder you can write to (or a file you can read)", file=sys.stderr)
         return EXIT_USAGE
+    except SimulationDefectError as exc:  # not the user's mistake: the traceback is for the report
+        traceback.print_exception(exc, file=sys.stderr)
+        print(f"landbench: internal error: {exc}", file=sys.stderr)
+        return EXIT_INTERNAL
     except KeyboardInterrupt:
         print("landbench: interrupted", file=sys.stderr)
         return 130

@@ -68,8 +68,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bench.evaluation.consistency import NEES_BLOCKS, block_nees_many, run_consistency, ticks_at_altitudes
-from bench.scenario import NS_PER_S, Scenario
+from bench.scenario import NS_PER_S, Scenario, ScenarioError
 from bench.scenario.seeding import component_rng
+from bench.sim.errors import SimulationDefectError
 from bench.sim.flight_build import build_flight_software, handover_estimate, onboard_knowledge, restart_flight_software
 from bench.sim.truth_tracker import TruthTracker
 from bench.sim.world_builder import SensorSuite, build_sensors, build_terrain, build_world
@@ -79,6 +80,7 @@ from gnc.flight import FlightSoftware
 from gnc.guidance import PHASE_OFF, PHASE_TERMINAL
 from gnc.messages import AltimeterMessage, AttitudeMessage, ContactMessage, ImageMessage, ImuMessage
 from gnc.navstate import NavState
+from gnc.plugins import LawOutputError
 from models.camera import R_BC
 from models.render_context import free_shared_contexts
 from vision.tracks import Tracks
@@ -234,6 +236,10 @@ def run(scenario: Scenario, frame_sink: FrameSink | RenderingFrameSink | None = 
         ``miss_distance_m``}, ``fuel_used_kg``, ``sim_time_s``,
         ``wall_time_s``, ``realtime_factor``, ``seed``, and more), the
         telemetry and the terrain.
+
+    Raises:
+        SimulationDefectError: A ``ValueError`` inside the closed loop other than a plug-in law's
+            (:class:`gnc.plugins.LawOutputError`) or an input check's (:class:`ScenarioError`).
     """
     t_setup = time.perf_counter()
     maps = None
@@ -257,6 +263,13 @@ def run(scenario: Scenario, frame_sink: FrameSink | RenderingFrameSink | None = 
     setup_s = time.perf_counter() - t_setup
     try:
         return _fly(scenario, terrain, world, sensors, frame_sink, progress, setup_s, recorder, maps, hazard)
+    except (LawOutputError, ScenarioError):
+        raise  # the user's: a plug-in law's output, or an input check made in flight
+    except ValueError as exc:
+        raise SimulationDefectError(
+            f"the closed loop failed at t = {world.t_ns / NS_PER_S:.3f} s with {type(exc).__name__}: {exc}. The "
+            f"scenario passed its checks, so this is a defect of landbench, not a mistake in the input: please "
+            f"report it with the scenario (seed {scenario.seed})") from exc
     finally:
         world.close()
 

@@ -208,17 +208,26 @@ def static_tipover_deg(cfg: LanderConfig, propellant_kg: float) -> float:
     over that edge: ``atan(d / h)`` with ``d`` the horizontal distance from the centre of mass
     to the edge and ``h`` its height above the footpads' ground contacts. About 36.5 deg for the
     default legs (``d = 2.2 / sqrt 2`` m, ``h = 1.9 + 0.2`` m).
+
+    ``d`` is signed, negative for a centre of mass outside the footpad square: the angle is then
+    negative, the tilt away from that edge the lander needs to balance (it cannot stand level).
     """
     feet = footpad_positions_B(cfg)[[0, 1, 3, 2]]  # around the square
     com = com_position_B(cfg, propellant_kg)
     h = com[2] + cfg.leg_drop_m + cfg.footpad_radius_m
-    d = min(_distance_to_line(com[:2], feet[i, :2], feet[(i + 1) % 4, :2]) for i in range(4))
+    centre = feet[:, :2].mean(axis=0)
+    d = min(_signed_distance_to_line(com[:2], feet[i, :2], feet[(i + 1) % 4, :2], centre) for i in range(4))
     return math.degrees(math.atan2(d, h))
 
 
-def _distance_to_line(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+def _signed_distance_to_line(p: np.ndarray, a: np.ndarray, b: np.ndarray, inside: np.ndarray) -> float:
+    """Distance of ``p`` from the line through ``a`` and ``b`` [m], positive on the side of ``inside``."""
     ab = b - a
-    return float(abs(ab[0] * (p[1] - a[1]) - ab[1] * (p[0] - a[0])) / np.hypot(*ab))
+
+    def cross(q: np.ndarray) -> float:
+        return float(ab[0] * (q[1] - a[1]) - ab[1] * (q[0] - a[0]))
+
+    return math.copysign(1.0, cross(inside)) * cross(p) / float(np.hypot(*ab))
 
 
 def support_margin_m(footpads_xy_L: np.ndarray, com_xy_L: np.ndarray) -> float:

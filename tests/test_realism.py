@@ -244,6 +244,14 @@ def test_static_tipover_angle_of_the_default_legs():
     cfg = LanderConfig()
     assert static_tipover_deg(cfg, 0.0) == pytest.approx(math.degrees(math.atan((2.2 / math.sqrt(2)) / 2.1)))
     assert 36.0 < static_tipover_deg(cfg, 0.0) < 37.0
+    # A centre of mass off the axis: the nearer edge sets the angle; outside the footpad square it is negative
+    # (before, the distance's absolute value gave a positive angle to a lander that cannot stand level).
+    half = 2.2 / math.sqrt(2.0)  # the footpad square's half side [m]
+    for x_m, d_m in ((0.5, half - 0.5), (1.9, half - 1.9), (-3.0, half - 3.0)):
+        off = LanderConfig(com_offset_B_m=(x_m, 0.0, 0.0))
+        h_m = com_position_B(off, 0.0)[2] + off.leg_drop_m + off.footpad_radius_m
+        assert static_tipover_deg(off, 0.0) == pytest.approx(math.degrees(math.atan2(d_m, h_m))), x_m
+    assert static_tipover_deg(LanderConfig(com_offset_B_m=(1.9, 0.0, 0.0)), 0.0) < 0.0
     feet = footpad_positions_B(cfg)[:, :2]
     assert support_margin_m(feet, np.zeros(2)) == pytest.approx(2.2 / math.sqrt(2))
     assert support_margin_m(feet, np.array([2.0, 0.0])) == pytest.approx(2.2 / math.sqrt(2) - 2.0)

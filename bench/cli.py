@@ -18,7 +18,7 @@ import traceback
 from pathlib import Path
 from typing import NoReturn
 
-from bench.sim.errors import SimulationDefectError
+from bench.errors import SimulationDefectError
 
 EXIT_USAGE = 2
 EXIT_INTERNAL = 70  # sysexits.h EX_SOFTWARE: a defect of landbench, not of the input

@@ -1,4 +1,5 @@
-"""Errors of one landing that the command line tells apart from the user's mistakes (light: no imports)."""
+"""Errors the command line tells apart from the user's mistakes (light: no imports, so that the command line
+parses before it imports the simulation)."""
 
 
 class SimulationDefectError(RuntimeError):

@@ -485,10 +485,26 @@ class World:
         w0 = d.qvel.item(3) ** 2 + d.qvel.item(4) ** 2 + d.qvel.item(5) ** 2
         z0 = d.qpos.item(2)
         torque = np.zeros(3) if torque_cmd_B_Nm is None else torque_cmd_B_Nm
-        out = self._step_each(n_steps, thrust_cmd_N, torque) if not self.propulsion.instant else \
-            self._step_instant(n_steps, thrust_cmd_N, torque)
+        try:
+            out = self._step_each(n_steps, thrust_cmd_N, torque) if not self.propulsion.instant else \
+                self._step_instant(n_steps, thrust_cmd_N, torque)
+        except PhysicsDivergedError as exc:  # MuJoCo's warning: say what the state was, and what to look at
+            raise PhysicsDivergedError(f"{exc} {self._divergence_hint(v0, w0, z0)}") from None
         self._check_velocity_change(v0, w0, z0, n_steps)
         return out
+
+    def _divergence_hint(self, v0: tuple[float, float, float], w0_sq: float, z0_m: float) -> str:
+        """The state at the start of the interval MuJoCo diverged in (velocity ``v0`` [m/s], squared body rate
+        ``w0_sq`` [rad^2/s^2], height ``z0_m`` [m]), and where to look: a physics step too large for the contact
+        dynamics only where a contact could act (see :meth:`_check_velocity_change`)."""
+        state = (f"At the start of that interval the lander was at z = {z0_m:.6g} m, moving at "
+                 f"{math.sqrt(sum(v * v for v in v0)):.3g} m/s and turning at {math.degrees(math.sqrt(w0_sq)):.3g} deg/s.")
+        if z0_m <= self._contact_free_z_m:
+            return (f"{state} Near the ground a physics step too large for the contact dynamics is the usual cause: "
+                    f"reduce sim.physics_dt_ns (now {self.physics_dt_ns}).")
+        return (f"{state} No part of it could touch the ground, so contact is not the cause and a smaller "
+                f"sim.physics_dt_ns (now {self.physics_dt_ns}) is unlikely to help: look at that state, the "
+                f"commands before it and the mass properties (lander.*).")
 
     def _check_velocity_change(self, v0: tuple[float, float, float], w0_sq: float, z0_m: float, n_steps: int) -> None:
         """Where no part of the lander can touch the ground (the body origin above the terrain's highest point by
@@ -637,11 +653,7 @@ class World:
         now = self._warning_number
         for (_, what), w in zip(_DIVERGENCE_WARNINGS, self._i_divergence):
             if int(now[w]) > before[w]:
-                raise PhysicsDivergedError(
-                    f"physics diverged at t = {self.t_ns / NS_PER_S:.3f} s: MuJoCo reported {what}. "
-                    f"The physics step (sim.physics_dt_ns = {self.physics_dt_ns}) is probably too large "
-                    "for the contact and actuator dynamics; reduce it."
-                )
+                raise PhysicsDivergedError(f"physics diverged at t = {self.t_ns / NS_PER_S:.3f} s: MuJoCo reported {what}.")
 
     # ----------------------------------------------------------------- engine faults (models.faults)
     def set_engine_fault(self, thrust_gain: float, torque_B_Nm: np.ndarray | None,

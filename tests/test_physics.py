@@ -156,12 +156,23 @@ def test_rcs_torque_spins_up_at_torque_over_inertia(flat_terrain):
     assert abs(world.truth().omega_B[2] - 100.0 / izz) / (100.0 / izz) < 1e-3
 
 
-def test_divergence_is_never_silent(flat_terrain):
+@pytest.mark.parametrize("z_m, cause", [
+    # Far above the ground nothing can touch it: the physics step is not the cause (before, the message blamed it).
+    (50.0, "No part of it could touch the ground, so contact is not the cause and a smaller sim.physics_dt_ns "
+           "(now 1000000) is unlikely to help"),
+    (4.0, "Near the ground a physics step too large for the contact dynamics is the usual cause: reduce "
+          "sim.physics_dt_ns (now 1000000)"),
+])
+def test_divergence_is_never_silent_and_says_where_to_look(flat_terrain, z_m, cause):
     world = _world(flat_terrain)
-    world.reset(np.array([0.0, 0.0, 50.0]), np.zeros(3), LEVEL, np.zeros(3))
+    world.reset(np.array([0.0, 0.0, z_m]), np.zeros(3), LEVEL, np.zeros(3))
     world.data.qvel[0] = 1e12  # beyond MuJoCo's mjMAXVAL: it would reset the state and carry on
-    with pytest.raises(PhysicsDivergedError, match="physics_dt_ns"):
+    with pytest.raises(PhysicsDivergedError) as exc:
         world.step(5)
+    msg = str(exc.value)
+    assert msg.startswith("physics diverged at t = 0.00") and "MuJoCo reported bad qvel" in msg, msg
+    assert f"the lander was at z = {z_m:g} m, moving at 1e+12 m/s and turning at 0 deg/s" in msg, msg
+    assert cause in msg, msg
 
 
 def test_torque_and_thrust_clamps_match_numpy_on_random_and_special_inputs():

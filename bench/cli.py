@@ -485,7 +485,7 @@ def build_parser() -> argparse.ArgumentParser:
     ps.set_defaults(func=cmd_scenario_show)
 
     p = sub.add_parser("run", help="fly one closed-loop landing and write its results",
-                       description="Fly one landing. Exit status: 0 landed, 3 not landed, 2 bad input.")
+                       description="Fly one landing. Exit status: 0 landed, 3 not landed, 2 bad input, 70 internal error (a defect of landbench: its traceback is printed).")
     _add_scenario_args(p)
     _add_preset_arg(p)
     p.add_argument("--out", default="out/run", help="output folder (default out/run)")

@@ -8,6 +8,7 @@ import ``gnc/``.
 
 from __future__ import annotations
 
+import re
 import types
 import typing
 from collections.abc import Mapping
@@ -26,6 +27,18 @@ def _allowed_fields(model: type[BaseModel], loc: tuple[str, ...]) -> str:
             return ""
         sub = ann
     return ", ".join(sub.model_fields)
+
+
+def _fields_at(model: type[BaseModel], loc: tuple[str, ...]) -> tuple[str, ...]:
+    """Field names of the table at ``loc`` (empty when ``loc`` is not a table of ``model``)."""
+    sub: Any = model
+    for part in loc:
+        field = getattr(sub, "model_fields", {}).get(part)
+        ann = field.annotation if field is not None else None
+        if not (isinstance(ann, type) and issubclass(ann, BaseModel)):
+            return ()
+        sub = ann
+    return tuple(sub.model_fields)
 
 
 def format_validation_error(err: ValidationError, model: type[BaseModel], prefix: str = "") -> str:
@@ -49,6 +62,17 @@ def format_validation_error(err: ValidationError, model: type[BaseModel], prefix
         line = f"unknown field '{path}'" + (f"; allowed here: {allowed}" if allowed else "")
     elif loc and msg.startswith(path):  # a validator that names its own field (and sub-field) already
         line = msg
+    elif loc and first.get("type") == "value_error" and isinstance(first.get("input"), dict):
+        # A table's own validator names the table's fields: the table itself is not quoted, and a field named
+        # from the table down (``rcs.min_on_ns`` in ``lander.rcs``) gets the rest of its path.
+        parent, _, last = path.rpartition(".")
+        head = re.match(r"\w+", msg)
+        if parent and msg.startswith(f"{last}."):
+            line = f"{parent}.{msg}"
+        elif head and head.group() in _fields_at(model, loc):  # it names one of the table's own fields
+            line = f"{path}.{msg}"
+        else:
+            line = f"{path}: {msg}"
     elif loc:
         line = f"{path} = {first.get('input')!r}: {msg}"
     else:

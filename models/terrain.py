@@ -235,7 +235,8 @@ class TerrainConfig(BaseModel):
             lo, hi = getattr(self, f"{what}_min_diameter_m"), getattr(self, f"{what}_max_diameter_m")
             if hi <= lo:
                 raise ValueError(
-                    f"{what}_max_diameter_m={hi} must be > {what}_min_diameter_m={lo}"
+                    f"{what}_min_diameter_m = {lo:g} is not below {what}_max_diameter_m = {hi:g}; allowed: "
+                    f"{what}_min_diameter_m < {what}_max_diameter_m"
                 )
             # The catalog's expected size (_power_law_catalog): each feature is stamped one by one.
             density = getattr(self, f"{what}_density_per_km2")

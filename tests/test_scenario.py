@@ -105,6 +105,21 @@ def test_engine_min_above_max_is_rejected():
     assert "thrust_min_N" in msg and "thrust_max_N" in msg
 
 
+@pytest.mark.parametrize("assignment, start", [
+    # Before: "lander.rcs = {'min_on_ns': 40000000}: rcs.min_on_ns = ..." and "terrain = {'crater_min_diameter_m':
+    # 500.0}: crater_max_diameter_m=200.0 must be > crater_min_diameter_m=500.0" (the table quoted, no path, no fix).
+    ("lander.rcs.min_on_ns=40000000", "lander.rcs.min_on_ns = 40000000 is longer than rcs.pwm_period_ns = "),
+    ("terrain.crater_min_diameter_m=500.0", "terrain.crater_min_diameter_m = 500 is not below crater_max_diameter_m "
+                                            "= 200; allowed: crater_min_diameter_m < crater_max_diameter_m"),
+    ("terrain.geometry_px=64", "terrain.geometry_px=64 is even"),
+])
+def test_a_tables_own_check_names_the_field_by_its_path_without_quoting_the_table(assignment, start):
+    with pytest.raises(ScenarioError) as exc:
+        load_scenario(None, [assignment])
+    msg = str(exc.value)
+    assert msg.startswith(start) and "{" not in msg and "\n" not in msg, msg
+
+
 def test_malformed_override_and_path_through_value():
     assert "KEY=VALUE" in _err(["seed"])
     assert "'seed' is a value" in _err(["seed.x=1"])

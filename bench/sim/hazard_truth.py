@@ -40,7 +40,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bench.evaluation.footprint import score_footprint
-from bench.scenario import Scenario
+from bench.scenario import Scenario, ScenarioError
 from bench.scenario.seeding import component_rng
 from gnc.hazard import _disk, hazard_map
 from gnc.messages import LidarScanMessage
@@ -85,7 +85,7 @@ class HazardTruth:
             try:
                 dem = self.ground.dem((float(nadir[0]), float(nadir[1])), half, self.cfg.site_spacing_m)
             except ValueError as exc:  # a user's settings, found in flight: name them (the truth has no ground there)
-                raise ValueError(
+                raise ScenarioError(
                     f"hazard.hda.scan_altitude_m = {self.scenario.hazard.hda.scan_altitude_m:g} (rescan "
                     f"{self.scenario.hazard.hda.rescan_altitude_m:g}): the lidar's footprint at {height:.0f} m, "
                     f"+-{half:.0f} m about ({nadir[0]:.0f}, {nadir[1]:.0f}) m, leaves the ground modelled for it "

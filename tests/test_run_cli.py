@@ -89,6 +89,21 @@ def test_a_defect_inside_the_loop_is_reported_as_internal_not_as_the_users_mista
     assert sorted(p.name for p in out.iterdir()) == ["summary.json"]
 
 
+def test_a_flight_computer_that_cannot_be_built_stays_the_users_one_line(tmp_path, capsys, monkeypatch):
+    # Built before the loop: its refusals (G-FOLD without its optional extra) are about the input, not defects.
+    import bench.sim.flight_build as fb
+
+    def no_cvxpy(*args, **kwargs):
+        raise ValueError("guidance.law = 'gfold' needs cvxpy and a conic solver, the optional extra")
+
+    monkeypatch.setattr(fb, "make_guidance", no_cvxpy)
+    out = tmp_path / "run"
+    assert main(["run", "--out", str(out), *_sets()]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["landbench: error: guidance.law = 'gfold' needs cvxpy and a conic solver, the optional extra"], err
+    assert not out.exists()
+
+
 def test_a_failure_after_the_run_leaves_no_partial_video(tmp_path, monkeypatch):
     import pytest
 

@@ -259,22 +259,27 @@ def run(scenario: Scenario, frame_sink: FrameSink | RenderingFrameSink | None = 
         hazard = HazardTruth(scenario)
     terrain = build_terrain(scenario)
     world = build_world(scenario, terrain)
-    sensors = build_sensors(scenario)
-    setup_s = time.perf_counter() - t_setup
     try:
-        return _fly(scenario, terrain, world, sensors, frame_sink, progress, setup_s, recorder, maps, hazard)
-    except (LawOutputError, ScenarioError):
-        raise  # the user's: a plug-in law's output, or an input check made in flight
-    except ValueError as exc:
-        raise SimulationDefectError(
-            f"the closed loop failed at t = {world.t_ns / NS_PER_S:.3f} s with {type(exc).__name__}: {exc}. The "
-            f"scenario passed its checks, so this is a defect of landbench, not a mistake in the input: please "
-            f"report it with the scenario (seed {scenario.seed})") from exc
+        sensors = build_sensors(scenario)
+        # The flight computer, built before the loop: what it refuses (a law's missing optional extra) is the
+        # user's, not the closed loop's.
+        fsw = build_flight_software(scenario, *handover_estimate(scenario, world.truth()),
+                                    onboard_map=maps[0] if maps is not None else None)
+        setup_s = time.perf_counter() - t_setup
+        try:
+            return _fly(scenario, terrain, world, sensors, fsw, frame_sink, progress, setup_s, recorder, maps, hazard)
+        except (LawOutputError, ScenarioError):
+            raise  # the user's: a plug-in law's output, or an input check made in flight
+        except ValueError as exc:
+            raise SimulationDefectError(
+                f"the closed loop failed at t = {world.t_ns / NS_PER_S:.3f} s with {type(exc).__name__}: {exc}. "
+                f"The scenario passed its checks, so this is a defect of landbench, not a mistake in the input: "
+                f"please report it with the scenario (seed {scenario.seed})") from exc
     finally:
         world.close()
 
 
-def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuite,
+def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuite, fsw: FlightSoftware,
          frame_sink: FrameSink | RenderingFrameSink | None, progress: bool, setup_s: float,
          recorder: Recorder | None = None, maps: tuple | None = None, hazard: Any = None) -> RunResult:
     sim, cam, crit = scenario.sim, scenario.camera, scenario.landing
@@ -292,8 +297,6 @@ def _fly(scenario: Scenario, terrain: Terrain, world: World, sensors: SensorSuit
     steps_per_tick = tick_ns // dt_ns
     assert tick_ns % dt_ns == 0
 
-    fsw = build_flight_software(scenario, *handover_estimate(scenario, world.truth()),
-                                onboard_map=maps[0] if maps is not None else None)
     map_truth_log: list[tuple[int, np.ndarray]] = []  # (t_ns, truth camera position) at each map-fix attempt
     # With map fixes the flight software navigates in the map's frame: its errors are taken against the truth
     # there (truth + the map's shift). Without them, against the truth in L.

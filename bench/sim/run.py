@@ -67,10 +67,10 @@ from typing import Any, Protocol
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from bench.errors import SimulationDefectError
 from bench.evaluation.consistency import NEES_BLOCKS, block_nees_many, run_consistency, ticks_at_altitudes
 from bench.scenario import NS_PER_S, Scenario, ScenarioError
 from bench.scenario.seeding import component_rng
-from bench.errors import SimulationDefectError
 from bench.sim.flight_build import build_flight_software, handover_estimate, onboard_knowledge, restart_flight_software
 from bench.sim.truth_tracker import TruthTracker
 from bench.sim.world_builder import SensorSuite, build_sensors, build_terrain, build_world

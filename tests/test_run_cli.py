@@ -104,6 +104,27 @@ def test_a_flight_computer_that_cannot_be_built_stays_the_users_one_line(tmp_pat
     assert not out.exists()
 
 
+def test_a_camera_too_small_for_the_tracker_is_one_line_before_anything_is_built(tmp_path, capsys):
+    # Before: a 64 x 64 camera flew: the tracker never placed a template (30 px, 21 px from every edge), and the
+    # default landing went blind to a navigation abort at 35 m, "median 0 tracks" the only hint.
+    out = tmp_path / "run"
+    small = ["camera.width_px=64", "camera.height_px=64"]
+    assert main(["run", "--out", str(out), *[a for s in small for a in ("--set", s)]]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(
+        "landbench: error: camera.width_px x camera.height_px = 64 x 64 is too small for the tracker") and "72 px" in err[0]
+    assert not out.exists()
+    camp = tmp_path / "camp"  # a campaign of such cases: refused before its folder exists, not n error rows
+    assert main(["mc", "--runs", "2", "--out", str(camp), *[a for s in small for a in ("--set", s)]]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is too small for the tracker" in err[0] and not camp.exists()
+    from bench.sim.flight_build import check_tracker_fits_camera
+
+    for ok in (["camera.width_px=72", "camera.height_px=72"], [*small, 'vision="off"'], [*small, 'tracks="truth"'],
+               [*small, "tracker.template_size=20", "tracker.border_px=20"]):
+        check_tracker_fits_camera(load_scenario(None, ok))  # the smallest frame that holds one; no tracker; a smaller one
+
+
 def test_a_failure_after_the_run_leaves_no_partial_video(tmp_path, monkeypatch):
     import pytest
 

@@ -120,7 +120,8 @@ def check_seed(campaign_seed: object) -> None:
 
 
 def check_cases(base: Scenario, runs: int, campaign_seed: int, every: bool = True) -> None:
-    """Draw the cases' dispersions and validate their scenarios, before anything is written.
+    """Draw the cases' dispersions and validate their scenarios (and their cameras against the tracker,
+    :func:`bench.sim.flight_build.check_tracker_fits_camera`), before anything is written.
 
     ``every`` (a dry run, which writes each case's dispersed scenario): a draw outside a field's
     limits is refused here, in one line naming the case and the field, instead of after the
@@ -128,13 +129,16 @@ def check_cases(base: Scenario, runs: int, campaign_seed: int, every: bool = Tru
     flies, which records a refused case as an error row and goes on): the campaign is refused only
     when no case can be drawn, the table itself being wrong; the draws stop at the first valid case.
     """
+    from bench.sim.flight_build import check_tracker_fits_camera
+
     check_seed(campaign_seed)
     if not base.dispersions:
-        return  # every case is the base scenario with its own seed
+        check_tracker_fits_camera(base)  # every case is the base scenario with its own seed
+        return
     first = None
     for i, seed in enumerate(case_seeds(campaign_seed, runs)):
         try:
-            seeded_case(base, seed)
+            check_tracker_fits_camera(seeded_case(base, seed)[0])
         except ValueError as exc:
             if every:
                 raise ValueError(f"case {i} of --seed {campaign_seed}: its dispersed draw is refused: {exc}; "

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.scenario import Scenario
+from bench.scenario import Scenario, ScenarioError
 from bench.scenario.seeding import component_rng
 from gnc.control import VehicleParams, make_controller
 from gnc.estimator import DIM_REGIONAL, IDX_H, IDX_RR, make_estimator
@@ -103,6 +103,33 @@ def engine_response(scenario: Scenario) -> EngineResponse:
     return EngineResponse(time_constant_s=engine.time_constant_s, slew_rate_Nps=engine.slew_rate_Nps)
 
 
+def check_tracker_fits_camera(scenario: Scenario) -> None:
+    """Refuse a flight whose vision tracker could never track in its camera's frames.
+
+    The tracker places a template only ``border_px`` away from every edge of the frame
+    (:class:`vision.tracker.Tracker`), so in a frame smaller than ``template_size + 2 border_px`` (of
+    the configuration it scales to that frame) it holds no track at all, and the flight software
+    would fly blind without a word. Checked before a flight is set up; other commands (rendering a
+    world, the vision figures) may use such a camera.
+
+    Raises:
+        ScenarioError: Naming the camera's size, the size needed and the ways out.
+    """
+    if scenario.vision != "on" or scenario.tracks != "vision" or not scenario.camera.enabled:
+        return
+    cam = scenario.camera
+    side = min(cam.width_px, cam.height_px)
+    cfg = scenario.tracker.for_side(side)
+    need = cfg.template_size + 2 * cfg.border_px
+    if side < need:
+        raise ScenarioError(
+            f"camera.width_px x camera.height_px = {cam.width_px} x {cam.height_px} is too small for the tracker: a "
+            f"template (tracker.template_size = {cfg.template_size} px) kept tracker.border_px = {cfg.border_px} px "
+            f"from every edge needs {need} px a side, so vision would never track; allowed: a camera of at least "
+            f"{need} px a side, a smaller tracker.template_size or tracker.border_px, or vision = 'off' or "
+            "tracks = 'truth'")
+
+
 def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.ndarray, t0_ns: int = 0,
                           q0_LB: np.ndarray | None = None, onboard_map: OnboardMap | None = None) -> FlightSoftware:
     """The flight computer of the run: onboard knowledge, configuration and the hand-over estimate.
@@ -111,6 +138,7 @@ def build_flight_software(scenario: Scenario, x0_r_L: np.ndarray, x0_v_L: np.nda
     attitude the flight software holds itself, after a reset; None: from the first star-tracker fix). With
     ``nav_map = "on"`` it carries the onboard map (``onboard_map``, else made here from the scenario: plain data).
     """
+    check_tracker_fits_camera(scenario)
     knowledge = onboard_knowledge(scenario)
     control = scenario.control
     if scenario.realism == "ideal":  # the idealised flight computer commands the full magnitude m |f|

@@ -71,7 +71,8 @@ from bench.errors import SimulationDefectError
 from bench.evaluation.consistency import NEES_BLOCKS, block_nees_many, run_consistency, ticks_at_altitudes
 from bench.scenario import NS_PER_S, Scenario, ScenarioError
 from bench.scenario.seeding import component_rng
-from bench.sim.flight_build import build_flight_software, handover_estimate, onboard_knowledge, restart_flight_software
+from bench.sim.flight_build import (build_flight_software, check_tracker_fits_camera, handover_estimate,
+                                    onboard_knowledge, restart_flight_software)
 from bench.sim.truth_tracker import TruthTracker
 from bench.sim.world_builder import SensorSuite, build_sensors, build_terrain, build_world
 from gnc.control import ActuatorCommand
@@ -238,9 +239,12 @@ def run(scenario: Scenario, frame_sink: FrameSink | RenderingFrameSink | None = 
         telemetry and the terrain.
 
     Raises:
+        ScenarioError: A camera too small for the vision tracker (:func:`check_tracker_fits_camera`), before
+            anything is built; an input check made in flight.
         SimulationDefectError: A ``ValueError`` inside the closed loop other than a plug-in law's
             (:class:`gnc.plugins.LawOutputError`) or an input check's (:class:`ScenarioError`).
     """
+    check_tracker_fits_camera(scenario)  # before anything is built
     t_setup = time.perf_counter()
     maps = None
     if scenario.nav_map == "on":  # the onboard map (for the flight software) and its truth (for the bench)

@@ -3,7 +3,8 @@ parses before it imports the simulation)."""
 
 
 class SimulationDefectError(RuntimeError):
-    """A ``ValueError`` raised inside the closed loop that no check of the input foresaw.
+    """An error raised inside the closed loop that no check of the input foresaw (a ``ValueError``, an overflow,
+    a type, lookup, attribute or assertion error).
 
     The scenario passed its checks and the world was built from it, so such an error is a defect of landbench
     (or of a library it calls), not the user's mistake: the command line reports it as an internal error with

@@ -71,6 +71,8 @@ from scipy.spatial.transform import Rotation
 from gnc.messages import AltimeterMessage, AttitudeMessage, ImuMessage
 
 NS_PER_S = 1_000_000_000
+FAULT_TIME_MAX_S = 1.0e6  # a trigger time or duration beyond this (11.6 days) is refused: in ns it overflowed [s]
+FAULT_BIAS_MAX = 1.0e6  # a bias or bias rate beyond this, in the sensor's unit, is refused: it overflowed the filter
 SENSOR_TARGETS = ("imu.accel", "imu.gyro", "altimeter", "star_tracker")
 PHASES = ("approach", "terminal")
 
@@ -86,13 +88,14 @@ class _Fault(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    t_s: float | None = Field(None, ge=0.0, description="trigger: simulation time [s]")
-    t_ns: int | None = Field(None, ge=0, description="trigger: simulation time [ns]")
+    t_s: float | None = Field(None, ge=0.0, le=FAULT_TIME_MAX_S, description="trigger: simulation time [s]")
+    t_ns: int | None = Field(None, ge=0, le=int(FAULT_TIME_MAX_S) * NS_PER_S, description="trigger: simulation time [ns]")
     altitude_m: float | None = Field(
         None, description="trigger: truth height of the body origin above the terrain under it, at or below [m]"
     )
     phase: Literal["approach", "terminal"] | None = Field(None, description="trigger: guidance phase")
-    duration_s: float | None = Field(None, gt=0.0, description="how long the fault lasts [s]; unset: to the end")
+    duration_s: float | None = Field(None, gt=0.0, le=FAULT_TIME_MAX_S,
+                                     description="how long the fault lasts [s]; unset: to the end")
 
     @model_validator(mode="after")
     def _one_trigger(self) -> "_Fault":
@@ -151,14 +154,15 @@ class BiasStep(_SensorFault):
     """A constant bias added from the trigger."""
 
     kind: Literal["bias_step"]
-    value: float = Field(description="bias: m/s^2 (accel), rad/s (gyro), m (altimeter), arcsec (star tracker)")
+    value: float = Field(ge=-FAULT_BIAS_MAX, le=FAULT_BIAS_MAX,
+                         description="bias: m/s^2 (accel), rad/s (gyro), m (altimeter), arcsec (star tracker)")
 
 
 class BiasRamp(_SensorFault):
     """A bias growing linearly from zero at the trigger."""
 
     kind: Literal["bias_ramp"]
-    rate_per_s: float = Field(description="bias rate: the bias's unit per second")
+    rate_per_s: float = Field(ge=-FAULT_BIAS_MAX, le=FAULT_BIAS_MAX, description="bias rate: the bias's unit per second")
 
 
 class Noise(_SensorFault):
@@ -270,6 +274,13 @@ class ComputerReset(_Fault):
     kind: Literal["computer_reset"]
     target: Literal["computer"] = "computer"
     down_s: float = Field(gt=0.0, le=60.0, description="time the computer is down, engine off [s]")
+
+    @model_validator(mode="after")
+    def _down_s_is_its_duration(self) -> "ComputerReset":
+        if self.duration_s is not None:
+            raise ValueError(f"computer_reset.duration_s = {self.duration_s:g}: a reset lasts its down_s "
+                             f"({self.down_s:g} s), and duration_s was ignored; allowed: down_s alone")
+        return self
 
     def duration_ns(self) -> int | None:
         return int(round(self.down_s * NS_PER_S))

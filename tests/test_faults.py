@@ -551,3 +551,24 @@ def test_rcs_stuck_on_in_the_loop_is_detected_and_a_partial_one_flown_through():
                                             't_s=2.0}]']))
     assert not [e for e in part.summary["fdir_events"] if e["subsystem"] == "rcs"]
     assert np.max(np.abs(part.telemetry["tilt_deg"] - clean["tilt_deg"])) < 2.0
+
+
+@pytest.mark.parametrize("fault, start", [
+    # Before: a trigger time or duration of 1e300 s overflowed in ns (OverflowError traceback, exit 1), a bias of
+    # 1e308 m overflowed the filter's innovation, a reset's duration_s was ignored without a word, and a trigger
+    # after the run's end was accepted and never acted.
+    ('{kind="dropout", target="altimeter", t_s=1e300}', "faults.0.dropout.t_s = 1e+300: Input should be less than"),
+    ('{kind="dropout", target="altimeter", t_s=5.0, duration_s=1e300}', "faults.0.dropout.duration_s = 1e+300"),
+    ('{kind="bias_step", target="altimeter", value=1e308, t_s=10.0}', "faults.0.bias_step.value = 1e+308"),
+    ('{kind="bias_ramp", target="altimeter", rate_per_s=-1e200, t_s=10.0}', "faults.0.bias_ramp.rate_per_s = -1e+200"),
+    ('{kind="computer_reset", t_s=20.0, down_s=1.0, duration_s=30.0}',
+     "faults.0.computer_reset.duration_s = 30: a reset lasts its down_s"),
+    ('{kind="dropout", target="altimeter", t_s=500.0}',
+     "faults.0.t_s = 500 s is at or after the run's end (sim.t_max_ns = 240000000000)"),
+])
+def test_fault_settings_that_overflowed_or_never_acted_are_refused_at_load(fault, start):
+    from bench.scenario import ScenarioError, load_scenario
+
+    with pytest.raises(ScenarioError) as exc:
+        load_scenario(None, [f"faults=[{fault}]"])
+    assert str(exc.value).startswith(start), str(exc.value)

@@ -67,13 +67,15 @@ def test_bad_input_writes_nothing(tmp_path, capsys):
     assert sorted(p.name for p in out.iterdir()) == ["summary.json"]
 
 
-def test_a_defect_inside_the_loop_is_reported_as_internal_not_as_the_users_mistake(tmp_path, capsys, monkeypatch):
-    # Before: any ValueError from inside the flight read "landbench: error: <numpy's message>" with exit 2, as if
-    # the (valid) input were wrong, and without the traceback a report needs.
+@pytest.mark.parametrize("error", [ValueError, OverflowError])
+def test_a_defect_inside_the_loop_is_reported_as_internal_not_as_the_users_mistake(tmp_path, capsys, monkeypatch, error):
+    # Before: a ValueError from inside the flight read "landbench: error: <numpy's message>" with exit 2, as if
+    # the (valid) input were wrong, and without the traceback a report needs; an OverflowError was a bare
+    # traceback with exit 1.
     import bench.sim.run as run_module
 
     def broken_row(*args, **kwargs):
-        raise ValueError("operands could not be broadcast together with shapes (3,) (4,)")
+        raise error("operands could not be broadcast together with shapes (3,) (4,)")
 
     monkeypatch.setattr(run_module, "_row", broken_row)
     out = tmp_path / "run"
@@ -82,7 +84,7 @@ def test_a_defect_inside_the_loop_is_reported_as_internal_not_as_the_users_mista
     assert main(["run", "--out", str(out), *_sets()]) == 70
     err = capsys.readouterr().err.strip().splitlines()
     assert "Traceback (most recent call last):" in err and "landbench: error:" not in "\n".join(err)
-    assert err[-1].startswith("landbench: internal error: the closed loop failed at t = 0.000 s with ValueError: "
+    assert err[-1].startswith(f"landbench: internal error: the closed loop failed at t = 0.000 s with {error.__name__}: "
                               "operands could not be broadcast"), err[-1]
     assert "not a mistake in the input" in err[-1]
     assert (out / "summary.json").read_text() == "earlier result"

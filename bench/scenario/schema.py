@@ -284,6 +284,12 @@ class Scenario(BaseModel):
                 check_fault(f)
             except ValueError as exc:
                 raise ValueError(f"faults.{i}: {exc}") from None
+            t0 = f.trigger_time_ns()
+            if t0 is not None and t0 >= self.sim.t_max_ns:
+                given = f"t_s = {f.t_s:g} s" if f.t_s is not None else f"t_ns = {f.t_ns}"
+                raise ValueError(f"faults.{i}.{given} is at or after the run's end "
+                                 f"(sim.t_max_ns = {self.sim.t_max_ns}), so the fault would never act; allowed: "
+                                 f"a trigger before {self.sim.t_max_ns / 1e9:g} s, or a longer sim.t_max_ns")
             if f.kind == "terrain_step":
                 keep_m = self.terrain.patch_size_m / math.sqrt(2.0)  # the target and its texture patch stay as they are
                 if math.hypot(*f.center_xy_m) - f.radius_m <= keep_m:

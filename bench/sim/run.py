@@ -241,8 +241,9 @@ def run(scenario: Scenario, frame_sink: FrameSink | RenderingFrameSink | None = 
     Raises:
         ScenarioError: A camera too small for the vision tracker (:func:`check_tracker_fits_camera`), before
             anything is built; an input check made in flight.
-        SimulationDefectError: A ``ValueError`` inside the closed loop other than a plug-in law's
-            (:class:`gnc.plugins.LawOutputError`) or an input check's (:class:`ScenarioError`).
+        SimulationDefectError: A ``ValueError`` (other than a plug-in law's, :class:`gnc.plugins.LawOutputError`,
+            or an input check's, :class:`ScenarioError`), an arithmetic, type, lookup, attribute or assertion
+            error inside the closed loop.
     """
     check_tracker_fits_camera(scenario)  # before anything is built
     t_setup = time.perf_counter()
@@ -274,7 +275,8 @@ def run(scenario: Scenario, frame_sink: FrameSink | RenderingFrameSink | None = 
             return _fly(scenario, terrain, world, sensors, fsw, frame_sink, progress, setup_s, recorder, maps, hazard)
         except (LawOutputError, ScenarioError):
             raise  # the user's: a plug-in law's output, or an input check made in flight
-        except ValueError as exc:
+        except (ValueError, ArithmeticError, TypeError, LookupError, AttributeError, AssertionError) as exc:
+            # What no input check foresaw (an overflow included); an OSError (a full disk) and a GL error stay theirs.
             raise SimulationDefectError(
                 f"the closed loop failed at t = {world.t_ns / NS_PER_S:.3f} s with {type(exc).__name__}: {exc}. "
                 f"The scenario passed its checks, so this is a defect of landbench, not a mistake in the input: "

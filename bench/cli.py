@@ -359,6 +359,11 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 
 def cmd_faults(args: argparse.Namespace) -> int:
+    if args.action not in ("list", "run"):  # `faults FILE`: the default action, on a scenario file
+        if args.scenario is not None:
+            raise ValueError(f"faults {args.action!r} {args.scenario!r}: the first word is list or run; allowed: "
+                             "landbench faults [list|run] [SCENARIO.toml]")
+        args.action, args.scenario = "run", args.action
     if args.action != "list":
         _start_workers_early(args)
     from bench.campaign import faults
@@ -557,8 +562,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "rates with Wilson intervals, fault detection rate and latency, unseen failures, false alarms "
                     "and touchdown figures: DIR/matrix.parquet, DIR/faults.json, DIR/matrix.md, DIR/cases.parquet, "
                     "DIR/report.png and each preset's campaign in DIR/presets/NAME/.")
-    p.add_argument("action", nargs="?", choices=("list", "run"), default="run",
-                   help="list: print the presets; run (default): the fault matrix")
+    p.add_argument("action", nargs="?", default="run", metavar="{list,run}",
+                   help="list: print the presets; run (default): the fault matrix; a scenario file in its place "
+                        "runs the matrix on it")
     _add_scenario_args(p)
     p.add_argument("--presets", default="all", metavar="all|NAME,...", help="presets to run (default all)")
     p.add_argument("--runs", type=int, default=None, help="cases per preset")

@@ -244,3 +244,14 @@ def test_world_refuses_a_start_off_the_tile_as_run_does(tmp_path, capsys):
     assert main(["world", "--out", str(out), "--set", "terrain.size_m=64", "--set",
                  "terrain.target_clear_radius_m=10"]) == 2
     assert "the start is outside the 64 m terrain tile" in capsys.readouterr().err and not out.exists()
+
+
+def test_faults_takes_a_scenario_file_in_place_of_its_default_action(tmp_path, capsys):
+    # The help says run is the default; before, `landbench faults FILE` read FILE as the action:
+    # "argument action: invalid choice: 'FILE' (choose from 'list', 'run')".
+    missing = tmp_path / "mine.toml"
+    _refused(capsys, ["faults", str(missing), "--runs", "1", "--out", str(tmp_path / "m")],
+             f"scenario file '{missing}' does not exist")
+    _refused(capsys, ["faults", "a.toml", "b.toml", "--runs", "1", "--out", str(tmp_path / "m")],
+             "the first word is list or run")
+    assert not (tmp_path / "m").exists()

@@ -17,18 +17,6 @@ from typing import Any
 from pydantic import BaseModel, ValidationError
 
 
-def _allowed_fields(model: type[BaseModel], loc: tuple[str, ...]) -> str:
-    """Field names allowed at the parent of ``loc`` (for unknown-key errors)."""
-    sub: Any = model
-    for part in loc[:-1]:
-        field = getattr(sub, "model_fields", {}).get(part)
-        ann = field.annotation if field is not None else None
-        if not (isinstance(ann, type) and issubclass(ann, BaseModel)):
-            return ""
-        sub = ann
-    return ", ".join(sub.model_fields)
-
-
 def _fields_at(model: type[BaseModel], loc: tuple[str, ...]) -> tuple[str, ...]:
     """Field names of the table at ``loc`` (empty when ``loc`` is not a table of ``model``)."""
     sub: Any = model
@@ -39,6 +27,11 @@ def _fields_at(model: type[BaseModel], loc: tuple[str, ...]) -> tuple[str, ...]:
             return ()
         sub = ann
     return tuple(sub.model_fields)
+
+
+def _allowed_fields(model: type[BaseModel], loc: tuple[str, ...]) -> str:
+    """Field names allowed at the parent of ``loc`` (for unknown-key errors)."""
+    return ", ".join(_fields_at(model, loc[:-1]))
 
 
 def format_validation_error(err: ValidationError, model: type[BaseModel], prefix: str = "") -> str:

@@ -91,7 +91,7 @@ def _check_out(path: str, suffixes: tuple[str, ...], flag: str) -> Path:
 
 # --------------------------------------------------------------------------- commands
 def cmd_scenario_show(args: argparse.Namespace) -> int:
-    scenario = load_scenario(args.scenario, args.overrides)
+    scenario = load_scenario(args.scenario, args.overrides, args.preset)
     sys.stdout.write(scenario_to_toml(scenario))
     return 0
 
@@ -487,6 +487,7 @@ def build_parser() -> argparse.ArgumentParser:
     ssub = p.add_subparsers(dest="scenario_command", required=True, metavar="ACTION")
     ps = ssub.add_parser("show", help="print the resolved scenario as TOML")
     _add_scenario_args(ps)
+    _add_preset_arg(ps)
     ps.set_defaults(func=cmd_scenario_show)
 
     p = sub.add_parser("run", help="fly one closed-loop landing and write its results",

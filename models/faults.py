@@ -315,6 +315,18 @@ def check_fault(f: Any) -> None:
     """Combinations the types alone do not refuse (one line, for the scenario's validator)."""
     if f.kind in ("scale", "saturation") and f.target == "star_tracker":
         raise ValueError(f"fault '{f.kind}' on target 'star_tracker'; allowed targets: imu.accel, imu.gyro, altimeter")
+    if f.kind in SENSOR_KINDS and "axes" in f.model_fields_set and sorted(f.axes) != [0, 1, 2]:
+        # The axes were silently ignored: the altimeter has one value; these act on the whole message.
+        if f.target == "altimeter":
+            why = "the altimeter has one value"
+        elif f.kind in ("dropout", "flagged_invalid"):
+            why = f"a {f.kind} acts on the whole message"
+        elif f.target == "star_tracker" and f.kind == "stuck":
+            why = "a stuck star tracker repeats its whole attitude"
+        else:
+            return
+        raise ValueError(f"axes = {f.axes} on a '{f.kind}' fault of '{f.target}': {why}, so the axes would be "
+                         "ignored; allowed: leave axes unset")
 
 
 # --------------------------------------------------------------------------- the injector

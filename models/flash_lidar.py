@@ -42,6 +42,15 @@ from models.site_dem import SiteDem
 
 
 MOUNT_MAX_M = 10.0  # the lidar sits on the vehicle: each mount axis within this of the body origin [m]
+MARCH_STEP_MIN_M = 0.005  # finest ray-march step [m]: 1e-9 m marched for ever
+FOV_MIN_DEG = 0.5  # narrowest field of view [deg] (ALHAT's flash lidar: about 1 deg at 1 km)
+FOOTPRINT_TILT_DEG = 10.0  # attitude allowance of a scan's footprint [deg]
+
+
+def footprint_half_m(fov_deg: float, range_m: float, tilt_deg: float = FOOTPRINT_TILT_DEG) -> float:
+    """Half-side of a square that holds the footprint of a lidar of this field of view at this slant range
+    with this much tilt [m] (the diagonal's half-angle plus the tilt, and 2 m)."""
+    return range_m * math.tan(math.radians(fov_deg / 2 * math.sqrt(2) + tilt_deg)) + 2.0
 
 
 class FlashLidarConfig(BaseModel):
@@ -50,13 +59,16 @@ class FlashLidarConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     pixels: int = Field(256, ge=8, le=1024, description="rays per side of the square range image [-]")
-    fov_deg: float = Field(20.0, gt=0.0, lt=90.0, description="full field of view, edge to edge [deg]")
+    fov_deg: float = Field(20.0, ge=FOV_MIN_DEG, lt=90.0, description="full field of view, edge to edge [deg]")
     range_sigma_m: float = Field(0.03, ge=0.0, le=1.0, description="1-sigma white range noise [m]")
     max_range_m: float = Field(1000.0, gt=0.0, description="no return beyond this range [m]")
     mount_B_m: tuple[float, float, float] = Field(
         (0.0, 0.0, -0.5), description="sensor position in the body frame [m] (boresight = the camera's); on the "
                                       "vehicle: each axis within 10 m of the body origin")
-    march_step_m: float = Field(0.05, gt=0.0, le=1.0, description="ray-march step in height [m]")
+    march_step_m: float = Field(
+        0.05, ge=MARCH_STEP_MIN_M, le=1.0,
+        description="ray-march step in height [m] (the march's cost grows as relief / step: at least 5 mm, a "
+                    "tenth of the finest range noise worth modelling)")
 
     @field_validator("mount_B_m")
     @classmethod
@@ -128,9 +140,9 @@ class FlashLidar:
         self.rng = rng
         self.dirs_S = lidar_ray_dirs_S(cfg.pixels, cfg.fov_deg)
 
-    def footprint_half_m(self, range_m: float, tilt_deg: float = 10.0) -> float:
+    def footprint_half_m(self, range_m: float, tilt_deg: float = FOOTPRINT_TILT_DEG) -> float:
         """Half-side of a square that holds the footprint at this slant range with this much tilt [m]."""
-        return range_m * math.tan(math.radians(self.cfg.fov_deg / 2 * math.sqrt(2) + tilt_deg)) + 2.0
+        return footprint_half_m(self.cfg.fov_deg, range_m, tilt_deg)
 
     def scan(self, t_ns: int, r_SL_L: np.ndarray, R_LS: np.ndarray, R_BS: np.ndarray,
              dem: SiteDem) -> LidarScanMessage:

@@ -54,17 +54,31 @@ PIXEL_AREA_SIGMA_PX = 1.0 / math.sqrt(12.0)  # a box pixel's footprint as a Gaus
 DEM_LOWPASS_SIGMA_POSTS = 0.5  # a stereo DEM resolves about two posts: Gaussian low-pass of this sigma [posts]
 
 
+MAP_SIDE_MAX = 4096  # most orthoimage pixels, and DEM posts, per side of the map [-] (768 and 384 by default)
+
+
 def grid_counts(size_m: float, image_res_m: float, dem_spacing_m: float) -> tuple[int, int]:
     """The map's image pixels and DEM post intervals per side, (n_px, n_posts).
 
     Raises:
-        ValueError: ``size_m`` is not a whole number of both (one line, with the nearest size that is).
+        ValueError: ``size_m`` is not a whole number of both, or either is more than ``MAP_SIDE_MAX`` a side
+            (one line naming the field, with values that would do).
     """
     n_px, n_posts = int(round(size_m / image_res_m)), int(round(size_m / dem_spacing_m))
-    if not (math.isclose(n_px * image_res_m, size_m, rel_tol=1e-9)
-            and math.isclose(n_posts * dem_spacing_m, size_m, rel_tol=1e-9)):
-        raise ValueError(f"onboard_map.size_m = {size_m} must be a whole number of image pixels ({image_res_m} m) "
-                         f"and DEM posts ({dem_spacing_m} m); e.g. {_common_size_m(size_m, image_res_m, dem_spacing_m):g}")
+    for name, step, n in (("image_res_m", image_res_m, n_px), ("dem_spacing_m", dem_spacing_m, n_posts)):
+        if size_m / step > MAP_SIDE_MAX:  # 1 mm pixels over 768 m ran out of memory
+            raise ValueError(f"onboard_map.{name} = {step:g} makes {size_m / step:.0f} {'pixels' if name == 'image_res_m' else 'posts'} "
+                             f"a side over onboard_map.size_m = {size_m:g}, more than {MAP_SIDE_MAX}; allowed: "
+                             f"{name} of at least {size_m / MAP_SIDE_MAX:.4g} m, or a smaller size_m")
+    for name, step, n, what in (("image_res_m", image_res_m, n_px, "image pixels"),
+                                ("dem_spacing_m", dem_spacing_m, n_posts, "DEM posts")):
+        if not math.isclose(n * step, size_m, rel_tol=1e-9):
+            n = max(n, 1)
+            common = _common_size_m(size_m, image_res_m, dem_spacing_m)
+            size_hint = f", or a size_m that is a whole number of both, e.g. {common:g}" if common <= 2 * size_m else ""
+            raise ValueError(f"onboard_map.size_m = {size_m:g} is not a whole number of {what} (onboard_map.{name} = "
+                             f"{step:g} m); allowed: {name} that divides it (e.g. {size_m / n:.6g} = {size_m:g} / "
+                             f"{n}){size_hint}")
     return n_px, n_posts
 
 

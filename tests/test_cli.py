@@ -193,6 +193,60 @@ def test_settings_that_would_fail_or_stall_the_run_are_refused_at_load(capsys, s
     _refused(capsys, ["scenario", "show", "--set", setting], needle)
 
 
+@pytest.mark.parametrize("argv, needle", [
+    # A march step of 1e-9 m marched for ever; 1 mm pixels, 10 um map posts and 1 um truth posts ran out of memory
+    # (a raw MemoryError traceback).
+    (["--set", "hazard.avoidance=on", "--set", "hazard.lidar.march_step_m=1e-9"],
+     "hazard.lidar.march_step_m = 1e-09: Input should be greater than or equal to 0.005"),
+    (["--set", "onboard_map.image_res_m=0.001"], "onboard_map.image_res_m = 0.001 makes 768000 pixels a side"),
+    (["--set", "onboard_map.dem_spacing_m=0.00001"], "onboard_map.dem_spacing_m = 1e-05 makes 76800000 posts a side"),
+    (["--set", "hazard.avoidance=on", "--set", "hazard.hda.dem_spacing_m=0.00001"],
+     "hazard.hda.dem_spacing_m = 1e-05 over the scan's footprint at hazard.hda.scan_altitude_m = 100 m"),
+    (["--set", "hazard.scoring=on", "--set", "hazard.site_spacing_m=0.000001"], "hazard.site_spacing_m = 1e-06"),
+    # Scans that could never be taken, or would see nothing: the run flew (and landed) without a word.
+    (["--set", "hazard.avoidance=on", "--set", "hazard.hda.scan_altitude_m=25"],
+     "hazard.hda.scan_altitude_m = 25 is at or below guidance.gate_altitude_m = 30"),
+    (["--set", "hazard.avoidance=on", "--set", "hazard.hda.rescan_altitude_m=150"],
+     "hazard.hda.rescan_altitude_m = 150 is not below hazard.hda.scan_altitude_m = 100"),
+    (["--set", "hazard.avoidance=on", "--set", "hazard.lidar.max_range_m=50"],
+     "hazard.lidar.max_range_m = 50 is shorter than the slant range of the scan (103 m"),
+    (["--set", "hazard.avoidance=on", "--set", "hazard.lidar.fov_deg=1"],
+     "hazard.lidar.fov_deg = 1: at hazard.hda.scan_altitude_m = 100 m the footprint is 1.75 m across"),
+    # The hazardous preset on a 128 m terrain flew to 100 m before its footprint left the terrain; the second
+    # scan's (over a site up to 50 m away) needs more, and the size named is the one that holds both.
+    (["--preset", "hazardous", "--set", "hazard.avoidance=on", "--set", "terrain.size_m=128"],
+     "hazard.hda.rescan_altitude_m = 50: the lidar's footprint (+-24 m, nadir about 50 m from the target) reaches "
+     "74 m from the target, beyond the terrain (terrain.size_m = 128, half 64 m less 1 m); allowed: a larger "
+     "terrain.size_m (at least 152)"),
+    # A widening limit below the window never widened; periods and run lengths past int64 overflowed the clock.
+    (["--set", "map_nav.acquire_max_sigmas=2"], "map_nav.acquire_max_sigmas = 2 is below map_nav.fix.search_sigmas = 3"),
+    (["--set", "nav_map=on", "--set", "map_nav.period_ns=10000000000000000000"],
+     "map_nav.period_ns = 10000000000000000000 is longer than any run"),
+    (["--set", "sim.t_max_ns=10000000000000000000"], "sim.t_max_ns = 10000000000000000000"),
+    # A fault at 0.5 m never triggered (the body origin stands 2.1 m up): only triggered = false told.
+    (["--set", 'faults=[{kind = "dropout", target = "altimeter", altitude_m = 0.5}]'],
+     "faults.0.altitude_m = 0.5 is under half the body origin's height standing on level ground (2.1 m"),
+])
+def test_hazard_map_and_timing_settings_that_could_never_act_are_refused_at_load(capsys, argv, needle):
+    _refused(capsys, ["scenario", "show", *argv], needle)
+
+
+def test_scenario_show_takes_a_preset(capsys):
+    assert main(["scenario", "show", "--preset", "hazardous"]) == 0
+    assert "boulder_density_per_km2 = 25000.0" in capsys.readouterr().out
+
+
+def test_a_dispersed_map_resolution_is_named_with_a_value_that_would_do():
+    from models.orbital_map import grid_counts
+
+    # It blamed onboard_map.size_m and offered "e.g. 697498" (the common multiple of a drawn 0.9934 m and 2 m).
+    with pytest.raises(ValueError) as exc:
+        grid_counts(768.0, 0.993419909472726, 2.0)
+    msg = str(exc.value)
+    assert "onboard_map.image_res_m = 0.99342 m" in msg and "e.g. 0.993532 = 768 / 773" in msg and "697498" not in msg
+    assert grid_counts(768.0, 768 / 773, 2.0) == (773, 384)
+
+
 def test_vision_figures_with_too_few_frames_names_the_flag(tmp_path, capsys):
     _refused(capsys, ["vision-figures", "--frames", "2", "--out", str(tmp_path / "v")], "--frames 2")
     assert not (tmp_path / "v").exists()

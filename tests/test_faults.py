@@ -573,3 +573,16 @@ def test_fault_settings_that_overflowed_or_never_acted_are_refused_at_load(fault
     with pytest.raises(ScenarioError) as exc:
         load_scenario(None, [f"faults=[{fault}]"])
     assert str(exc.value).startswith(start), str(exc.value)
+
+
+@pytest.mark.parametrize("fault, needle", [
+    ('{kind = "bias_step", target = "altimeter", value = 5.0, axes = [2]}', "the altimeter has one value"),
+    ('{kind = "dropout", target = "imu.accel", axes = [0]}', "a dropout acts on the whole message"),
+    ('{kind = "flagged_invalid", target = "star_tracker", axes = [1, 2]}', "a flagged_invalid acts on the whole message"),
+    ('{kind = "stuck", target = "star_tracker", axes = [0]}', "a stuck star tracker repeats its whole attitude"),
+])
+def test_axes_a_fault_would_ignore_are_refused(fault, needle):
+    # They were accepted and ignored: the whole message (or the altimeter's one value) was affected.
+    with pytest.raises(ScenarioError, match=r"faults\.0: axes = \[.*\] on a '.*' fault of '.*': " + needle):
+        load_scenario(None, [f"faults=[{fault}]"])
+    load_scenario(None, ['faults=[{kind = "bias_step", target = "imu.gyro", value = 1e-3, axes = [2]}]'])

@@ -27,7 +27,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from bench.scenario.dispersions import Dispersion, check_dispersion_paths, draw_dispersions
-from bench.scenario.hazard import HazardSettings
+from bench.scenario.hazard import HazardSettings, check_scan_plan
 from gnc.config import bool_for_number, format_validation_error
 from gnc.control import ControlConfig
 from gnc.estimator import EstimatorConfig, local_site_config
@@ -52,6 +52,9 @@ class ScenarioError(ValueError):
     """A scenario file, override or value is invalid (one-line message)."""
 
 
+T_MAX_NS_MAX = 10**15  # longest run, and longest period of any component [ns] (1e6 s; int64 holds 9.2e18)
+
+
 class SimConfig(BaseModel):
     """Simulation clock and world constants."""
 
@@ -59,7 +62,8 @@ class SimConfig(BaseModel):
 
     physics_dt_ns: int = Field(2_000_000, gt=0, description="physics step [ns] (default 500 Hz)")
     control_period_ns: int = Field(20_000_000, gt=0, description="flight-software control period [ns] (default 50 Hz)")
-    t_max_ns: int = Field(240 * NS_PER_S, gt=0, description="time limit of a run [ns]")
+    t_max_ns: int = Field(240 * NS_PER_S, gt=0, le=T_MAX_NS_MAX,
+                          description="time limit of a run [ns] (at most 1e6 s)")
     gravity_mps2: float = Field(1.62, gt=0, description="surface gravity [m/s^2]")
     compute_latency_ticks: int = Field(
         1, ge=0, le=10,
@@ -255,7 +259,13 @@ class Scenario(BaseModel):
                 f"sim.physics_dt_ns = {dt} is too large for stable contacts: MuJoCo needs the contact time "
                 f"constant ({CONTACT_TIMECONST_S * 1e3:g} ms) to be at least twice the step; allowed: <= {dt_max}"
             )
-        for name, period in self.periods_ns().items():
+        periods = self.periods_ns()
+        if self.nav_map == "on":
+            periods["map_nav.period_ns"] = self.map_nav.period_ns
+        for name, period in periods.items():
+            if period > T_MAX_NS_MAX:  # 1e19 overflowed the int64 clock
+                raise ValueError(f"{name} = {period} is longer than any run (at most sim.t_max_ns <= {T_MAX_NS_MAX}); "
+                                 f"allowed: <= {T_MAX_NS_MAX}")
             if period % dt:
                 lo = max(dt, period // dt * dt)
                 raise ValueError(
@@ -284,6 +294,12 @@ class Scenario(BaseModel):
                 check_fault(f)
             except ValueError as exc:
                 raise ValueError(f"faults.{i}: {exc}") from None
+            standing_m = self.lander.footpad_clearance_m
+            if f.altitude_m is not None and f.altitude_m < 0.5 * standing_m:  # 0.5 m: never triggered in a landing
+                raise ValueError(f"faults.{i}.altitude_m = {f.altitude_m:g} is under half the body origin's height "
+                                 f"standing on level ground ({standing_m:g} m, lander.leg_drop_m + footpad_radius_m): "
+                                 f"a landing never brings it that low (a crash might); allowed: altitude_m >= "
+                                 f"{0.5 * standing_m:g} (about {standing_m:g}: at touchdown), or a t_s or phase trigger")
             t0 = f.trigger_time_ns()
             if t0 is not None and t0 >= self.sim.t_max_ns:
                 given = f"t_s = {f.t_s:g} s" if f.t_s is not None else f"t_ns = {f.t_ns}"
@@ -342,6 +358,7 @@ class Scenario(BaseModel):
         if self.hazard.avoidance == "on" and self.nav != "estimator":
             raise ValueError(f"hazard.avoidance = 'on' with nav = '{self.nav}': the flight software maps hazards "
                              "through its own estimate; allowed: nav = 'estimator', or hazard.avoidance = 'off'")
+        check_scan_plan(self.hazard, self.guidance.gate_altitude_m, self.terrain.size_m, self.initial.r_BL_L_m)
         return self
 
     def periods_ns(self) -> dict[str, int]:

@@ -316,3 +316,38 @@ def test_summary_table_shows_navigation_and_vision_when_present():
     text = summary_table(summary)
     assert "0.064 m/s" in text and "30.2 m" in text and "v_h 1.10" in text
     assert "392 frames" in text and "4.6%" in text
+
+
+def test_summary_table_says_what_the_flight_software_did_and_did_not_do():
+    # The console listed no faults, map fixes or hazard scan at all: a fault whose trigger never came, a map that
+    # never locked and a hazardous touchdown all read as a plain "LANDED".
+    base = summary()
+    text = summary_table({**base, "faults": [
+        {"kind": "dropout", "target": "altimeter", "triggered": False, "detected": False},
+        {"kind": "bias", "target": "imu.gyro", "triggered": True, "start_t_s": 12.5, "detected": True,
+         "latency_s": 0.31, "detection": "gyro disagrees with the star tracker"},
+        {"kind": "stuck", "target": "star_tracker", "triggered": True, "start_t_s": 40.0, "detected": False}],
+        "fdir": {"n_events": 2, "subsystems": "imu", "first_event_t_s": 12.81, "abort_declared": False},
+        "map_nav": {"attempts": 9, "updates": 0, "locked": False, "refused": {"coarse peak not clear": 7, "x": 0}},
+        "hazard": {"avoidance": "on", "scan": {"scanned": True, "height_m": 99.6, "no_safe_site": False,
+                                               "first_no_site": False, "divert_m": 12.34, "margin_m": 1.5},
+                   "hazard_free": False, "footprint": {"hazards": "rock"}}})
+    lines = text.splitlines()
+    assert "fault dropout on altimeter: never triggered (its trigger was not met in flight)" in lines
+    assert ("fault bias on imu.gyro: from t = 12.50 s, detected after 0.31 s (gyro disagrees with the star "
+            "tracker)") in lines
+    assert "fault stuck on star_tracker: from t = 40.00 s, not detected" in lines
+    assert "fault detection: 2 event(s) (imu), first at t = 12.81 s" in lines
+    assert ("map fixes: 0 used of 9 attempts, NEVER LOCKED (navigation stayed on the hand-over estimate); most "
+            "refused: coarse peak not clear (7)") in lines
+    assert "hazard scan at 100 m: site 12.3 m away, margin 1.50 m" in lines
+    assert "touchdown footprint: HAZARDOUS (rock)" in lines
+    # Without faults, map navigation or hazard avoidance, none of these lines.
+    assert not any(w in summary_table(base) for w in ("fault", "map fixes", "hazard", "footprint"))
+    abort = summary_table({**base, "fdir": {"n_events": 1, "abort_declared": True, "abort_t_s": 30.0,
+                                            "abort_reason": "navigation lost"},
+                           "hazard": {"avoidance": "on", "scan": {"scanned": True, "height_m": 100.0,
+                                                                   "no_safe_site": True, "rescanned": True},
+                                      "hazard_free": None}})
+    assert "fault detection: abort declared at t = 30.00 s (navigation lost)" in abort
+    assert "hazard scan at 100 m: no safe site (after a second scan)" in abort and "footprint: unscored" in abort

@@ -908,6 +908,59 @@ def _limit_row(label: str, value: Any, limit: Any, spec: str, unit: str) -> str:
     return f"  {label:<18}{val:>12}   {lim:<14}{mark}"
 
 
+def _flight_software_lines(summary: Mapping[str, Any]) -> list[str]:
+    """The summary table's lines on the injected faults, the flight software's fault detection, its map fixes
+    and its hazard scan (each only when the run had it), so that what did not happen shows too: a fault whose
+    trigger never came, a map that never gave a lock, a scan that found no safe site."""
+    lines: list[str] = []
+    for f in summary.get("faults") or []:
+        what = f"fault {f.get('kind')} on {f.get('target')}"
+        if not f.get("triggered"):
+            lines.append(f"{what}: never triggered (its trigger was not met in flight)")
+        elif f.get("detected"):
+            lines.append(f"{what}: from t = {_fmt(f.get('start_t_s'), '.2f', 's')}, detected after "
+                         f"{_fmt(f.get('latency_s'), '.2f', 's')} ({f.get('detection')})")
+        else:
+            lines.append(f"{what}: from t = {_fmt(f.get('start_t_s'), '.2f', 's')}, not detected")
+    fdir = summary.get("fdir") or {}
+    if fdir.get("abort_declared"):
+        lines.append(f"fault detection: abort declared at t = {_fmt(fdir.get('abort_t_s'), '.2f', 's')} "
+                     f"({fdir.get('abort_reason')})")
+    elif fdir.get("n_events"):
+        lines.append(f"fault detection: {fdir['n_events']} event(s) ({fdir.get('subsystems')}), first at t = "
+                     f"{_fmt(fdir.get('first_event_t_s'), '.2f', 's')}")
+    mn = summary.get("map_nav")
+    if mn:
+        refused = {k: v for k, v in (mn.get("refused") or {}).items() if v}
+        top = max(refused, key=refused.get) if refused else None
+        why = f"; most refused: {top} ({refused[top]})" if top else ""
+        lock = "locked" if mn.get("locked") else "NEVER LOCKED (navigation stayed on the hand-over estimate)"
+        lines.append(f"map fixes: {mn.get('updates', 0)} used of {mn.get('attempts', 0)} attempts, {lock}{why}")
+        if mn.get("miss_vs_map_target_m") is not None:
+            lines.append(f"  miss against the map's target {_fmt(mn['miss_vs_map_target_m'], '.2f', 'm')}, "
+                         f"false locks {mn.get('false_locks', 0)}")
+    hz = summary.get("hazard")
+    if hz:
+        scan = hz.get("scan") or {}
+        if hz.get("avoidance") == "on":
+            if not scan.get("scanned"):
+                lines.append("hazard scan: none taken")
+            elif scan.get("no_safe_site"):
+                lines.append(f"hazard scan at {_fmt(scan.get('height_m'), '.0f', 'm')}: no safe site"
+                             + (" (after a second scan)" if scan.get("rescanned") else ""))
+            else:
+                site = scan if not scan.get("first_no_site") else (hz.get("rescan") or {})
+                lines.append(f"hazard scan at {_fmt(scan.get('height_m'), '.0f', 'm')}: site "
+                             f"{_fmt(site.get('divert_m'), '.1f', 'm')} away, margin "
+                             f"{_fmt(site.get('margin_m'), '.2f', 'm')}"
+                             + (" (from the second scan)" if scan.get("rescanned") else ""))
+        free = hz.get("hazard_free")
+        verdict = ("hazard-free" if free else "unscored" if free is None
+                   else f"HAZARDOUS ({(hz.get('footprint') or {}).get('hazards') or 'see summary.json'})")
+        lines.append(f"touchdown footprint: {verdict}")
+    return lines
+
+
 def summary_table(summary: Mapping[str, Any], outputs: Mapping[str, str | Path] | None = None) -> str:
     """A one-screen plain-text summary of a run, for the terminal.
 
@@ -989,6 +1042,7 @@ def summary_table(summary: Mapping[str, Any], outputs: Mapping[str, str | Path] 
             f"vision: {vis['frames']} frames, median {_fmt(vis.get('tracks_median'), '.0f')} tracks, "
             f"{_fmt(vis.get('rejected_frac'), '.1%')} of measurements gated out"
         )
+    lines.extend(_flight_software_lines(summary))
     lines.append(f"fuel used          {_fmt(summary['fuel_used_kg'], '.2f', 'kg'):>12}")
     rtf = summary["realtime_factor"]
     lines.append(

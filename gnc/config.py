@@ -34,6 +34,62 @@ def _allowed_fields(model: type[BaseModel], loc: tuple[str, ...]) -> str:
     return ", ".join(_fields_at(model, loc[:-1]))
 
 
+def _tagged_models(ann: Any) -> dict[str, type[BaseModel]]:
+    """The models of a discriminated union (``Annotated[Union[...], Field(discriminator=...)]``), by tag value
+    (empty: not such a union)."""
+    if typing.get_origin(ann) is not typing.Annotated:
+        return {}
+    key = next((m.discriminator for m in typing.get_args(ann)[1:] if isinstance(getattr(m, "discriminator", None), str)),
+               None)
+    out: dict[str, type[BaseModel]] = {}
+    for t in _leaf_types(ann) if key else ():
+        field = t.model_fields.get(key) if isinstance(t, type) and issubclass(t, BaseModel) else None
+        for tag in typing.get_args(field.annotation) if field is not None else ():
+            out.setdefault(str(tag), t)
+    return out
+
+
+def _resolve(model: type[BaseModel], loc: tuple[str, ...]) -> tuple[tuple[str, ...], Any, Any, Any]:
+    """``loc`` without the tags pydantic puts in the path of a tagged union's member (``faults.0.dropout.t_s``
+    is the user's ``faults.0.t_s``), the annotation of the field it ends at (None: not found), the model
+    whose field that is (or where the path left the models: an unknown field's table) and the model the
+    path ends at (a table's, else None)."""
+    out: list[str] = []
+    sub: Any = model
+    ann: Any = None
+    i = 0
+    while i < len(loc):
+        part = loc[i]
+        field = getattr(sub, "model_fields", {}).get(part) if isinstance(sub, type) else None
+        if field is None:
+            return (*out, *loc[i:]), None, sub, None
+        owner = sub
+        out.append(part)
+        ann = field.annotation
+        if typing.get_origin(ann) in (list, tuple) and i + 1 < len(loc) and loc[i + 1].isdigit():
+            i += 1
+            out.append(loc[i])
+            ann = typing.get_args(ann)[0] if typing.get_args(ann) else None
+        elif typing.get_origin(ann) is dict and i + 1 < len(loc) and len(typing.get_args(ann)) == 2:
+            i += 1  # a key of a table of tables (``dispersions``)
+            out.append(loc[i])
+            ann = typing.get_args(ann)[1]
+        tagged = _tagged_models(ann)
+        if tagged and i + 1 < len(loc) and loc[i + 1] in tagged:
+            i += 1  # the tag: not a field the user wrote
+            sub = tagged[loc[i]]
+        else:
+            models = [t for t in _leaf_types(ann) if isinstance(t, type) and issubclass(t, BaseModel)]
+            sub = models[0] if len(models) == 1 else None
+        i += 1
+    return tuple(out), ann, owner if loc else model, sub
+
+
+def _literal_values(ann: Any) -> list[str]:
+    """The values a Literal annotation (or an Optional one) admits (empty: not a Literal)."""
+    return [str(v) for t in _leaf_types(ann) if typing.get_origin(t) is typing.Literal for v in typing.get_args(t)]
+
+
 def format_validation_error(err: ValidationError, model: type[BaseModel], prefix: str = "") -> str:
     """Turn pydantic's multi-line report into one line: field, bad value, what is allowed.
 
@@ -47,11 +103,22 @@ def format_validation_error(err: ValidationError, model: type[BaseModel], prefix
     """
     errors = err.errors(include_url=False)
     first = errors[0]
-    loc = tuple(str(p) for p in first.get("loc", ()))
+    loc, ann, owner, table = _resolve(model, tuple(str(p) for p in first.get("loc", ())))
     path = ".".join((prefix, *loc) if prefix else loc)
     msg = str(first.get("msg", "invalid")).removeprefix("Value error, ")
-    if first.get("type") == "extra_forbidden":
-        allowed = _allowed_fields(model, loc)
+    kind = first.get("type")
+    if kind == "missing" and loc:  # the table quoted whole said only "Field required"
+        allowed = _literal_values(ann)
+        line = f"{path} is missing" + (f"; allowed: {', '.join(allowed)}" if allowed else "; give a value")
+    elif kind == "union_tag_not_found" and loc:
+        tag = str((first.get("ctx") or {}).get("discriminator", "kind")).strip("'")
+        _, union_ann, _, _ = _resolve(model, loc)
+        tags = list(_tagged_models(typing.get_args(union_ann)[0] if typing.get_origin(union_ann) in (list, tuple)
+                                   else union_ann))
+        line = f"{path}.{tag} is missing" + (f"; allowed: {', '.join(tags)}" if tags else "")
+    elif first.get("type") == "extra_forbidden":
+        fields = getattr(owner, "model_fields", None) if isinstance(owner, type) else None
+        allowed = ", ".join(fields) if fields else _allowed_fields(model, loc)
         line = f"unknown field '{path}'" + (f"; allowed here: {allowed}" if allowed else "")
     elif loc and msg.startswith(path):  # a validator that names its own field (and sub-field) already
         line = msg
@@ -62,7 +129,8 @@ def format_validation_error(err: ValidationError, model: type[BaseModel], prefix
         head = re.match(r"\w+", msg)
         if parent and msg.startswith(f"{last}."):
             line = f"{parent}.{msg}"
-        elif head and head.group() in _fields_at(model, loc):  # it names one of the table's own fields
+        elif head and head.group() in (getattr(table, "model_fields", None) or _fields_at(model, loc)):
+            # it names one of the table's own fields
             line = f"{path}.{msg}"
         else:
             line = f"{path}: {msg}"

@@ -278,7 +278,7 @@ class ComputerReset(_Fault):
     @model_validator(mode="after")
     def _down_s_is_its_duration(self) -> "ComputerReset":
         if self.duration_s is not None:
-            raise ValueError(f"computer_reset.duration_s = {self.duration_s:g}: a reset lasts its down_s "
+            raise ValueError(f"duration_s = {self.duration_s:g}: a reset lasts its down_s "
                              f"({self.down_s:g} s), and duration_s was ignored; allowed: down_s alone")
         return self
 

@@ -231,6 +231,27 @@ def test_hazard_map_and_timing_settings_that_could_never_act_are_refused_at_load
     _refused(capsys, ["scenario", "show", *argv], needle)
 
 
+@pytest.mark.parametrize("setting, line", [
+    # The member's tag was read as a table (faults.0.dropout.t_s); a missing kind, target or dist quoted the whole
+    # table with pydantic's "Unable to extract tag" or "Field required" and listed nothing allowed; an unknown key
+    # in a fault or a dispersion listed no fields.
+    ('faults=[{kind = "dropout", target = "altimeter", t_s = -1}]',
+     "faults.0.t_s = -1: Input should be greater than or equal to 0"),
+    ('faults=[{target = "altimeter", t_s = 1}]', "faults.0.kind is missing; allowed: dropout, stuck, bias_step,"),
+    ('faults=[{kind = "dropout", t_s = 1}]', "faults.0.target is missing; allowed: imu.accel, imu.gyro, altimeter, "
+                                             "star_tracker"),
+    ('faults=[{kind = "bias_step", target = "imu.gyro"}]', "faults.0.value is missing; give a value"),
+    ('faults=[{kind = "dropout", target = "altimeter", bogus = 2}]',
+     "unknown field 'faults.0.bogus'; allowed here: t_s, t_ns, altitude_m, phase, duration_s, target, axes, kind"),
+    ('dispersions={"seed" = {sigma = 1}}', "dispersions.seed.dist is missing; allowed: normal, truncnorm, uniform, "
+                                          "integers, choice"),
+    ('dispersions={"seed" = {dist = "normal", sigma = 1, bogus = 2}}',
+     "unknown field 'dispersions.seed.bogus'; allowed here: own_stream, dist, sigma"),
+])
+def test_a_fault_or_dispersion_mistake_names_the_path_the_user_wrote(capsys, setting, line):
+    _refused(capsys, ["scenario", "show", "--set", setting], line)
+
+
 def test_scenario_show_takes_a_preset(capsys):
     assert main(["scenario", "show", "--preset", "hazardous"]) == 0
     assert "boulder_density_per_km2 = 25000.0" in capsys.readouterr().out

@@ -144,8 +144,14 @@ def check_initial_position(scenario: Scenario, terrain: Terrain) -> None:
     ground_m = float(terrain.surface_height(x, y))
     need_m = ground_m + scenario.lander.footpad_clearance_m
     if not z > need_m:
+        # A terrain_step under the start is the likelier mistake than the start itself: name it too.
+        steps = [(i, f) for i, f in enumerate(scenario.faults) if f.kind == "terrain_step"
+                 and math.hypot(x - f.center_xy_m[0], y - f.center_xy_m[1]) <= f.radius_m]
+        why = "".join(f"; faults.{i} (a terrain_step of {f.height_m:+g} m, radius {f.radius_m:g} m about "
+                      f"{list(f.center_xy_m)}) raises it there" for i, f in steps)
+        fix = " or a terrain_step that leaves the start clear" if steps else ""
         raise ScenarioError(f"initial.r_BL_L_m = {list(scenario.initial.r_BL_L_m)}: the footpads would start at or "
-                            f"below the terrain (ground at {ground_m:.2f} m there); give z > {need_m:.2f} m")
+                            f"below the terrain (ground at {ground_m:.2f} m there{why}); give z > {need_m:.2f} m{fix}")
 
 
 @dataclass

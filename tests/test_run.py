@@ -110,10 +110,14 @@ INITIAL_CONDITIONS = [
 ]
 
 
-@pytest.mark.parametrize("law", ["apollo", "zem_zev"])
-@pytest.mark.parametrize("ic", [0, *(pytest.param(i, marks=pytest.mark.slow) for i in range(1, len(INITIAL_CONDITIONS)))])
+@pytest.mark.parametrize("law, ic", [
+    ("apollo", 0),
+    # ZEM/ZEV, the default law, lands the default hand-over in make test (default_run above); its landings from
+    # these other hand-overs, like Apollo's from the second and third, are multi-case landings for make test-slow.
+    *(pytest.param(law, ic, marks=pytest.mark.slow) for law in ("apollo", "zem_zev")
+      for ic in range(len(INITIAL_CONDITIONS)) if (law, ic) != ("apollo", 0)),
+])
 def test_each_guidance_law_lands_from_several_initial_conditions(law, ic):
-    # The first initial condition runs in `make test`; the others are multi-case landings for `make test-slow`.
     sc = load_scenario(None, [*NO_CAMERA, f'guidance.law="{law}"', *INITIAL_CONDITIONS[ic]])
     _meets_criteria(run(sc).summary)
 
@@ -129,8 +133,11 @@ def test_same_seed_same_landing():
     assert a.telemetry.keys() == b.telemetry.keys()
     for k in a.telemetry:
         np.testing.assert_array_equal(a.telemetry[k], b.telemetry[k], err_msg=k)
-    c = run(sc.model_copy(update={"seed": 12}))
-    assert not np.array_equal(a.telemetry["imu_f_z_mps2"], c.telemetry["imu_f_z_mps2"])
+    # Another seed draws other noise from the first samples on: its first 2 s are enough to show it.
+    c = run(sc.model_copy(update={"seed": 12, "sim": sc.sim.model_copy(update={"t_max_ns": 2_000_000_000})}))
+    n = c.telemetry["imu_f_z_mps2"].size
+    assert 50 <= n < a.telemetry["imu_f_z_mps2"].size
+    assert not np.array_equal(a.telemetry["imu_f_z_mps2"][:n], c.telemetry["imu_f_z_mps2"])
 
 
 LOW = ["initial.r_BL_L_m=[0.0, 0.0, 120.0]", "initial.v_BL_L_mps=[0.0, 0.0, -5.0]"]

@@ -12,11 +12,11 @@ from bench.cli import main
 from bench.scenario import load_scenario
 from tests.conftest import SMALL_SET
 
-# A short landing (about 30 s simulated): the campaign machinery is the subject here, not the descent.
-# It starts 20 m up, below the 30 m gate, so it flies the terminal descent only; the start position is
+# A short landing (about 20 s simulated): the campaign machinery is the subject here, not the descent.
+# It starts 10 m up, below the 30 m gate, so it flies the terminal descent only; the start position is
 # dispersed by a few metres (not the default's 10-25 m, which would need a long approach from higher up).
 QUICK = [*SMALL_SET, 'nav="truth"', 'vision="off"', "camera.enabled=false", "landing.settle_s=1.0",
-         "initial.r_BL_L_m=[5.0, -3.0, 20.0]", "initial.v_BL_L_mps=[0.0, 0.0, -1.0]",
+         "initial.r_BL_L_m=[5.0, -3.0, 10.0]", "initial.v_BL_L_mps=[0.0, 0.0, -1.0]",
          'dispersions."initial.r_BL_L_m"={dist="normal", sigma=[3.0, 3.0, 2.0]}']
 
 

@@ -112,11 +112,9 @@ def format_validation_error(err: ValidationError, model: type[BaseModel], prefix
         line = f"{path} is missing" + (f"; allowed: {', '.join(allowed)}" if allowed else "; give a value")
     elif kind == "union_tag_not_found" and loc:
         tag = str((first.get("ctx") or {}).get("discriminator", "kind")).strip("'")
-        _, union_ann, _, _ = _resolve(model, loc)
-        tags = list(_tagged_models(typing.get_args(union_ann)[0] if typing.get_origin(union_ann) in (list, tuple)
-                                   else union_ann))
+        tags = list(_tagged_models(ann))  # the union the path ends at
         line = f"{path}.{tag} is missing" + (f"; allowed: {', '.join(tags)}" if tags else "")
-    elif first.get("type") == "extra_forbidden":
+    elif kind == "extra_forbidden":
         fields = getattr(owner, "model_fields", None) if isinstance(owner, type) else None
         allowed = ", ".join(fields) if fields else _allowed_fields(model, loc)
         line = f"unknown field '{path}'" + (f"; allowed here: {allowed}" if allowed else "")

@@ -208,6 +208,8 @@ def test_settings_that_would_fail_or_stall_the_run_are_refused_at_load(capsys, s
      "hazard.hda.scan_altitude_m = 25 is at or below guidance.gate_altitude_m = 30"),
     (["--set", "hazard.avoidance=on", "--set", "hazard.hda.rescan_altitude_m=150"],
      "hazard.hda.rescan_altitude_m = 150 is not below hazard.hda.scan_altitude_m = 100"),
+    (["--set", "hazard.avoidance=on", "--set", "initial.r_BL_L_m=[5.0, -3.0, 20.0]"],
+     "initial.r_BL_L_m = [5.0, -3.0, 20.0] starts 20 m above the target, at or below guidance.gate_altitude_m = 30"),
     (["--set", "hazard.avoidance=on", "--set", "hazard.lidar.max_range_m=50"],
      "hazard.lidar.max_range_m = 50 is shorter than the slant range of the scan (103 m"),
     (["--set", "hazard.avoidance=on", "--set", "hazard.lidar.fov_deg=1"],

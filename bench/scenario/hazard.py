@@ -89,8 +89,12 @@ def check_scan_plan(hazard: HazardSettings, gate_altitude_m: float, terrain_size
                              "= 'off'")
         scans.append(("rescan_altitude_m", hda.rescan_altitude_m, "rescan_dem_spacing_m", hda.rescan_dem_spacing_m))
     x0, y0, z0 = (float(c) for c in start_r_L_m)
+    if z0 <= gate_altitude_m:
+        raise ValueError(f"initial.r_BL_L_m = {[x0, y0, z0]} starts {z0:g} m above the target, at or below "
+                         f"guidance.gate_altitude_m = {gate_altitude_m:g}: the hazard scan is taken on the approach, "
+                         "which this descent never flies; allowed: a start above the gate, or hazard.avoidance = 'off'")
     # A scan set above the hand-over height is taken at once, from the hand-over height.
-    scans = [(name, min(h, max(z0, gate_altitude_m)), spacing_name, spacing) for name, h, spacing_name, spacing in scans]
+    scans = [(name, min(h, z0), spacing_name, spacing) for name, h, spacing_name, spacing in scans]
     reaches: list[tuple[float, str, float, float]] = []  # (reach from the target, scan, half side, nadir offset) [m]
     for name, h, _, _ in scans:
         half_m = footprint_half_m(lidar.fov_deg, h)

@@ -21,10 +21,11 @@ from bench.evaluation.footprint import FootprintCriteria
 from gnc.hda import HdaConfig
 from models.flash_lidar import FlashLidarConfig, footprint_half_m
 
-# Most posts in one scan's DEM, the truth's or the flight software's (the default scan's truth DEM has 936^2;
-# 2048^2 built in 0.23 s, 4096^2 in 1.3 s with 240 MB more at its peak). Micrometre posts over a
-# scan's footprint ran out of memory (a raw MemoryError).
-SCAN_DEM_POSTS_MAX = 2048**2
+# Most posts in one scan's DEM, the truth's or the flight software's: micrometre posts over a scan's footprint
+# ran out of memory (a raw MemoryError). The default scan's truth DEM has 936^2 posts; 4096^2 built in 1.3 s
+# with 240 MB more at its peak, 6144^2 in 3.7 s with 665 MB more. 4608^2 holds a scan from the 500 m
+# hand-over at 0.1 m posts (4522^2).
+SCAN_DEM_POSTS_MAX = 4608**2
 
 
 class HazardSettings(BaseModel):

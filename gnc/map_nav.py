@@ -590,10 +590,6 @@ class MapNavConfig(BaseModel):
 
     @model_validator(mode="after")
     def _windows_in_order(self) -> MapNavConfig:
-        if self.acquire_max_sigmas < self.fix.search_sigmas:  # the widening would never act
-            raise ValueError(f"map_nav.acquire_max_sigmas = {self.acquire_max_sigmas:g} is below map_nav.fix.search_sigmas "
-                             f"= {self.fix.search_sigmas:g}: the coarse window could never widen before the first lock; "
-                             f"allowed: acquire_max_sigmas of at least {self.fix.search_sigmas:g} (equal: no widening)")
         if self.min_altitude_m >= self.max_altitude_m:
             raise ValueError(f"map_nav.min_altitude_m = {self.min_altitude_m} must be below map_nav.max_altitude_m = "
                              f"{self.max_altitude_m}: no height would take a map fix; allowed: min < max")

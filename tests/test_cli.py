@@ -202,7 +202,8 @@ def test_settings_that_would_fail_or_stall_the_run_are_refused_at_load(capsys, s
     (["--set", "onboard_map.dem_spacing_m=0.00001"], "onboard_map.dem_spacing_m = 1e-05 makes 76800000 posts a side"),
     (["--set", "hazard.avoidance=on", "--set", "hazard.hda.dem_spacing_m=0.00001"],
      "hazard.hda.dem_spacing_m = 1e-05 over the scan's footprint at hazard.hda.scan_altitude_m = 100 m"),
-    (["--set", "hazard.scoring=on", "--set", "hazard.site_spacing_m=0.000001"], "hazard.site_spacing_m = 1e-06"),
+    (["--set", "hazard.scoring=on", "--set", "hazard.site_spacing_m=0.000001"],
+     "hazard.site_spacing_m = 1e-06: Input should be greater than or equal to 0.005"),
     # Scans that could never be taken, or would see nothing: the run flew (and landed) without a word.
     (["--set", "hazard.avoidance=on", "--set", "hazard.hda.scan_altitude_m=25"],
      "hazard.hda.scan_altitude_m = 25 is at or below guidance.gate_altitude_m = 30"),
@@ -220,8 +221,7 @@ def test_settings_that_would_fail_or_stall_the_run_are_refused_at_load(capsys, s
      "hazard.hda.rescan_altitude_m = 50: the lidar's footprint (+-24 m, nadir about 50 m from the target) reaches "
      "74 m from the target, beyond the terrain (terrain.size_m = 128, half 64 m less 1 m); allowed: a larger "
      "terrain.size_m (at least 152)"),
-    # A widening limit below the window never widened; periods and run lengths past int64 overflowed the clock.
-    (["--set", "map_nav.acquire_max_sigmas=2"], "map_nav.acquire_max_sigmas = 2 is below map_nav.fix.search_sigmas = 3"),
+    # Periods and run lengths past int64 overflowed the clock.
     (["--set", "nav_map=on", "--set", "map_nav.period_ns=10000000000000000000"],
      "map_nav.period_ns = 10000000000000000000 is longer than any run"),
     (["--set", "sim.t_max_ns=10000000000000000000"], "sim.t_max_ns = 10000000000000000000"),

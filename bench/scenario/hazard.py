@@ -40,8 +40,9 @@ class HazardSettings(BaseModel):
     scoring: Literal["off", "on"] = Field(
         "off", description="judge the touchdown footprint against the fine truth DEM and the boulder list "
                            "(on whenever avoidance is on)")
-    site_spacing_m: float = Field(0.1, ge=0.01, le=0.25,
-                                  description="post spacing of the fine truth DEM [m] (1 cm at the finest)")
+    site_spacing_m: float = Field(0.1, ge=0.005, le=0.25,
+                                  description="post spacing of the fine truth DEM [m] (5 mm at the finest: the "
+                                              "touchdown's DEM then has 2880^2 posts)")
     criteria: FootprintCriteria = Field(FootprintCriteria(), description="what counts as a hazardous footprint")
     lidar: FlashLidarConfig = Field(FlashLidarConfig(), description="the flash lidar (truth model; its nominal "
                                                                     "geometry is in each message)")

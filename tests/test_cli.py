@@ -332,3 +332,16 @@ def test_faults_takes_a_scenario_file_in_place_of_its_default_action(tmp_path, c
     _refused(capsys, ["faults", "a.toml", "b.toml", "--runs", "1", "--out", str(tmp_path / "m")],
              "the first word is list or run")
     assert not (tmp_path / "m").exists()
+
+
+def test_a_dispersed_map_resolution_is_refused_naming_the_resolution(tmp_path, capsys):
+    # Every case was refused as "onboard_map.size_m = 768.0 must be a whole number ... e.g. 697498; keep that
+    # field's [dispersions] entry within the field's limits": the size named, an absurd size offered, and a
+    # limit that is not one.
+    table = 'dispersions={"onboard_map.image_res_m" = {dist = "uniform", low = 0.9, high = 1.1}}'
+    _refused(capsys, ["mc", "--runs", "2", "--dry-run", "--out", str(tmp_path / "c"), "--set", table],
+             "is not a whole number of image pixels (onboard_map.image_res_m = ")
+    err_line = main(["mc", "--runs", "2", "--dry-run", "--out", str(tmp_path / "c"), "--set", table])
+    err = capsys.readouterr().err
+    assert err_line == 2 and "697498" not in err and "to values the scenario accepts" in err, err
+    assert not (tmp_path / "c").exists()

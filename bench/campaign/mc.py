@@ -142,14 +142,14 @@ def check_cases(base: Scenario, runs: int, campaign_seed: int, every: bool = Tru
         except ValueError as exc:
             if every:
                 raise ValueError(f"case {i} of --seed {campaign_seed}: its dispersed draw is refused: {exc}; "
-                                 "keep that field's [dispersions] entry within the field's limits") from None
+                                 "keep that field's [dispersions] entry to values the scenario accepts") from None
             first = first or f"case {i}: {exc}"
         else:
             if not every:
                 return
     if first is not None:
         raise ValueError(f"every one of the {runs} cases' dispersed draws is refused ({first}); keep that field's "
-                         "[dispersions] entry within the field's limits (landbench mc --dry-run checks a table)")
+                         "[dispersions] entry to values the scenario accepts (landbench mc --dry-run checks a table)")
 
 
 def _flatten(prefix: str, value: Any, out: dict[str, Any]) -> None:

@@ -34,7 +34,8 @@ Kinds and targets:
   off-axis ``torque_B_Nm`` while the engine fires), ``misalignment`` (the thrust
   line tilted by ``angle_deg`` towards ``azimuth_deg``), ``stuck_throttle`` (a
   lit engine delivers the command held at the trigger, whatever is commanded;
-  an off command still shuts it).
+  an off command still shuts it). One misalignment and one stuck throttle act
+  at a time, the first listed (time-triggered ones that overlap are refused).
 * RCS (``target = "rcs"``): ``rcs_loss`` (the torque the RCS delivers about
   each of ``axes`` times ``1 - fraction``, in both senses or only the
   ``positive`` or ``negative`` one: thrusters failed off or clogged),

@@ -599,3 +599,19 @@ def test_a_terrain_step_under_the_start_is_named_in_the_refusal():
                                             r"\+600 m, radius 30 m about \[-120.0, 80.0\]\) raises it there\); give z > "
                                             r".* m or a terrain_step that leaves the start clear"):
         build_world(sc)
+
+
+def test_overlapping_misalignments_or_stuck_throttles_are_refused():
+    # The second acted not at all (the injector takes the first listed): accepted without a word before.
+    both = ('faults=[{kind = "misalignment", angle_deg = 1.0, t_s = 10.0}, '
+            '{kind = "misalignment", angle_deg = 2.0, azimuth_deg = 90.0, t_s = 20.0}]')
+    with pytest.raises(ScenarioError, match=r"faults\.1: a second misalignment while faults\.0's is active \(from 10 s\)"
+                                            r": only the first listed would act"):
+        load_scenario(None, [both])
+    with pytest.raises(ScenarioError, match=r"faults\.1: a second stuck_throttle while faults\.0's is active \(from 5 s "
+                                            r"to 15 s\)"):
+        load_scenario(None, ['faults=[{kind = "stuck_throttle", t_s = 5.0, duration_s = 10.0}, '
+                             '{kind = "stuck_throttle", t_s = 12.0}]'])
+    # One after the other, or of different kinds: accepted.
+    load_scenario(None, ['faults=[{kind = "misalignment", angle_deg = 1.0, t_s = 10.0, duration_s = 5.0}, '
+                         '{kind = "misalignment", angle_deg = 2.0, t_s = 15.0}, {kind = "stuck_throttle", t_s = 12.0}]'])

@@ -306,6 +306,18 @@ class Scenario(BaseModel):
                 raise ValueError(f"faults.{i}.{given} is at or after the run's end "
                                  f"(sim.t_max_ns = {self.sim.t_max_ns}), so the fault would never act; allowed: "
                                  f"a trigger before {self.sim.t_max_ns / 1e9:g} s, or a longer sim.t_max_ns")
+            if f.kind in ("misalignment", "stuck_throttle") and t0 is not None:
+                # One thrust line and one held command at a time: a second that overlaps acts not at all.
+                end = math.inf if f.duration_ns() is None else t0 + f.duration_ns()
+                for j, g in enumerate(self.faults[:i]):
+                    g0 = g.trigger_time_ns() if g.kind == f.kind else None
+                    g_end = math.inf if g0 is None or g.duration_ns() is None else g0 + g.duration_ns()
+                    if g0 is not None and g0 < end and t0 < g_end:
+                        raise ValueError(
+                            f"faults.{i}: a second {f.kind} while faults.{j}'s is active (from {g0 / 1e9:g} s"
+                            f"{'' if g_end == math.inf else f' to {g_end / 1e9:g} s'}): only the first listed would "
+                            f"act; allowed: {f.kind} faults whose windows do not overlap (a duration_s on the first), "
+                            "or one of them")
             if f.kind == "terrain_step":
                 keep_m = self.terrain.patch_size_m / math.sqrt(2.0)  # the target and its texture patch stay as they are
                 if math.hypot(*f.center_xy_m) - f.radius_m <= keep_m:

@@ -341,6 +341,14 @@ def test_summary_table_says_what_the_flight_software_did_and_did_not_do():
     assert ("map fixes: 0 used of 9 attempts, NEVER LOCKED (navigation stayed on the hand-over estimate); most "
             "refused: coarse peak not clear (7)") in lines
     assert "hazard scan at 100 m: site 12.3 m away, margin 1.50 m" in lines
+    # With the site's truth position and the touchdown point, how far from the site it landed.
+    at_site = summary_table({**base, "touchdown": {**base["touchdown"], "x_m": 3.0, "y_m": 4.0},
+                             "hazard": {"avoidance": "on", "scan": {"scanned": True, "height_m": 100.0,
+                                                                     "divert_m": 5.0, "margin_m": 2.0,
+                                                                     "site_truth_xy_m": [0.0, 0.0]},
+                                        "hazard_free": True}})
+    assert "hazard scan at 100 m: site 5.0 m away, margin 2.00 m; touchdown 5.00 m from it" in at_site
+    assert "touchdown footprint: hazard-free" in at_site
     assert "touchdown footprint: HAZARDOUS (rock)" in lines
     # Without faults, map navigation or hazard avoidance, none of these lines.
     assert not any(w in summary_table(base) for w in ("fault", "map fixes", "hazard", "footprint"))

@@ -950,10 +950,14 @@ def _flight_software_lines(summary: Mapping[str, Any]) -> list[str]:
                              + (" (after a second scan)" if scan.get("rescanned") else ""))
             else:
                 site = scan if not scan.get("first_no_site") else (hz.get("rescan") or {})
+                td = summary.get("touchdown") or {}
+                where = list(site.get("site_truth_xy_m") or [None, None]) + [td.get("x_m"), td.get("y_m")]
+                off = (f"; touchdown {_fmt(math.hypot(where[2] - where[0], where[3] - where[1]), '.2f', 'm')} from it"
+                       if None not in where else "")
                 lines.append(f"hazard scan at {_fmt(scan.get('height_m'), '.0f', 'm')}: site "
                              f"{_fmt(site.get('divert_m'), '.1f', 'm')} away, margin "
                              f"{_fmt(site.get('margin_m'), '.2f', 'm')}"
-                             + (" (from the second scan)" if scan.get("rescanned") else ""))
+                             + (" (from the second scan)" if scan.get("rescanned") else "") + off)
         free = hz.get("hazard_free")
         verdict = ("hazard-free" if free else "unscored" if free is None
                    else f"HAZARDOUS ({(hz.get('footprint') or {}).get('hazards') or 'see summary.json'})")

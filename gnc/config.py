@@ -151,12 +151,20 @@ def _leaf_types(ann: Any) -> list[Any]:
     return [ann]
 
 
-def _bool_in(ann: Any, value: Any, path: str) -> tuple[str, bool] | None:
-    """(dotted path, value) of a boolean given where ``ann`` wants a number (and no boolean), else None."""
+def _bool_in(ann: Any, value: Any, path: str) -> tuple[str, bool | str] | None:
+    """(dotted path, value) of a boolean, or a string, given where ``ann`` wants a number (and no boolean, or
+    no string), else None."""
     leaves = _leaf_types(ann)
-    if isinstance(value, bool):
-        numeric = any(t in (int, float) for t in leaves)
-        return (path, value) if numeric and bool not in leaves and Any not in leaves else None
+    if isinstance(value, (bool, str)):
+        numeric = any(t in (int, float) for t in leaves) and Any not in leaves
+        if isinstance(value, bool):
+            return (path, value) if numeric and bool not in leaves else None
+        wants_text = str in leaves or any(typing.get_origin(t) is typing.Literal for t in leaves)
+        try:  # only a string that reads as a number is taken silently; pydantic names any other
+            float(value)
+        except ValueError:
+            return None
+        return (path, value) if numeric and not wants_text else None
     if isinstance(value, Mapping):  # a model, or one of a union of models told apart by Literal fields ("kind")
         for t in leaves:
             if isinstance(t, type) and issubclass(t, BaseModel) and _literals_match(t, value):
@@ -168,7 +176,9 @@ def _bool_in(ann: Any, value: Any, path: str) -> tuple[str, bool] | None:
             if origin in (list, tuple) and args:
                 items = args if origin is tuple and Ellipsis not in args and len(args) == len(value) else None
                 for k, v in enumerate(value):
-                    if hit := _bool_in(items[k] if items else args[0], v, f"{path}[{k}]"):
+                    # A table in an array is named as pydantic names it (faults.0.t_s); a number by its index.
+                    sub = f"{path}.{k}" if isinstance(v, Mapping) else f"{path}[{k}]"
+                    if hit := _bool_in(items[k] if items else args[0], v, sub):
                         return hit
                 return None
     return None
@@ -193,7 +203,8 @@ def _bool_in_model(model: type[BaseModel], data: Mapping[str, Any], prefix: str)
 
 
 def bool_for_number(model: type[BaseModel], data: Any, prefix: str = "") -> str | None:
-    """Find a boolean given for a numeric field (pydantic's lax mode reads ``true`` as 1).
+    """Find a boolean, or a string, given for a numeric field (pydantic's lax mode reads ``true`` as 1 and
+    ``"5"`` as 5).
 
     Args:
         model: The model ``data`` is for.
@@ -208,6 +219,9 @@ def bool_for_number(model: type[BaseModel], data: Any, prefix: str = "") -> str 
     if hit is None:
         return None
     path, value = hit
+    if isinstance(value, str):  # pydantic's lax mode read "5" as 5 and "1e3" as 1000
+        return (f"{path} = {value!r}: a number is expected, not a string; allowed: a number, written without "
+                "quotes")
     return (f"{path} = {'true' if value else 'false'}: a number is expected, not a boolean; allowed: a number "
             "(write 1 or 0 if that is what you meant)")
 

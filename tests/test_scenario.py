@@ -54,12 +54,25 @@ def test_wrong_type_names_field_value_and_expectation():
     ("lander.engine.thrust_max_N=true", "lander.engine.thrust_max_N", "true"),
     ("initial.r_BL_L_m=[0, true, 500]", "initial.r_BL_L_m[1]", "true"),
     ("sensors.altimeter.dropout_prob=true", "sensors.altimeter.dropout_prob", "true"),
-    ('faults=[{kind="thrust_loss", fraction=true}]', "faults[0].fraction", "true"),
+    ('faults=[{kind="thrust_loss", fraction=true}]', "faults.0.fraction", "true"),  # named as pydantic names it
 ])
 def test_a_boolean_for_a_number_names_the_field(assignment, path, shown):
     msg = _err([assignment])
     assert msg == (f"{path} = {shown}: a number is expected, not a boolean; allowed: a number (write 1 or 0 if "
                    "that is what you meant)"), msg
+
+
+@pytest.mark.parametrize("assignment, path, shown", [
+    # pydantic's lax mode read a quoted number as the number: t_s = "5" flew the fault at 5 s without a word.
+    ('faults=[{kind = "dropout", target = "altimeter", t_s = "5"}]', "faults.0.t_s", "'5'"),
+    ('sim.t_max_ns="1000"', "sim.t_max_ns", "'1000'"),
+    ('sun.elevation_deg="20"', "sun.elevation_deg", "'20'"),
+    ('initial.r_BL_L_m=[1.0, "2", 500.0]', "initial.r_BL_L_m[1]", "'2'"),
+])
+def test_a_string_for_a_number_names_the_field(assignment, path, shown):
+    msg = _err([assignment])
+    assert msg == f"{path} = {shown}: a number is expected, not a string; allowed: a number, written without quotes", msg
+    load_scenario(None, ['name="a string where a string belongs"', 'guidance.law="apollo"'])
 
 
 @pytest.mark.parametrize("assignment, needle", [

@@ -17,23 +17,6 @@ from typing import Any
 from pydantic import BaseModel, ValidationError
 
 
-def _fields_at(model: type[BaseModel], loc: tuple[str, ...]) -> tuple[str, ...]:
-    """Field names of the table at ``loc`` (empty when ``loc`` is not a table of ``model``)."""
-    sub: Any = model
-    for part in loc:
-        field = getattr(sub, "model_fields", {}).get(part)
-        ann = field.annotation if field is not None else None
-        if not (isinstance(ann, type) and issubclass(ann, BaseModel)):
-            return ()
-        sub = ann
-    return tuple(sub.model_fields)
-
-
-def _allowed_fields(model: type[BaseModel], loc: tuple[str, ...]) -> str:
-    """Field names allowed at the parent of ``loc`` (for unknown-key errors)."""
-    return ", ".join(_fields_at(model, loc[:-1]))
-
-
 def _tagged_models(ann: Any) -> dict[str, type[BaseModel]]:
     """The models of a discriminated union (``Annotated[Union[...], Field(discriminator=...)]``), by tag value
     (empty: not such a union)."""
@@ -115,8 +98,7 @@ def format_validation_error(err: ValidationError, model: type[BaseModel], prefix
         tags = list(_tagged_models(ann))  # the union the path ends at
         line = f"{path}.{tag} is missing" + (f"; allowed: {', '.join(tags)}" if tags else "")
     elif kind == "extra_forbidden":
-        fields = getattr(owner, "model_fields", None) if isinstance(owner, type) else None
-        allowed = ", ".join(fields) if fields else _allowed_fields(model, loc)
+        allowed = ", ".join(getattr(owner, "model_fields", None) or ())  # the table the unknown key is in
         line = f"unknown field '{path}'" + (f"; allowed here: {allowed}" if allowed else "")
     elif loc and msg.startswith(path):  # a validator that names its own field (and sub-field) already
         line = msg
@@ -127,8 +109,7 @@ def format_validation_error(err: ValidationError, model: type[BaseModel], prefix
         head = re.match(r"\w+", msg)
         if parent and msg.startswith(f"{last}."):
             line = f"{parent}.{msg}"
-        elif head and head.group() in (getattr(table, "model_fields", None) or _fields_at(model, loc)):
-            # it names one of the table's own fields
+        elif head and head.group() in (getattr(table, "model_fields", None) or ()):  # one of the table's own fields
             line = f"{path}.{msg}"
         else:
             line = f"{path}: {msg}"

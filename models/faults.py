@@ -119,6 +119,11 @@ class _Fault(BaseModel):
     def duration_ns(self) -> int | None:
         return None if self.duration_s is None else int(round(self.duration_s * NS_PER_S))
 
+    def end_ns(self, start_ns: int | None) -> int | None:
+        """The end of the fault's window when it starts at ``start_ns`` [ns]; None: not started, or no end."""
+        d = self.duration_ns()
+        return None if start_ns is None or d is None else start_ns + d
+
     @property
     def subsystem(self) -> str:
         """What the fault affects, as flight-software detections name it (``imu``, ``altimeter``, ...)."""
@@ -343,8 +348,8 @@ class _State:
     def active(self, t_ns: int) -> bool:
         if self.start_ns is None or t_ns < self.start_ns:
             return False
-        d = self.cfg.duration_ns()
-        return d is None or t_ns < self.start_ns + d
+        end = self.cfg.end_ns(self.start_ns)
+        return end is None or t_ns < end
 
 
 @dataclass
@@ -403,11 +408,7 @@ class FaultInjector:
 
     def windows(self) -> list[tuple[int | None, int | None]]:
         """Per fault, its (start, end) [ns]; None: not triggered / no end."""
-        out = []
-        for s in self.states:
-            d = s.cfg.duration_ns()
-            out.append((s.start_ns, None if s.start_ns is None or d is None else s.start_ns + d))
-        return out
+        return [(s.start_ns, s.cfg.end_ns(s.start_ns)) for s in self.states]
 
     # ------------------------------------------------------------------ sensors
     def _vector(self, s: _State, t_ns: int, v: np.ndarray, held: np.ndarray | None, sigma: float,

@@ -65,20 +65,20 @@ def grid_counts(size_m: float, image_res_m: float, dem_spacing_m: float) -> tupl
             (one line naming the field, with values that would do).
     """
     n_px, n_posts = int(round(size_m / image_res_m)), int(round(size_m / dem_spacing_m))
-    for name, step, n in (("image_res_m", image_res_m, n_px), ("dem_spacing_m", dem_spacing_m, n_posts)):
+    grids = (("image_res_m", image_res_m, n_px, "image", "pixels"), ("dem_spacing_m", dem_spacing_m, n_posts, "DEM", "posts"))
+    for name, step, _, _, unit in grids:
         if size_m / step > MAP_SIDE_MAX:  # 1 mm pixels over 768 m ran out of memory
-            raise ValueError(f"onboard_map.{name} = {step:g} makes {size_m / step:.0f} {'pixels' if name == 'image_res_m' else 'posts'} "
-                             f"a side over onboard_map.size_m = {size_m:g}, more than {MAP_SIDE_MAX}; allowed: "
-                             f"{name} of at least {size_m / MAP_SIDE_MAX:.4g} m, or a smaller size_m")
-    for name, step, n, what in (("image_res_m", image_res_m, n_px, "image pixels"),
-                                ("dem_spacing_m", dem_spacing_m, n_posts, "DEM posts")):
+            raise ValueError(f"onboard_map.{name} = {step:g} makes {size_m / step:.0f} {unit} a side over "
+                             f"onboard_map.size_m = {size_m:g}, more than {MAP_SIDE_MAX}; allowed: {name} of at least "
+                             f"{size_m / MAP_SIDE_MAX:.4g} m, or a smaller size_m")
+    for name, step, n, grid, unit in grids:
         if not math.isclose(n * step, size_m, rel_tol=1e-9):
             n = max(n, 1)
             common = _common_size_m(size_m, image_res_m, dem_spacing_m)
             size_hint = f", or a size_m that is a whole number of both, e.g. {common:g}" if common <= 2 * size_m else ""
-            raise ValueError(f"onboard_map.size_m = {size_m:g} is not a whole number of {what} (onboard_map.{name} = "
-                             f"{step:g} m); allowed: {name} that divides it (e.g. {size_m / n:.6g} = {size_m:g} / "
-                             f"{n}){size_hint}")
+            raise ValueError(f"onboard_map.size_m = {size_m:g} is not a whole number of {grid} {unit} (onboard_map."
+                             f"{name} = {step:g} m); allowed: {name} that divides it (e.g. {size_m / n:.6g} = "
+                             f"{size_m:g} / {n}){size_hint}")
     return n_px, n_posts
 
 

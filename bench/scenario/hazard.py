@@ -95,11 +95,12 @@ def check_scan_plan(hazard: HazardSettings, gate_altitude_m: float, terrain_size
         raise ValueError(f"initial.r_BL_L_m = {[x0, y0, z0]} starts {z0:g} m above the target, at or below "
                          f"guidance.gate_altitude_m = {gate_altitude_m:g}: the hazard scan is taken on the approach, "
                          "which this descent never flies; allowed: a start above the gate, or hazard.avoidance = 'off'")
-    # A scan set above the hand-over height is taken at once, from the hand-over height.
-    scans = [(name, min(h, z0), spacing_name, spacing) for name, h, spacing_name, spacing in scans]
+    # A scan set above the hand-over height is taken at once, from the hand-over height; each scan's footprint
+    # (half side [m]) at the height it is taken.
+    scans = [(name, min(h, z0), spacing_name, spacing, footprint_half_m(lidar.fov_deg, min(h, z0)))
+             for name, h, spacing_name, spacing in scans]
     reaches: list[tuple[float, str, float, float]] = []  # (reach from the target, scan, half side, nadir offset) [m]
-    for name, h, _, _ in scans:
-        half_m = footprint_half_m(lidar.fov_deg, h)
+    for name, h, _, _, half_m in scans:
         if name == "scan_altitude_m":  # nadir on the straight line from hand-over to the gate
             frac = min(max((h - gate_altitude_m) / max(z0 - gate_altitude_m, 1e-9), 0.0), 1.0)
             offset_m = frac * math.hypot(x0, y0)
@@ -115,7 +116,7 @@ def check_scan_plan(hazard: HazardSettings, gate_altitude_m: float, terrain_size
                          "hazard.lidar.fov_deg")
     half_fov = math.radians(lidar.fov_deg / 2)
     lander_m = 2.0 * (max(hda.map.leg_radius_m + hda.map.footpad_radius_m, hda.map.body_radius_m))
-    for name, h, spacing_name, spacing in scans:
+    for name, h, spacing_name, spacing, half_m in scans:
         where = f"hazard.hda.{name} = {getattr(hda, name):g} m" + (
             f" (taken at the hand-over height, {h:g} m)" if h != getattr(hda, name) else "")
         slant_m = h / math.cos(half_fov * math.sqrt(2.0))  # to the footprint's corner, level ground
@@ -129,7 +130,6 @@ def check_scan_plan(hazard: HazardSettings, gate_altitude_m: float, terrain_size
                              f"{side_m:.2f} m across, less than the lander it must find room for "
                              f"({lander_m:g} m: legs, pads and body); allowed: a fov_deg of at least "
                              f"{math.degrees(2 * math.atan(lander_m / (2 * h))):.2f}, or a higher scan")
-        half_m = footprint_half_m(lidar.fov_deg, h)
         for post_name, post_m in (("hazard.site_spacing_m", hazard.site_spacing_m), (f"hazard.hda.{spacing_name}", spacing)):
             side_posts = 2.0 * half_m / post_m
             if side_posts**2 > SCAN_DEM_POSTS_MAX:

@@ -289,12 +289,12 @@ class Scenario(BaseModel):
 
     @model_validator(mode="after")
     def _faults_consistent(self) -> "Scenario":
+        standing_m = self.lander.footpad_clearance_m
         for i, f in enumerate(self.faults):
             try:
                 check_fault(f)
             except ValueError as exc:
                 raise ValueError(f"faults.{i}: {exc}") from None
-            standing_m = self.lander.footpad_clearance_m
             if f.altitude_m is not None and f.altitude_m < 0.5 * standing_m:  # 0.5 m: never triggered in a landing
                 raise ValueError(f"faults.{i}.altitude_m = {f.altitude_m:g} is under half the body origin's height "
                                  f"standing on level ground ({standing_m:g} m, lander.leg_drop_m + footpad_radius_m): "
@@ -308,14 +308,14 @@ class Scenario(BaseModel):
                                  f"a trigger before {self.sim.t_max_ns / 1e9:g} s, or a longer sim.t_max_ns")
             if f.kind in ("misalignment", "stuck_throttle") and t0 is not None:
                 # One thrust line and one held command at a time: a second that overlaps acts not at all.
-                end = math.inf if f.duration_ns() is None else t0 + f.duration_ns()
+                end = f.end_ns(t0)
                 for j, g in enumerate(self.faults[:i]):
                     g0 = g.trigger_time_ns() if g.kind == f.kind else None
-                    g_end = math.inf if g0 is None or g.duration_ns() is None else g0 + g.duration_ns()
-                    if g0 is not None and g0 < end and t0 < g_end:
+                    g_end = g.end_ns(g0)
+                    if g0 is not None and (end is None or g0 < end) and (g_end is None or t0 < g_end):
                         raise ValueError(
                             f"faults.{i}: a second {f.kind} while faults.{j}'s is active (from {g0 / 1e9:g} s"
-                            f"{'' if g_end == math.inf else f' to {g_end / 1e9:g} s'}): only the first listed would "
+                            f"{'' if g_end is None else f' to {g_end / 1e9:g} s'}): only the first listed would "
                             f"act; allowed: {f.kind} faults whose windows do not overlap (a duration_s on the first), "
                             "or one of them")
             if f.kind == "terrain_step":

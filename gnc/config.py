@@ -114,12 +114,22 @@ def format_validation_error(err: ValidationError, model: type[BaseModel], prefix
         else:
             line = f"{path}: {msg}"
     elif loc:
-        line = f"{path} = {first.get('input')!r}: {msg}"
+        value = first.get("input")
+        line = f"{path} = {_as_written(value)}: {msg}"
+        if kind == "literal_error" and isinstance(value, bool):  # nav_map = true: a switch is a word
+            line += f"; allowed: {' or '.join(map(repr, _literal_values(ann)))}, in quotes (a word, not a boolean)"
     else:
         line = f"{prefix}: {msg}" if prefix else msg  # model-level validators name their own fields
     if len(errors) > 1:
         line += f" (and {len(errors) - 1} more error{'s' if len(errors) > 2 else ''})"
     return line.replace("\n", " ")
+
+
+def _as_written(value: Any) -> str:
+    """A bad value as the user wrote it in TOML or ``--set``: ``true``/``false`` for booleans, else its repr."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return repr(value)
 
 
 def _leaf_types(ann: Any) -> list[Any]:

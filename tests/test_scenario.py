@@ -62,6 +62,18 @@ def test_a_boolean_for_a_number_names_the_field(assignment, path, shown):
                    "that is what you meant)"), msg
 
 
+@pytest.mark.parametrize("assignment, path", [("nav_map=true", "nav_map"), ("hazard.avoidance=false", "hazard.avoidance")])
+def test_a_boolean_for_a_switch_is_shown_as_written_with_the_words_allowed(assignment, path):
+    msg = _err([assignment])
+    shown = assignment.split("=")[1]  # TOML's true/false, not Python's True/False
+    assert msg == (f"{path} = {shown}: Input should be 'off' or 'on'; allowed: 'off' or 'on', in quotes (a word, "
+                   "not a boolean)"), msg
+    value = load_scenario(None, [f'{path}="on"'])  # the word itself is taken
+    for part in path.split("."):
+        value = getattr(value, part)
+    assert value == "on"
+
+
 @pytest.mark.parametrize("assignment, path, shown", [
     # pydantic's lax mode read a quoted number as the number: t_s = "5" flew the fault at 5 s without a word.
     ('faults=[{kind = "dropout", target = "altimeter", t_s = "5"}]', "faults.0.t_s", "'5'"),

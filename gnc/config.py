@@ -211,9 +211,9 @@ def bool_for_number(model: type[BaseModel], data: Any, prefix: str = "") -> str 
         return None
     path, value = hit
     if isinstance(value, str):  # pydantic's lax mode read "5" as 5 and "1e3" as 1000
-        return (f"{path} = {value!r}: a number is expected, not a string; allowed: a number, written without "
-                "quotes")
-    return (f"{path} = {'true' if value else 'false'}: a number is expected, not a boolean; allowed: a number "
+        return (f"{path} = {_as_written(value)}: a number is expected, not a string; allowed: a number, written "
+                "without quotes")
+    return (f"{path} = {_as_written(value)}: a number is expected, not a boolean; allowed: a number "
             "(write 1 or 0 if that is what you meant)")
 
 

@@ -215,6 +215,11 @@ def test_settings_that_would_fail_or_stall_the_run_are_refused_at_load(capsys, s
      "hazard.lidar.max_range_m = 50 is shorter than the slant range of the scan (103 m"),
     (["--set", "hazard.avoidance=on", "--set", "hazard.lidar.fov_deg=1"],
      "hazard.lidar.fov_deg = 1: at hazard.hda.scan_altitude_m = 100 m the footprint is 1.75 m across"),
+    # These two flew in the slow hazard test, to show the flight declaring that its scan was never taken.
+    (["--set", "hazard.avoidance=on", "--set", "hazard.hda.rescan_altitude_m=0.5"],
+     "hazard.lidar.fov_deg = 20: at hazard.hda.rescan_altitude_m = 0.5 m the footprint is 0.18 m across"),
+    (["--set", "hazard.avoidance=on", "--set", "hazard.hda.scan_altitude_m=1.0"],
+     "hazard.hda.scan_altitude_m = 1 is at or below guidance.gate_altitude_m = 30"),
     # The hazardous preset on a 128 m terrain flew to 100 m before its footprint left the terrain; the second
     # scan's (over a site up to 50 m away) needs more, and the size named is the one that holds both.
     (["--preset", "hazardous", "--set", "hazard.avoidance=on", "--set", "terrain.size_m=128"],

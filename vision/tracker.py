@@ -246,9 +246,11 @@ class TrackerConfig(BaseModel):
       (1.19 against 1.10 per dof, 17 against 13 measurements gated out), so
       ``fb_eps_px`` stays an option. The backward solve alone capped at 4
       iterations (``fb_max_iter``, twenty-fourth session) takes 4-10 % off
-      the tracker's time with the same or smaller median error and as many
-      tracks (rendered, held-out and 512^2 descents, photographs), and on the
-      same 10 closed-loop cases the vision NIS at 400-600 m fell (0.78
+      the tracker's time in a process that rendered nothing (about 2 % in
+      ``track-eval``'s, which rendered the descent) with the same or smaller
+      median error and as many tracks (rendered, held-out and 512^2
+      descents, photographs), and on 10 closed-loop cases (seed 1) the
+      vision NIS at 400-600 m fell (0.78
       against 0.87 per dof, 5 against 7 gated out): it starts at the forward
       result minus the seed, a few hundredths of a pixel from where a good
       track's round trip closes;

@@ -250,10 +250,9 @@ class TrackerConfig(BaseModel):
       ``track-eval``'s, which rendered the descent) with the same or smaller
       median error and as many tracks (rendered, held-out and 512^2
       descents, photographs), and on 10 closed-loop cases (seed 1) the
-      vision NIS at 400-600 m fell (0.78
-      against 0.87 per dof, 5 against 7 gated out): it starts at the forward
-      result minus the seed, a few hundredths of a pixel from where a good
-      track's round trip closes;
+      vision NIS at 400-600 m fell (0.78 against 0.87 per dof, 5 against 7
+      gated out): it starts at the forward result minus the seed, a few
+      hundredths of a pixel from where a good track's round trip closes;
     * forward-backward limit 0.5 px rejects mis-tracks well before the 1 px
       accuracy requirement. Without the check (``fb_check=False``: one LK pass
       validated against its seed and residual) the tracker is as accurate on

@@ -236,3 +236,31 @@ def test_compare_timing_matches_an_explicit_computation(monkeypatch):
     # The three statistics differ here, so a mix-up between them would show.
     t = np.array([[cost_ms("a", rep, k) for k in range(n_frames)] for rep in range(repeats)])
     assert len({round(t.mean(), 6), round(float(np.median(t)), 6), round(t.min(axis=0).mean(), 6)}) == 3
+
+
+def test_compare_counts_the_page_faults_inside_each_tracker_step():
+    """minor_faults_per_frame: a tracker that maps and touches fresh pages in every step shows one fault a page
+    (the kernel zeroing them inside its time); one that allocates nothing shows none; neither is charged the
+    other's, though they take turns on each frame."""
+    import mmap
+
+    pages = 64
+    page = mmap.PAGESIZE
+
+    class Touching:
+        def step(self, image):
+            buf = mmap.mmap(-1, pages * page)  # anonymous, fresh from the kernel each time
+            for k in range(pages):
+                buf[k * page] = 1
+            buf.close()
+            return Tracks.empty()
+
+    class Idle:
+        def step(self, image):
+            return Tracks.empty()
+
+    frames = [np.zeros((8, 8), np.uint8)] * 5
+    poses = [(np.eye(3), np.zeros(3))] * len(frames)
+    res = compare({"touching": Touching, "idle": Idle}, frames, frames, np.eye(3), poses, repeats=2)
+    assert pages <= res["touching"]["minor_faults_per_frame"] <= pages + 8
+    assert res["idle"]["minor_faults_per_frame"] < 1.0

@@ -6,8 +6,10 @@ trackers run on the same frames in the same process, interleaved
 through the depth image and the camera pose of its frame and projected into
 the next frame; the endpoint error is the distance to where the tracker put
 it. Reported per tracker: tracks per frame, median and p95 endpoint error
-[px], share of tracks within 1 px, mean track lifetime [frames] and ms per
-frame.
+[px], share of tracks within 1 px, mean track lifetime [frames], ms per
+frame, and the minor page faults per frame inside the timed steps (a tracker
+that faults pays the kernel in its time: see
+:func:`bench.evaluation.tracking_eval.run_interleaved`).
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ REPORT_KEYS = (
     ("mean_lifetime_frames", "lifetime [frames]", "{:.1f}"),
     ("ms_per_frame_min_of_repeats_mean", "ms/frame", "{:.3f}"),
     ("ms_per_frame_median", "ms/frame median", "{:.3f}"),
+    ("minor_faults_per_frame", "page faults/frame", "{:.1f}"),
 )
 
 

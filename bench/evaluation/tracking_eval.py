@@ -23,6 +23,7 @@ pixel centres.
 from __future__ import annotations
 
 import argparse
+import resource
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -421,7 +422,8 @@ def compare(
         Name -> :func:`track_metrics` plus ``ms_per_frame_mean`` and
         ``ms_per_frame_median`` (over all timed steps) and
         ``ms_per_frame_min_of_repeats_mean`` (mean over frames of each
-        frame's fastest repeat: the noise-robust cost on a shared machine).
+        frame's fastest repeat: the noise-robust cost on a shared machine), and
+        ``minor_faults_per_frame`` (see :func:`run_interleaved`).
     """
     _check_sequence(frames, depths, poses)
     if repeats < 1:
@@ -470,8 +472,14 @@ def run_interleaved(
 
     Returns:
         (name -> the first repeat's Tracks per frame, name ->
-        ``ms_per_frame_mean``, ``ms_per_frame_median`` and
-        ``ms_per_frame_min_of_repeats_mean``).
+        ``ms_per_frame_mean``, ``ms_per_frame_median``,
+        ``ms_per_frame_min_of_repeats_mean`` and ``minor_faults_per_frame``: the
+        calling thread's minor page faults in the timed steps, per step. A tracker
+        whose per-call buffers the allocator hands back to the kernel and takes
+        again pays the kernel's page zeroing inside its time: in a fresh process
+        the OpenCV baseline took about 72 a frame at 256^2 and none once the
+        process had rendered (README, issue 11), so a timing is comparable only
+        between processes whose trackers fault alike.)
     """
     names = list(factories)
     for name in names:
@@ -479,15 +487,18 @@ def run_interleaved(
         for img in frames[:WARMUP_FRAMES]:
             warm.step(img)
     times: dict[str, list[float]] = {n: [] for n in names}
+    faults = dict.fromkeys(names, 0)
     outputs: dict[str, list[Tracks]] = {n: [] for n in names}
     for rep in range(repeats):
         inst = {n: factories[n]() for n in names}
         for k, img in enumerate(frames):
             shift = (k + rep) % len(names)
             for name in names[shift:] + names[:shift]:
+                f0 = _minor_faults()  # read outside the timed call
                 t0 = time.perf_counter()
                 out = inst[name].step(img)
                 times[name].append(time.perf_counter() - t0)
+                faults[name] += _minor_faults() - f0
                 if rep == 0:
                     outputs[name].append(out)
     timing = {}
@@ -500,8 +511,15 @@ def run_interleaved(
             "ms_per_frame_mean": float(t_ms.mean()),
             "ms_per_frame_median": float(np.median(t_ms)),
             "ms_per_frame_min_of_repeats_mean": float(t_ms.min(axis=0).mean()),
+            "minor_faults_per_frame": faults[name] / t_ms.size,
         }
     return outputs, timing
+
+
+def _minor_faults() -> int:
+    """Minor page faults of the calling thread so far (Linux; the process's where threads are not counted apart)."""
+    who = getattr(resource, "RUSAGE_THREAD", resource.RUSAGE_SELF)
+    return resource.getrusage(who).ru_minflt
 
 
 def evaluate(

@@ -229,27 +229,30 @@ def test_an_approach_that_ends_above_the_scan_height_is_noted_once_and_the_landi
     from gnc.guidance import GuidanceCommand
 
     sc = load_scenario(None, ["hazard.avoidance=on"], "hazardous")
-    fsw = build_flight_software(sc, np.array([0.0, 0.0, 150.0]), np.zeros(3), q0_LB=np.array([1.0, 0, 0, 0]))
-    assert fsw.hda is not None and not fsw.hda.scanned
 
-    def at(height_m: float, phase: str, t_ns: int) -> bool:
+    def flight_software():
+        return build_flight_software(sc, np.array([0.0, 0.0, 150.0]), np.zeros(3), q0_LB=np.array([1.0, 0, 0, 0]))
+
+    def at(fsw, height_m: float, phase: str, t_ns: int) -> bool:
         fsw.filter.ekf.x[2] = float(fsw.target.r_L[2]) + height_m
         fsw.last_guidance = GuidanceCommand(t_ns, np.zeros(3), phase, 10.0, saturated=False, valid=True)
         return fsw.wants_lidar_scan()
 
-    hazard_events = lambda: [e for e in fsw.fdir.events if e.subsystem == "hazard"]  # noqa: E731
-    assert not at(150.0, "approach", 1) and not hazard_events()  # above the scan's height: nothing yet
-    assert not at(120.0, "terminal", 2) and not at(90.0, "terminal", 3)  # ended above it: no flash, ever
-    events = hazard_events()
+    def hazard_events(fsw):
+        return [e for e in fsw.fdir.events if e.subsystem == "hazard"]
+
+    fsw = flight_software()
+    assert fsw.hda is not None and not fsw.hda.scanned
+    assert not at(fsw, 150.0, "approach", 1) and not hazard_events(fsw)  # above the scan's height: nothing yet
+    assert not at(fsw, 120.0, "terminal", 2) and not at(fsw, 90.0, "terminal", 3)  # ended above it: no flash, ever
+    events = hazard_events(fsw)
     assert len(events) == 1 and fsw.fdir.abort is None, events
     assert events[0].reason == (f"no hazard scan: the approach ended above its height "
                                 f"(hazard.hda.scan_altitude_m = {sc.hazard.hda.scan_altitude_m:g} m)")
     assert events[0].action.startswith("landing at the current target") and events[0].t_ns == 2
     # The same flight software on an approach at the scan's height would have scanned.
-    fresh = build_flight_software(sc, np.array([0.0, 0.0, 150.0]), np.zeros(3), q0_LB=np.array([1.0, 0, 0, 0]))
-    fresh.filter.ekf.x[2] = float(fresh.target.r_L[2]) + 90.0
-    fresh.last_guidance = GuidanceCommand(4, np.zeros(3), "approach", 10.0, saturated=False, valid=True)
-    assert fresh.wants_lidar_scan() and not [e for e in fresh.fdir.events if e.subsystem == "hazard"]
+    fresh = flight_software()
+    assert at(fresh, 90.0, "approach", 4) and not hazard_events(fresh)
 
 
 @pytest.mark.slow

@@ -14,9 +14,14 @@ import pytest
 from bench.report.report import (
     CHECK_FAIL,
     CHECK_OK,
+    DRAW_SHIFT_BITS,
+    MOTION_COLOR_BGR,
     PLOT_COLUMNS_NAV,
     PLOT_COLUMNS_PLAIN,
+    TRACK_COLOR_BGR,
+    TRACK_RADIUS_PX,
     CameraVideo,
+    draw_tracks,
     frame_caption,
     plot_canvas,
     read_telemetry_parquet,
@@ -227,6 +232,43 @@ def test_video_overlays_odd_size_and_write_video(tmp_path):
     assert (back[0][:, :, 1].astype(int) - back[0][:, :, 2].astype(int)).max() > 100  # green circles drawn
     assert write_video([], tmp_path / "empty.mp4", 10.0) is None
     assert not (tmp_path / "empty.mp4").exists()
+
+
+def _tracks_one_call_each(bgr, tracks, prev):
+    """The overlay drawn point by point: one cv2.line per motion segment, one cv2.circle per track,
+    each coordinate rounded to the 1/16 px grid on its own (Python's round: half to even)."""
+    scale = 1 << DRAW_SHIFT_BITS
+
+    def fixed(p):
+        return round(float(p[0]) * scale), round(float(p[1]) * scale)
+
+    ok = [bool(np.isfinite(t).all()) for t in tracks]
+    if prev is not None:
+        for t, p, good in zip(tracks, prev, ok):
+            if good and np.isfinite(p).all():
+                cv2.line(bgr, fixed(p), fixed(t), MOTION_COLOR_BGR, 1, cv2.LINE_AA, DRAW_SHIFT_BITS)
+    for t, good in zip(tracks, ok):
+        if good:
+            cv2.circle(bgr, fixed(t), round(TRACK_RADIUS_PX * scale), TRACK_COLOR_BGR, 1, cv2.LINE_AA, DRAW_SHIFT_BITS)
+
+
+def test_track_overlay_is_the_same_as_one_call_per_track():
+    rng = np.random.default_rng(7)
+    for trial in range(60):
+        n = int(rng.integers(0, 120))
+        tracks = rng.uniform(-6.0, 70.0, (n, 2))
+        if trial % 3 == 0:
+            tracks = np.round(tracks * 32.0) / 32.0  # exact halves of the drawing grid: rounding ties
+        prev = tracks + rng.normal(0.0, 3.0, (n, 2))
+        tracks[rng.random(n) < 0.05] = np.nan
+        prev[rng.random(n) < 0.1, int(rng.integers(0, 2))] = np.inf
+        frame = cv2.cvtColor(rng.integers(0, 256, (48, 64), dtype=np.uint8), cv2.COLOR_GRAY2BGR)
+        for p in (prev, None):
+            want, got = frame.copy(), frame.copy()
+            _tracks_one_call_each(want, tracks, p)
+            draw_tracks(got, tracks, p)
+            np.testing.assert_array_equal(got, want)
+            assert n < 3 or not np.array_equal(got, frame)  # something was drawn
 
 
 def test_video_bad_frame_raises(tmp_path):

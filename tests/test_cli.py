@@ -76,6 +76,23 @@ def test_console_script_entry_point():
     assert res.returncode == 0 and "seed = 3" in res.stdout
 
 
+def test_the_console_command_returns_mains_status_and_freezes_what_is_left(monkeypatch, capsys):
+    """``console_main`` (the installed ``landbench``) is ``main`` on sys.argv, with the objects left frozen out
+    of the collector so that the interpreter's last collection skips them."""
+    import gc
+
+    from bench.cli import console_main
+
+    monkeypatch.setattr(sys, "argv", ["landbench", "scenario", "show", "--set", "seed=oops"])
+    gc.unfreeze()
+    try:
+        assert console_main() == 2  # the user's mistake: main's status
+        assert gc.get_freeze_count() > 0
+    finally:
+        gc.unfreeze()
+    assert capsys.readouterr().err.startswith("landbench: error: seed")
+
+
 def _files(root):
     return {p.relative_to(root): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
 

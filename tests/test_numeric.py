@@ -54,3 +54,18 @@ def test_rays_are_R_LC_K_inv_homogeneous_pixels():
     xy = rng.uniform(0.0, 255.0, size=(20, 2))
     loop = np.array([q @ np.linalg.solve(K, np.array([x, y, 1.0])) for x, y in xy])
     np.testing.assert_allclose(_rays_L(xy, np.linalg.inv(K), q), loop, rtol=1e-12, atol=1e-15)
+
+
+def test_chi2_ppf_is_scipy_stats_chi2_ppf_bit_for_bit():
+    from scipy.stats import chi2
+
+    from gnc.numeric import chi2_ppf
+
+    rng = np.random.default_rng(7)
+    p = np.concatenate([rng.uniform(0.0, 1.0, 5000), [1e-9, 0.0013, 0.025, 0.5, 0.975, 0.9973, 0.99, 1 - 1e-9]])
+    dof = rng.integers(1, 4000, p.size)
+    assert np.array_equal(chi2_ppf(p, dof), chi2.ppf(p, dof))
+    for n in (1, 2, 3, 80, 249 * 2):  # the filter's gates and the campaign bands' counts
+        for q in (0.025, 0.975, 0.9973):
+            assert float(chi2_ppf(q, n)) == float(chi2.ppf(q, n))
+    assert abs(float(chi2_ppf(0.95, 1)) - 3.841458820694124) < 1e-12  # the textbook 5 % point of one dof

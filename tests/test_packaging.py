@@ -35,6 +35,6 @@ def test_every_package_on_disk_is_shipped():
 def test_the_console_command_and_the_package_data_are_declared():
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())
     assert project["project"]["name"] == "landbench"
-    assert project["project"]["scripts"]["landbench"] == "bench.cli:main"
+    assert project["project"]["scripts"]["landbench"] == "bench.cli:console_main"
     data = project["tool"]["setuptools"]["package-data"]
     assert (ROOT / "bench/scenario/default.toml").is_file() and "*.toml" in data["bench.scenario"]

@@ -51,6 +51,22 @@ def test_patch_is_coplanar_with_the_terrain_and_just_above_it(world_and_terrain)
     assert patch.albedo.shape == (512, 512) and patch.albedo.dtype == np.uint8
 
 
+def test_textures_hold_the_albedo_north_up_in_every_channel(world_and_terrain):
+    """tex_data against an explicit loop over rows: MuJoCo's row 0 is the north edge (the terrain's last row),
+    and the grey value is in each of the texture's channels."""
+    world, terrain = world_and_terrain
+    m = world.model
+    for name, albedo in (("albedo", terrain.albedo), ("patch_albedo", terrain.patch.albedo)):
+        tid = m.texture(name).id
+        rows, cols, nch = int(m.tex_height[tid]), int(m.tex_width[tid]), int(m.tex_nchannel[tid])
+        assert (rows, cols) == albedo.shape and nch == 3
+        tex = m.tex_data[m.tex_adr[tid]:m.tex_adr[tid] + rows * cols * nch]
+        for r in range(0, rows, max(rows // 64, 1)):
+            row = tex[r * cols * nch:(r + 1) * cols * nch].reshape(cols, nch)
+            for c in range(nch):
+                assert np.array_equal(row[:, c], albedo[rows - 1 - r]), (name, r, c)
+
+
 def test_patch_texture_continues_the_coarse_texture(world_and_terrain):
     # Averaged back to the coarse texel size, the patch reproduces the coarse texture
     # (the detail it adds is zero-mean), so there is no seam or shift at its edge.

@@ -5,7 +5,10 @@ closed loop's path: ``camera.mp4`` (:mod:`bench.report.video_process`) and ``plo
 (:mod:`bench.report.plot_process`). Both follow the same protocol, kept here once:
 
 - the run sends tuples through a one-way pipe (its kernel buffer widened where the platform allows, so
-  that a message rarely waits for the reader);
+  that a message rarely waits for the reader); the many small messages of a stream (a frame each) go
+  ``BATCH_MESSAGES`` at a time (:meth:`ChildProcess.post_batched`), in one message that
+  :func:`unbatched` takes apart, since each write that wakes the reader costs the run about as much as
+  pickling a frame;
 - the process answers once, through a second pipe: ``("ok", value)`` or ``("error", (exception or
   None, traceback text))``; an ``("abort",)`` message, or the run's end of the pipe closing, stops it
   with nothing left behind;
@@ -23,6 +26,8 @@ PIPE_BYTES = 1 << 20  # the run-to-process pipe's kernel buffer, where the platf
 F_SETPIPE_SZ = getattr(fcntl, "F_SETPIPE_SZ", 1031)  # Linux's fcntl that sizes a pipe
 RESULT_TIMEOUT_S = 600.0  # the most the run waits for the process's answer
 STOP_TIMEOUT_S = 10.0  # for an aborted process to clean up and stop
+BATCH_MESSAGES = 8  # messages of a stream sent in one write (8 frames of 256^2: half the widened pipe)
+BATCH = "batch"  # the first item of a message that carries a list of messages
 
 
 def _widen_pipe(conn: Any) -> None:
@@ -31,6 +36,11 @@ def _widen_pipe(conn: Any) -> None:
         fcntl.fcntl(conn.fileno(), F_SETPIPE_SZ, PIPE_BYTES)
     except OSError:
         pass
+
+
+def unbatched(msg: tuple) -> list[tuple]:
+    """The messages one received message carries, in the order posted (one, or a batch's)."""
+    return list(msg[1]) if msg and msg[0] == BATCH else [msg]
 
 
 def picklable(exc: BaseException) -> bool:
@@ -70,9 +80,26 @@ class ChildProcess:
         self._role = role
         self._ended = False
         self._value: Any = None
+        self._batch: list[tuple] = []  # posted by post_batched, not sent yet
 
     def post(self, msg: tuple) -> None:
-        """Send one message; a process that has stopped raises its reason here."""
+        """Send one message now (after any batched ones); a process that has stopped raises its reason here."""
+        self._flush()
+        self._write(msg)
+
+    def post_batched(self, msg: tuple) -> None:
+        """Send one message of a stream: held until ``BATCH_MESSAGES`` are, then sent together (:meth:`post`
+        and :meth:`finish` send what is held first, so the process reads every message in the order posted)."""
+        self._batch.append(msg)
+        if len(self._batch) >= BATCH_MESSAGES:
+            self._flush()
+
+    def _flush(self) -> None:
+        if self._batch:
+            batch, self._batch = self._batch, []
+            self._write((BATCH, batch))
+
+    def _write(self, msg: tuple) -> None:
         try:
             self._send.send(msg)
         except OSError:  # it has stopped (a broken pipe): raise its reason
@@ -88,6 +115,12 @@ class ChildProcess:
         """
         if self._ended:
             return self._value
+        if self._batch:
+            batch, self._batch = self._batch, []
+            try:
+                self._send.send((BATCH, batch))
+            except OSError:  # it has stopped: its answer, read below, says why
+                pass
         self._ended = True
         self._send.close()
         try:
@@ -112,6 +145,7 @@ class ChildProcess:
         if self._ended:
             return
         self._ended = True
+        self._batch = []  # nothing more is written
         try:
             self._send.send(("abort",))
         except OSError:

@@ -1,0 +1,41 @@
+"""The helper processes' protocol (``bench.report.child_process``): batched messages arrive whole and in order."""
+
+from __future__ import annotations
+
+from bench.report.child_process import BATCH_MESSAGES, ChildProcess, unbatched
+
+
+def _collect(messages, results) -> None:
+    """A helper that reads until ("close",) and answers with every message it read and the reads it took."""
+    got, reads = [], 0
+    while True:
+        reads += 1
+        for msg in unbatched(messages.recv()):
+            if msg == ("close",):
+                results.send(("ok", (got, reads)))
+                return
+            got.append(msg)
+
+
+def test_batched_and_single_messages_arrive_in_the_order_posted():
+    proc = ChildProcess(_collect, (), role="test", label="protocol")
+    posted = []
+    for i in range(2 * BATCH_MESSAGES + 3):  # two full batches and three held
+        posted.append(("frame", i, bytes(1000 * i)))
+        proc.post_batched(posted[-1])
+    posted.append(("digest", b"x"))
+    proc.post(posted[-1])  # sends the three held first
+    for i in range(5):
+        posted.append(("render", i))
+        proc.post_batched(posted[-1])
+    proc.post(("close",))
+    got, reads = proc.finish()
+    assert got == posted
+    assert reads == 2 + 1 + 1 + 1 + 1  # two batches, the held three, the digest, the last five, the close
+
+
+def test_finish_sends_what_is_held():
+    proc = ChildProcess(_collect, (), role="test", label="protocol")
+    proc.post_batched(("frame", 1))
+    proc.post_batched(("close",))  # held, then sent by finish
+    assert proc.finish() == ([("frame", 1)], 1)

@@ -7,8 +7,9 @@ Ports:
     and its exposure gain.
     Output: ``camera.mp4``, the same bytes as :class:`~bench.report.report.CameraVideo` writes in
     the run's own process, renamed into place whole by :meth:`VideoProcess.close`.
-    Rate: one message per camera frame, read as it comes (the second process queues them), so the
-    closed loop never waits for an encoder or for a frame that only the video shows.
+    Rate: one message per camera frame, sent eight at a time (``ChildProcess.post_batched``) and read
+    as they come (the second process queues them), so the closed loop never waits for an encoder or
+    for a frame that only the video shows.
 
 ``landbench run`` spent about a third of its time on frames that no one on board looks at and on
 encoding the video. Here a second process (forked from the campaign workers' fork server, so its

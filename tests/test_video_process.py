@@ -7,10 +7,12 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 
 import bench.report.run_outputs as ro
+from bench.report.child_process import BATCH, BATCH_MESSAGES, ChildProcess
 from bench.report.video_process import VideoProcess
 from bench.scenario import load_scenario
 from bench.sim.world_builder import build_terrain, build_world
@@ -72,6 +74,31 @@ def test_a_second_world_that_would_draw_another_scene_is_refused(tmp_path):
                 video.render_frame(0, 0, world, 1.0, world.truth(), None)
             video.close()
     assert not list(tmp_path.iterdir())
+
+
+def test_frames_reach_the_process_eight_at_a_time(tmp_path, monkeypatch):
+    """Each write that wakes the second process costs the run about as much as pickling a frame: the
+    frames go in batches, the digest and the close on their own, and every frame is encoded."""
+    written = []
+    real = ChildProcess._write
+
+    def counted(self, msg):
+        written.append(msg[0])
+        real(self, msg)
+
+    monkeypatch.setattr(ChildProcess, "_write", counted)
+    sc = load_scenario(None, ACROSS_CUTOFF)
+    video = VideoProcess(sc, tmp_path / "camera.mp4", fps=10.0, size=(128, 128))
+    n = 2 * BATCH_MESSAGES + 3
+    with build_world(sc, build_terrain(sc)) as world:
+        video.start(world)
+        for i in range(n):
+            video.render_frame(i * 100_000_000, i, world, 1.0, world.truth(), None)
+        path = video.close()
+    assert written == ["digest", BATCH, BATCH, BATCH, "close"]  # two full batches, then the three held
+    capture = cv2.VideoCapture(str(path))
+    assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == n
+    capture.release()
 
 
 def test_visual_state_carries_a_frame_to_another_world():

@@ -72,8 +72,9 @@ def write_npy(path: str | Path, array: np.ndarray) -> Path:
     return atomic_write_bytes(path, buf.getvalue())
 
 
-def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
-    """Save a matplotlib figure as PNG, atomically."""
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi)
-    return atomic_write_bytes(path, buf.getvalue())
+def save_figure(fig, path: str | Path, dpi: int = 110, processes: int = 1) -> Path:
+    """Save a matplotlib figure as PNG, atomically (``processes=2``: its axes drawn by two processes,
+    the same bytes: :func:`bench.report.split_draw.figure_png`)."""
+    from bench.report.split_draw import figure_png
+
+    return atomic_write_bytes(path, figure_png(fig, dpi, processes))

@@ -14,7 +14,8 @@ campaign workers' fork server imports matplotlib and draws a small figure of the
 artists while the run flies (on the second core, which the closed loop leaves partly idle), makes
 the run figure's empty panels and their ticks (:func:`~bench.report.report.plot_canvas`), then
 waits; at the end it draws the run's figure warm while the run writes its other files and the video
-process finishes.
+process finishes, its panels shared with a fork of itself (:mod:`bench.report.split_draw`: the same
+bytes), since the run then only waits for it.
 """
 
 from __future__ import annotations
@@ -91,7 +92,7 @@ def _serve(messages: Any, results: Any) -> None:
         if msg[0] == "abort":
             return
         _, telemetry, terrain, path, kwargs = msg
-        results.send(("ok", str(write_plots(telemetry, terrain, path, canvas=canvas, **kwargs))))
+        results.send(("ok", str(write_plots(telemetry, terrain, path, canvas=canvas, processes=2, **kwargs))))
     except EOFError:  # the run stopped without a word: leave nothing behind
         pass
     except BaseException as exc:  # noqa: BLE001 - reported to the run, which raises it

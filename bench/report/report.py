@@ -442,6 +442,7 @@ def write_plots(
     sun_elevation_deg: float = SUN_ELEVATION_DEG,
     sun_azimuth_deg: float = SUN_AZIMUTH_DEG,
     canvas: PlotCanvas | None = None,
+    processes: int = 1,
 ) -> Path:
     """Draw the run's plots into one PNG (``FIGURE_SIZE_IN`` at ``FIGURE_DPI``), atomically.
 
@@ -473,6 +474,9 @@ def write_plots(
         canvas: An empty figure made ahead by :func:`plot_canvas` (a process that waits for the
             telemetry makes it meanwhile), drawn on once; used when its ``nav`` matches the telemetry's
             navigation-error columns, else a new one is made. The PNG is the same either way.
+        processes: 2: the panels drawn by two processes (a fork draws half of them meanwhile), the
+            same PNG (:func:`bench.report.split_draw.figure_png`); for a process with a second core
+            to itself and no threads, such as the run's plot process.
 
     Returns:
         The path written.
@@ -589,7 +593,7 @@ def write_plots(
         ax.set_axis_off()
     if title:
         fig.suptitle(title, fontsize=13)
-    return save_figure(fig, path, dpi=FIGURE_DPI)
+    return save_figure(fig, path, dpi=FIGURE_DPI, processes=processes)
 
 
 # ==================================================================== video

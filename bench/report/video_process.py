@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.report.child_process import ChildProcess, picklable
+from bench.report.child_process import ChildProcess, picklable, unbatched
 from bench.report.report import CameraVideo, frame_caption, track_overlay
 
 
@@ -62,14 +62,14 @@ class VideoProcess(ChildProcess):
 
     def __call__(self, t_ns: int, frame: np.ndarray, truth: Any, tracks: Any) -> None:
         """A frame the run rendered (for the flight software), to encode."""
-        self.post(("frame", t_ns, frame, float(truth.r_BL_L[2]), *track_overlay(tracks)))
+        self.post_batched(("frame", t_ns, frame, float(truth.r_BL_L[2]), *track_overlay(tracks)))
 
     def render_frame(self, t_ns: int, frame_index: int, world: Any, exposure_gain: float, truth: Any,
                      tracks: Any) -> None:
         """A frame for the video alone: rendered and corrupted in the second process from ``world``'s
         visual state now (camera frame ``frame_index``, its exposure gain), then encoded."""
-        self.post(("render", t_ns, frame_index, exposure_gain, world.visual_state(),
-                   float(truth.r_BL_L[2]), *track_overlay(tracks)))
+        self.post_batched(("render", t_ns, frame_index, exposure_gain, world.visual_state(),
+                           float(truth.r_BL_L[2]), *track_overlay(tracks)))
 
     # --------------------------------------------------------------------- the end
     def close(self) -> Path | None:
@@ -88,10 +88,12 @@ class VideoProcess(ChildProcess):
 
 
 def _read_into(conn: Any, inbox: queue.SimpleQueue) -> None:
-    """The second process's reader thread: every message into ``inbox`` as it arrives (EOF: None)."""
+    """The second process's reader thread: every message into ``inbox`` as it arrives, a batch's one by one
+    (EOF: None)."""
     try:
         while True:
-            inbox.put(conn.recv())
+            for msg in unbatched(conn.recv()):
+                inbox.put(msg)
     except (EOFError, OSError):
         inbox.put(None)
 

@@ -120,6 +120,53 @@ COMPUTER = "computer"
 NAVIGATION = "navigation"
 
 
+class TimeWindow:
+    """Rows of floats in time order (the time first), the oldest dropped from the front.
+
+    Held in one NumPy buffer whose live rows are a contiguous slice (moved to the front when the end
+    is reached, the buffer doubled when they fill half of it), so that :meth:`rows` is the window as
+    an (n, width) array without building one from Python tuples at every judgement: the same values,
+    in the same C-contiguous layout, as ``np.array`` of the rows.
+    """
+
+    def __init__(self, width: int, capacity: int = 128) -> None:
+        self._buf = np.empty((capacity, width))
+        self._lo = self._hi = 0
+
+    def __len__(self) -> int:
+        return self._hi - self._lo
+
+    def append(self, row: tuple[float, ...]) -> None:
+        if self._hi == len(self._buf):
+            n = self._hi - self._lo
+            if 2 * n > len(self._buf):
+                grown = np.empty((2 * len(self._buf), self._buf.shape[1]))
+                grown[:n] = self._buf[self._lo:self._hi]
+                self._buf = grown
+            else:
+                self._buf[:n] = self._buf[self._lo:self._hi]
+            self._lo, self._hi = 0, n
+        self._buf[self._hi] = row
+        self._hi += 1
+
+    def drop_before(self, t0: float) -> None:
+        """Drop the rows whose time is before ``t0``."""
+        buf, lo, hi = self._buf, self._lo, self._hi
+        while lo < hi and buf.item(lo, 0) < t0:
+            lo += 1
+        self._lo = lo
+
+    def clear(self) -> None:
+        self._lo = self._hi = 0
+
+    def span(self) -> float:
+        """Last time less first (the window must hold a row)."""
+        return self._buf.item(self._hi - 1, 0) - self._buf.item(self._lo, 0)
+
+    def rows(self) -> np.ndarray:
+        """The rows, (n, width), a view: valid until the next append."""
+        return self._buf[self._lo:self._hi]
+
 class FdirConfig(BaseModel):
     """Fault detection thresholds and recovery switches of the flight software."""
 
@@ -399,8 +446,8 @@ class HealthMonitor:
         self._cam_gap_open = False
         self.thrust_efficiency: float | None = None
         # RCS torque check: gyro rates (t [s], wx, wy, wz) and commands (t [s], tx, ty, tz, thrust [N]) in the window
-        self._rate_win: deque[tuple[float, float, float, float]] = deque()
-        self._torque_win: deque[tuple[float, float, float, float, float]] = deque()
+        self._rate_win = TimeWindow(4)
+        self._torque_win = TimeWindow(5)
         self._torque_bad_since: int | None = None
         self._torque_eval_t: float | None = None  # the last judgement [s]
         self.torque_residual_B_Nm: np.ndarray | None = None  # the last window's residual (telemetry, tests)
@@ -617,23 +664,21 @@ class HealthMonitor:
                       for v in np.asarray(torque_cmd_B_Nm, float).tolist())
         cmds.append((t, tx, ty, tz, float(thrust_N)))
         t0 = t - c.torque_window_s
-        while rates and rates[0][0] < t0:
-            rates.popleft()
-        while cmds and cmds[0][0] < t0:
-            cmds.popleft()
-        if len(rates) < 5 or len(cmds) < 3 or rates[-1][0] - rates[0][0] < 0.9 * c.torque_window_s:
+        rates.drop_before(t0)
+        cmds.drop_before(t0)
+        if len(rates) < 5 or len(cmds) < 3 or rates.span() < 0.9 * c.torque_window_s:
             return None
         if self._torque_eval_t is not None and t - self._torque_eval_t < TORQUE_EVAL_S - 1e-9:
             return None  # judged at 10 Hz: the window is 1 s, the persistence 0.5 s
         self._torque_eval_t = t
-        w = np.array(rates)
+        w = rates.rows()
         tc = w[:, 0] - w[:, 0].mean()
         alpha = tc @ (w[:, 1:] - w[:, 1:].mean(axis=0)) / float(tc @ tc)  # the rates' slope [rad/s^2]
         w_mean = w[:, 1:].mean(axis=0)
         inertia = np.asarray(inertia_B_kgm2, float)
         # The commands in force over the rates' span: each holds from its tick to the next (the last one,
         # issued now, has not acted yet).
-        u = np.array(cmds)
+        u = cmds.rows()
         in_span = (u[:, 0] >= w[0, 0] - self._tick_s) & (u[:, 0] < w[-1, 0])
         if not np.any(in_span):
             return None

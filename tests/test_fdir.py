@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from gnc.fdir import EngineResponse, FdirConfig, HealthMonitor, SensorSpec, body_rate_between, restart_estimate
+from gnc.fdir import (EngineResponse, FdirConfig, HealthMonitor, SensorSpec, TimeWindow, body_rate_between,
+                      restart_estimate)
 from gnc.messages import AltimeterMessage, AttitudeMessage, ImuMessage
 
 NS = 1_000_000_000
@@ -245,3 +246,28 @@ def test_a_weak_engine_is_still_recalibrated_through_the_modelled_response():
     ev = [e for e in m.events if e.subsystem == "accel_thrust" and "axial" in e.reason]
     assert ev and ev[0].action == "thrust calibration updated"
     assert m.thrust_efficiency == pytest.approx(0.7, abs=0.02)
+
+
+def test_time_window_holds_what_a_list_of_rows_holds():
+    """The RCS check's windows against a plain list of tuples: the same rows, bit for bit, through
+    appends past the buffer's end (moved to the front, and grown), drops and clears."""
+    rng = np.random.default_rng(11)
+    win, ref = TimeWindow(3, capacity=4), []
+    t = 0.0
+    for step in range(400):
+        t += float(rng.uniform(0.0, 0.02))
+        row = (t, *rng.normal(size=2).tolist())
+        win.append(row)
+        ref.append(row)
+        if step % 7 == 0:
+            t0 = t - float(rng.uniform(0.0, 0.3 if step < 200 else 2.0))  # later windows long: the buffer grows
+            win.drop_before(t0)
+            ref = [r for r in ref if not r[0] < t0]
+        if step == 150:
+            win.clear()
+            ref = []
+        assert len(win) == len(ref)
+        if ref:
+            np.testing.assert_array_equal(win.rows(), np.array(ref))
+            assert win.rows().flags.c_contiguous
+            assert win.span() == ref[-1][0] - ref[0][0]

@@ -67,9 +67,9 @@ from typing import Annotated, Any, Literal, Union
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
-from scipy.spatial.transform import Rotation
 
 from gnc.messages import AltimeterMessage, AttitudeMessage, ImuMessage
+from models.sensors import rotated_by_rotvec
 
 NS_PER_S = 1_000_000_000
 FAULT_TIME_MAX_S = 1.0e6  # a trigger time or duration beyond this (11.6 days) is refused: in ns it overflowed [s]
@@ -500,8 +500,7 @@ class FaultInjector:
                 q = s.held.q_LB
                 continue
             rotvec = self._vector(s, t, np.zeros(3), None, self.sensor_sigmas["star_tracker"] * arcsec, unit=arcsec)
-            q = (Rotation.from_quat(q, scalar_first=True) * Rotation.from_rotvec(rotvec)).as_quat(
-                canonical=True, scalar_first=True)
+            q = rotated_by_rotvec(q, rotvec)
         self._last_att = msg
         return replace(msg, q_LB=np.asarray(q, float), valid=valid)
 

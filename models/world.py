@@ -738,6 +738,8 @@ class World:
     def ground_contacts(self) -> tuple[np.ndarray, bool]:
         """Which footpads touch the terrain, (4,) bool (order FOOTPAD_NAMES), and whether the hull does."""
         touching = np.zeros(len(self._foot_geoms), bool)
+        if self.data.ncon == 0:  # in flight (the contact view below costs more than everything else here)
+            return touching, False
         hull = False
         con = self.data.contact
         for i in range(self.data.ncon):

@@ -95,6 +95,46 @@ def test_imu_noise_matches_density_and_zero_noise_is_exact():
     assert np.array_equal(m.f_B, f) and np.array_equal(m.omega_B, w)
 
 
+def test_imu_sample_is_the_four_draws_of_three_it_stands_for():
+    """One draw of twelve normals per sample: bit for bit the four ``rng.normal(0, sigma, 3)`` of its
+    definition (noise, noise, walk, walk), the biases after it and the stream left behind included."""
+    cfg = ImuConfig(period_ns=10_000_000, accel_noise_density=2e-3, gyro_noise_density=0.0,
+                    accel_bias_sigma=0.02, gyro_bias_sigma=1e-4, accel_bias_walk=1e-3, gyro_bias_walk=3e-6)
+    imu = ImuModel(cfg, np.random.default_rng(9))
+    rng = np.random.default_rng(9)
+    acc_bias, gyro_bias = rng.normal(0.0, cfg.accel_bias_sigma, 3), rng.normal(0.0, cfg.gyro_bias_sigma, 3)
+    dt = cfg.period_ns / 1e9
+    rates = (cfg.accel_noise_density / math.sqrt(dt), cfg.gyro_noise_density / math.sqrt(dt),
+             cfg.accel_bias_walk * math.sqrt(dt), cfg.gyro_bias_walk * math.sqrt(dt))
+    f, w = np.array([0.1, -0.2, 1.62]), np.array([0.01, -0.0, -0.02])
+    for i in range(500):
+        m = imu.sample(i, f, w)
+        f_want = f + acc_bias + rng.normal(0.0, rates[0], 3)
+        w_want = w + gyro_bias + rng.normal(0.0, rates[1], 3)
+        acc_bias = acc_bias + rng.normal(0.0, rates[2], 3)
+        gyro_bias = gyro_bias + rng.normal(0.0, rates[3], 3)
+        assert m.f_B.tobytes() == f_want.tobytes() and m.omega_B.tobytes() == w_want.tobytes()
+        assert imu.accel_bias.tobytes() == acc_bias.tobytes() and imu.gyro_bias.tobytes() == gyro_bias.tobytes()
+    assert imu._rng.random() == rng.random()
+
+
+def test_a_rotation_vector_turns_a_quaternion_as_scipy_rotations_do():
+    """The star tracker's error composition, through SciPy's kernels, against the Rotation objects it
+    stands for: the same bits over rotations from arcseconds to whole turns (both signs of w)."""
+    import models.sensors as sensors
+
+    rng = np.random.default_rng(12)
+    ways = [sensors.rotated_by_rotvec] + ([sensors._rotated_kernels] if sensors._rotation_cy is not None else [])
+    for i in range(3000):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        rotvec = 10.0 ** rng.uniform(-8, 0.5) * rng.normal(size=3)
+        want = (Rotation.from_quat(q, scalar_first=True) * Rotation.from_rotvec(rotvec)).as_quat(
+            canonical=True, scalar_first=True)
+        for way in ways:
+            assert way(q, rotvec).tobytes() == want.tobytes(), (i, way.__name__)
+
+
 def test_imu_bias_random_walk_grows_as_sqrt_time():
     cfg = ImuConfig(period_ns=10_000_000, accel_noise_density=0.0, gyro_noise_density=0.0, accel_bias_sigma=0.0,
                     gyro_bias_sigma=0.0, accel_bias_walk=1e-3, gyro_bias_walk=0.0)

@@ -130,7 +130,9 @@ class TimeWindow:
     """
 
     def __init__(self, width: int, capacity: int = 128) -> None:
-        self._buf = np.empty((capacity, width))
+        # Zeros, not np.empty: what the buffer holds beyond the live rows is state too, and two monitors
+        # fed the same samples must hold the same (tests/test_dispersions.py walks everything they hold).
+        self._buf = np.zeros((capacity, width))
         self._lo = self._hi = 0
 
     def __len__(self) -> int:
@@ -140,7 +142,7 @@ class TimeWindow:
         if self._hi == len(self._buf):
             n = self._hi - self._lo
             if 2 * n > len(self._buf):
-                grown = np.empty((2 * len(self._buf), self._buf.shape[1]))
+                grown = np.zeros((2 * len(self._buf), self._buf.shape[1]))
                 grown[:n] = self._buf[self._lo:self._hi]
                 self._buf = grown
             else:

@@ -253,21 +253,26 @@ def test_time_window_holds_what_a_list_of_rows_holds():
     appends past the buffer's end (moved to the front, and grown), drops and clears."""
     rng = np.random.default_rng(11)
     win, ref = TimeWindow(3, capacity=4), []
+    twin = TimeWindow(3, capacity=4)  # fed the same: it must hold the same, unused rows included
     t = 0.0
     for step in range(400):
         t += float(rng.uniform(0.0, 0.02))
         row = (t, *rng.normal(size=2).tolist())
         win.append(row)
+        twin.append(row)
         ref.append(row)
         if step % 7 == 0:
             t0 = t - float(rng.uniform(0.0, 0.3 if step < 200 else 2.0))  # later windows long: the buffer grows
             win.drop_before(t0)
+            twin.drop_before(t0)
             ref = [r for r in ref if not r[0] < t0]
         if step == 150:
             win.clear()
+            twin.clear()
             ref = []
         assert len(win) == len(ref)
         if ref:
             np.testing.assert_array_equal(win.rows(), np.array(ref))
             assert win.rows().flags.c_contiguous
             assert win.span() == ref[-1][0] - ref[0][0]
+    assert len(win._buf) > 4 and win._buf.tobytes() == twin._buf.tobytes()  # grown, and no uninitialised rows

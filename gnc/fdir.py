@@ -682,14 +682,14 @@ class HealthMonitor:
         # issued now, has not acted yet).
         u = cmds.rows()
         in_span = (u[:, 0] >= w[0, 0] - self._tick_s) & (u[:, 0] < w[-1, 0])
-        if not np.any(in_span):
+        if not in_span.any():
             return None
         tau_cmd = u[in_span, 1:4].mean(axis=0)
         thrust = float(u[in_span, 4].mean())
         residual = inertia * alpha + np.cross(w_mean, inertia * w_mean) - tau_cmd
         self.torque_residual_B_Nm = residual
         envelope = np.array([c.torque_lever_m * thrust, c.torque_lever_m * thrust, 0.0]) + c.torque_margin_Nm
-        if np.any(np.abs(residual) > envelope):
+        if (np.abs(residual) > envelope).any():
             if self._torque_bad_since is None:
                 self._torque_bad_since = t_ns
             elif t_ns - self._torque_bad_since >= c.torque_persist_s * NS_PER_S:

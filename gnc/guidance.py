@@ -693,7 +693,8 @@ class GuidanceLaw(ABC):
         if target_L is None:  # attitude is not needed here
             return GuidanceCommand(t_ns, np.zeros(3), self.phase, float("nan"), saturated=False, valid=False)
         r_f, v_f = self.gate_L(target)
-        if self._target_L is None or not np.array_equal(self._target_L, target_L):
+        # np.array_equal's test, by the arrays' own operations (every control tick; its wrapper costs more).
+        if self._target_L is None or self._target_L.shape != target_L.shape or not (self._target_L == target_L).all():
             self._target_L = target_L.copy()
             self.t_final_ns = None  # re-plan for the new target
 

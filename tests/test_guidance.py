@@ -421,6 +421,23 @@ def test_bad_limits_name_the_field():
 
 
 @pytest.mark.parametrize("law", ["zem_zev", "apollo"])
+def test_a_moved_target_is_planned_for_and_the_same_one_is_not(law):
+    """Guidance plans again when the target moves (a retarget), by any amount in any axis, and keeps its
+    plan for the same target given again (another object holding the same coordinates)."""
+    gd = make_guidance({"law": law})
+    r0, v0 = np.array([-120.0, 80.0, 400.0]), np.array([6.0, -4.0, -18.0])
+    gd.update(nav_at(0.0, r0, v0), LandingTarget())
+    n = gd.n_plans
+    gd.update(nav_at(0.02, r0 + 0.02 * v0, v0), LandingTarget(np.zeros(3)))
+    assert gd.n_plans == n  # the same target
+    for k, moved in enumerate(([0.0, 1e-9, 0.0], [0.0, 0.0, -0.5], [30.0, -20.0, 0.0])):
+        t = 0.04 + 0.02 * k
+        gd.update(nav_at(t, r0 + t * v0, v0), LandingTarget(np.array(moved)))
+        assert gd.n_plans == n + 1 + k, moved
+        np.testing.assert_array_equal(gd._target_L, moved)
+
+
+@pytest.mark.parametrize("law", ["zem_zev", "apollo"])
 def test_lower_thrust_limits_replan_within_them(law):
     """After an engine loss the flight software lowers the limits (``set_limits``): the next step plans again,
     and the new path keeps the thrust the engine now gives along its whole length on the same fine independent

@@ -169,6 +169,7 @@ class TimeWindow:
         """The rows, (n, width), a view: valid until the next append."""
         return self._buf[self._lo:self._hi]
 
+
 class FdirConfig(BaseModel):
     """Fault detection thresholds and recovery switches of the flight software."""
 

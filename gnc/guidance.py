@@ -156,7 +156,8 @@ def guidance_inputs(nav: NavState, target: LandingTarget
     r = np.asarray(nav.r_BL_L, float)
     v = np.asarray(nav.v_BL_L, float)
     m = float(nav.mass_kg)
-    usable = np.isfinite(r).all() and np.isfinite(v).all() and np.isfinite(target_L).all()  # the arrays' own methods: cheaper
+    # The arrays' own all(): NumPy's np.all wrapper costs more than the test, every control tick.
+    usable = np.isfinite(r).all() and np.isfinite(v).all() and np.isfinite(target_L).all()
     if not (usable and np.isfinite(m) and m > 0.0):
         return t_ns, None, r, v, m
     return t_ns, target_L, r, v, m
@@ -694,7 +695,8 @@ class GuidanceLaw(ABC):
             return GuidanceCommand(t_ns, np.zeros(3), self.phase, float("nan"), saturated=False, valid=False)
         r_f, v_f = self.gate_L(target)
         # np.array_equal's test, by the arrays' own operations (every control tick; its wrapper costs more).
-        if self._target_L is None or self._target_L.shape != target_L.shape or not (self._target_L == target_L).all():
+        last = self._target_L
+        if last is None or last.shape != target_L.shape or not (last == target_L).all():
             self._target_L = target_L.copy()
             self.t_final_ns = None  # re-plan for the new target
 

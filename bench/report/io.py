@@ -17,6 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from bench.report.split_draw import figure_png
+
 
 def _umask() -> int:
     mask = os.umask(0)
@@ -75,6 +77,4 @@ def write_npy(path: str | Path, array: np.ndarray) -> Path:
 def save_figure(fig, path: str | Path, dpi: int = 110, processes: int = 1) -> Path:
     """Save a matplotlib figure as PNG, atomically (``processes=2``: its axes drawn by two processes,
     the same bytes: :func:`bench.report.split_draw.figure_png`)."""
-    from bench.report.split_draw import figure_png
-
     return atomic_write_bytes(path, figure_png(fig, dpi, processes))

@@ -39,3 +39,19 @@ def test_finish_sends_what_is_held():
     proc.post_batched(("frame", 1))
     proc.post_batched(("close",))  # held, then sent by finish
     assert proc.finish() == ([("frame", 1)], 1)
+
+
+def _gc_state(messages, results) -> None:
+    """A helper that answers with its garbage collector's state as it starts."""
+    import gc
+
+    results.send(("ok", (gc.get_freeze_count(), gc.isenabled(), "bench.sim.run" in __import__("sys").modules)))
+
+
+def test_a_helper_inherits_the_servers_imports_frozen_out_of_the_collector():
+    """The fork server's preload (bench.campaign.server_preload) freezes what its imports made, so that no
+    collection in a process forked from it walks (and writes to) the inherited objects."""
+    frozen, enabled, preloaded = ChildProcess(_gc_state, (), role="test", label="gc").finish()
+    assert preloaded
+    assert enabled  # frozen, not switched off
+    assert frozen > 20_000  # what NumPy, SciPy, MuJoCo, OpenCV and landbench's modules made (about 85 000)

@@ -87,3 +87,36 @@ def test_a_failed_plot_leaves_no_video_and_stops_both_processes(tmp_path, monkey
     assert len(plots) == len(videos) == 1 and not any(p._proc.is_alive() for p in plots + videos)
     assert not any(p.suffix in (".mp4", ".png", ".tmp") or ".mp4." in p.name for p in out.iterdir())
     assert not (out / "summary.json").exists()
+
+
+def test_the_plot_process_warms_up_without_collections_and_draws_with_them(tmp_path, monkeypatch):
+    """_serve, run here with pipes of its own: the warm-up and the canvas made ahead run with the collector
+    off (they keep what they make), the run's figure with it on again."""
+    import gc
+    import multiprocessing as mp
+
+    import bench.report.plot_process as pp
+    import bench.report.report as report
+    from bench.report.child_process import _widen_pipe
+
+    seen = {}
+    monkeypatch.setattr(pp, "warm_up", lambda: seen.setdefault("warm_up", gc.isenabled()))
+    canvas = report.plot_canvas
+    monkeypatch.setattr(report, "plot_canvas",
+                        lambda *a, **kw: (seen.setdefault("canvas", gc.isenabled()), canvas(*a, **kw))[1])
+    draw = report.write_plots
+    monkeypatch.setattr(report, "write_plots",
+                        lambda *a, **kw: (seen.setdefault("draw", gc.isenabled()), draw(*a, **kw))[1])
+    terrain = make_terrain(np.random.default_rng(3).normal(0.0, 2.0, (33, 33)), 256.0)
+    recv_msg, send_msg = mp.Pipe(duplex=False)
+    _widen_pipe(send_msg)  # the message is sent before anything reads it
+    recv_res, send_res = mp.Pipe(duplex=False)
+    send_msg.send(("plot", _telemetry(), terrain, str(tmp_path / "p.png"), {"title": "t"}))
+    try:
+        pp._serve(recv_msg, send_res)
+    finally:
+        gc.enable()
+    answer = recv_res.recv()
+    assert answer == ("ok", str(tmp_path / "p.png")), answer[1][1] if answer[0] == "error" else answer
+    assert seen == {"warm_up": False, "canvas": False, "draw": True}
+    assert gc.isenabled()

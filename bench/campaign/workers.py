@@ -20,8 +20,9 @@ from typing import Any
 
 # What a fork server imports before it forks any worker: every module a case needs, and nothing
 # that opens a GL display or builds a MuJoCo model (the GL backend is chosen in the master and
-# handed over in the environment, so importing mujoco there probes nothing).
-WORKER_PRELOAD = ["bench.sim.run"]
+# handed over in the environment, so importing mujoco there probes nothing). The module imports
+# bench.sim.run and freezes what the imports made out of the garbage collector's reach.
+WORKER_PRELOAD = ["bench.campaign.server_preload"]
 
 # Threads a case may use are set per worker: the CPUs divided among the
 # workers. Without this, llvmpipe, OpenCV and BLAS each start one thread per

@@ -44,8 +44,9 @@ def test_finish_sends_what_is_held():
 def _gc_state(messages, results) -> None:
     """A helper that answers with its garbage collector's state as it starts."""
     import gc
+    import sys
 
-    results.send(("ok", (gc.get_freeze_count(), gc.isenabled(), "bench.sim.run" in __import__("sys").modules)))
+    results.send(("ok", (gc.get_freeze_count(), gc.isenabled(), "bench.sim.run" in sys.modules)))
 
 
 def test_a_helper_inherits_the_servers_imports_frozen_out_of_the_collector():

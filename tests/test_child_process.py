@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import time
+
+import pytest
+
 from bench.report.child_process import BATCH_MESSAGES, ChildProcess, unbatched
 
 
@@ -56,3 +60,54 @@ def test_a_helper_inherits_the_servers_imports_frozen_out_of_the_collector():
     assert preloaded
     assert enabled  # frozen, not switched off
     assert frozen > 20_000  # what NumPy, SciPy, MuJoCo, OpenCV and landbench's modules made (about 85 000)
+
+
+def _slow_start(monkeypatch, delay_s: float) -> list[float]:
+    """Make every helper's start take ``delay_s`` longer (a fork server still importing); returns the
+    times the starts began."""
+    from bench.campaign.workers import worker_context
+
+    process_class = type(worker_context().Process(target=print))
+    real_start = process_class.start
+    began: list[float] = []
+
+    def slow_start(self):
+        began.append(time.perf_counter())
+        time.sleep(delay_s)
+        real_start(self)
+
+    monkeypatch.setattr(process_class, "start", slow_start)
+    return began
+
+
+def test_the_run_goes_on_while_its_helper_starts(monkeypatch):
+    """The constructor returns before the process is started: in `landbench run` the fork server forks
+    the helpers only when its imports are done, and the run builds its world meanwhile. What is posted
+    before the start arrives, in order."""
+    began = _slow_start(monkeypatch, 1.0)
+    t0 = time.perf_counter()
+    proc = ChildProcess(_collect, (), role="test", label="protocol")
+    assert time.perf_counter() - t0 < 0.5  # not the second the start takes
+    proc.post_batched(("frame", 1))
+    proc.post(("digest", b"x"))  # waits for the start, then sends both
+    proc.post(("close",))
+    assert proc.finish() == ([("frame", 1), ("digest", b"x")], 3)  # the held frame, the digest, the close
+    assert len(began) == 1 and not proc._proc.is_alive()
+
+
+def test_a_helper_that_cannot_start_is_reported_by_its_first_use(monkeypatch):
+    from bench.campaign.workers import worker_context
+
+    process_class = type(worker_context().Process(target=print))
+
+    def failing_start(self):
+        raise OSError("no fork server")
+
+    monkeypatch.setattr(process_class, "start", failing_start)
+    proc = ChildProcess(_collect, (), role="test", label="protocol")
+    with pytest.raises(RuntimeError, match="protocol: the test process did not start: no fork server"):
+        proc.post(("close",))
+    proc.abort()  # nothing to stop, and no error
+    aborted = ChildProcess(_collect, (), role="test", label="protocol")
+    aborted.abort()  # a helper that never started is aborted quietly
+    assert not aborted._proc.is_alive()

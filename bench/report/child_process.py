@@ -14,12 +14,17 @@ closed loop's path: ``camera.mp4`` (:mod:`bench.report.video_process`) and ``plo
   with nothing left behind;
 - :meth:`ChildProcess.finish` waits for that answer and raises the process's own exception (its
   traceback in a note), so the command reports a failure there as it would one in the run itself.
+
+A process is started on a thread of the run (:class:`ChildProcess`): the fork server forks it only once
+its own imports are done, and the run goes on meanwhile (building its world) instead of waiting for
+that; its first message, or its end, waits for the start.
 """
 
 from __future__ import annotations
 
 import fcntl
 import pickle
+import threading
 from typing import Any, Callable
 
 PIPE_BYTES = 1 << 20  # the run-to-process pipe's kernel buffer, where the platform allows it
@@ -55,10 +60,15 @@ def picklable(exc: BaseException) -> bool:
 class ChildProcess:
     """The run's side of a helper process (see the module docstring).
 
+    The process is started on a thread (``landbench-<role>-start``), so that the constructor returns at
+    once: the fork server, started with the command, forks it only when the server's own imports are
+    done (in ``landbench run`` about half a second after the run's, which meanwhile builds its world).
+    Every method that talks to the process waits for that start first, and raises when it failed.
+
     Args:
         target: The process's body, called as ``target(messages, results, *args)`` with the two pipe
             ends it reads and answers through.
-        args: Its further arguments (pickled to it).
+        args: Its further arguments (pickled to it when it starts: not to be changed afterwards).
         role: What it makes, in its name and messages ("video": the process ``landbench-video``,
             errors "<label>: the video process failed: ...").
         label: The output it is for, first in its error messages ("camera video").
@@ -73,10 +83,20 @@ class ChildProcess:
         _widen_pipe(self._send)
         self._proc = ctx.Process(target=target, args=(message_end, result_end, *args), name=f"landbench-{role}",
                                  daemon=True)
-        self._proc.start()
-        message_end.close()
-        result_end.close()
         self._what = f"{label}: the {role} process"
+        self._start_error: BaseException | None = None
+
+        def start() -> None:
+            try:
+                self._proc.start()
+            except BaseException as exc:  # noqa: BLE001 - raised in the run by _started
+                self._start_error = exc
+            finally:
+                message_end.close()  # the process's ends: its own copies are all that is left
+                result_end.close()
+
+        self._starter: threading.Thread | None = threading.Thread(target=start, name=f"landbench-{role}-start")
+        self._starter.start()
         self._role = role
         self._ended = False
         self._value: Any = None
@@ -99,7 +119,20 @@ class ChildProcess:
             batch, self._batch = self._batch, []
             self._write((BATCH, batch))
 
+    def _started(self) -> None:
+        """Wait for the process's start (see the class docstring); raise when it could not start."""
+        if self._starter is None:
+            return
+        self._starter.join()
+        self._starter = None
+        if self._start_error is not None:
+            self._ended = True
+            self._send.close()
+            self._results.close()
+            raise RuntimeError(f"{self._what} did not start: {self._start_error}") from self._start_error
+
     def _write(self, msg: tuple) -> None:
+        self._started()
         try:
             self._send.send(msg)
         except OSError:  # it has stopped (a broken pipe): raise its reason
@@ -115,6 +148,7 @@ class ChildProcess:
         """
         if self._ended:
             return self._value
+        self._started()
         if self._batch:
             batch, self._batch = self._batch, []
             try:
@@ -144,6 +178,10 @@ class ChildProcess:
         """Stop the process; it leaves nothing behind."""
         if self._ended:
             return
+        try:
+            self._started()
+        except RuntimeError:
+            return  # it never started: nothing to stop
         self._ended = True
         self._batch = []  # nothing more is written
         try:

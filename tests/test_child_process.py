@@ -111,3 +111,35 @@ def test_a_helper_that_cannot_start_is_reported_by_its_first_use(monkeypatch):
     aborted = ChildProcess(_collect, (), role="test", label="protocol")
     aborted.abort()  # a helper that never started is aborted quietly
     assert not aborted._proc.is_alive()
+
+
+def _busy_then_collect(messages, results, marker) -> None:
+    """A helper with a long start-up (as the plot process's warm-up) before it reads; on ("abort",) it
+    writes ``marker`` (its clean-up), as the video process deletes its temporary file."""
+    import pathlib
+
+    time.sleep(3.0)
+    while True:
+        for msg in unbatched(messages.recv()):
+            if msg == ("abort",):
+                pathlib.Path(marker).write_text("cleaned up")
+                return
+
+
+def test_a_helper_sent_nothing_is_stopped_without_waiting_for_its_start_up(tmp_path):
+    """It has made nothing (a helper makes its output only from what it is sent): a run refused at
+    set-up does not wait for the plot process's warm-up before its error line."""
+    proc = ChildProcess(_busy_then_collect, (str(tmp_path / "marker"),), role="test", label="protocol")
+    proc._started()  # the fork server has forked it: only its start-up is left to wait for
+    t0 = time.perf_counter()
+    proc.abort()
+    assert time.perf_counter() - t0 < 1.5  # not the 3 s of its start-up
+    assert not proc._proc.is_alive() and not (tmp_path / "marker").exists()
+
+
+def test_a_helper_that_was_sent_work_reads_the_abort_and_cleans_up(tmp_path):
+    proc = ChildProcess(_busy_then_collect, (str(tmp_path / "marker"),), role="test", label="protocol")
+    proc.post(("frame", 1))
+    proc.abort()
+    assert not proc._proc.is_alive()
+    assert (tmp_path / "marker").read_text() == "cleaned up"

@@ -11,7 +11,9 @@ closed loop's path: ``camera.mp4`` (:mod:`bench.report.video_process`) and ``plo
   pickling a frame;
 - the process answers once, through a second pipe: ``("ok", value)`` or ``("error", (exception or
   None, traceback text))``; an ``("abort",)`` message, or the run's end of the pipe closing, stops it
-  with nothing left behind;
+  with nothing left behind. A process makes its output only from what it is sent, so one that was sent
+  nothing yet is stopped at once (``terminate``) rather than after its start-up work (a run refused
+  at set-up, or interrupted early, does not wait for the plot process's warm-up);
 - :meth:`ChildProcess.finish` waits for that answer and raises the process's own exception (its
   traceback in a note), so the command reports a failure there as it would one in the run itself.
 
@@ -99,6 +101,7 @@ class ChildProcess:
         self._starter.start()
         self._role = role
         self._ended = False
+        self._sent = False  # whether anything was written to the process
         self._value: Any = None
         self._batch: list[tuple] = []  # posted by post_batched, not sent yet
 
@@ -133,6 +136,7 @@ class ChildProcess:
 
     def _write(self, msg: tuple) -> None:
         self._started()
+        self._sent = True
         try:
             self._send.send(msg)
         except OSError:  # it has stopped (a broken pipe): raise its reason
@@ -151,6 +155,7 @@ class ChildProcess:
         self._started()
         if self._batch:
             batch, self._batch = self._batch, []
+            self._sent = True
             try:
                 self._send.send((BATCH, batch))
             except OSError:  # it has stopped: its answer, read below, says why
@@ -175,7 +180,7 @@ class ChildProcess:
         return value
 
     def abort(self) -> None:
-        """Stop the process; it leaves nothing behind."""
+        """Stop the process; it leaves nothing behind (sent nothing yet, it is stopped at once)."""
         if self._ended:
             return
         try:
@@ -184,6 +189,12 @@ class ChildProcess:
             return  # it never started: nothing to stop
         self._ended = True
         self._batch = []  # nothing more is written
+        if not self._sent:  # it has made nothing: no need to wait for it to read the abort
+            self._send.close()
+            self._proc.terminate()
+            self._proc.join()
+            self._results.close()
+            return
         try:
             self._send.send(("abort",))
         except OSError:

@@ -190,15 +190,12 @@ class ChildProcess:
         self._ended = True
         self._batch = []  # nothing more is written
         if not self._sent:  # it has made nothing: no need to wait for it to read the abort
-            self._send.close()
             self._proc.terminate()
-            self._proc.join()
-            self._results.close()
-            return
-        try:
-            self._send.send(("abort",))
-        except OSError:
-            pass
+        else:
+            try:
+                self._send.send(("abort",))
+            except OSError:
+                pass
         self._send.close()
         self._stop()
 

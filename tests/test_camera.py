@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from bench.scenario import load_scenario
 from bench.sim.world_builder import build_terrain, build_world
-from models.camera import CameraConfig, apply_detector_noise, intrinsics
+from models.camera import CameraConfig, apply_detector_noise, detector_normal, intrinsics
 from tests.conftest import SMALL_SET
 
 
@@ -78,6 +78,35 @@ def test_detector_noise_statistics():
     a = apply_detector_noise(signal, cfg, np.random.default_rng(5))
     b = apply_detector_noise(signal, cfg, np.random.default_rng(5))
     assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("kw", [{}, {"shot_noise": False}, {"read_noise_dn": 0.0}, {"gain_e_per_dn": 3.0, "read_noise_dn": 7.5}])
+def test_detector_noise_is_the_per_pixel_formula_for_uint8_and_float_signals(kw):
+    # Independent: an explicit loop over pixels in float32 scalars, sigma = sqrt(max(S, 0) / gain + read^2),
+    # S + sigma n rounded half to even and clipped to [0, 255]. Every uint8 level appears (the uint8 path looks
+    # sigma up in a table of the 256 levels); the float path is the same formula on a non-integer signal.
+    cfg = CameraConfig(**kw)
+    rng = np.random.default_rng(3)
+    levels = np.concatenate([np.arange(256), rng.integers(0, 256, 64)]).astype(np.uint8).reshape(16, 20)
+    normal = (rng.standard_normal(levels.shape) * 4.0).astype(np.float32)  # large draws: the clip is reached
+    exposed = np.clip(levels.astype(np.float32) * np.float32(1.37), 0.0, 255.0)
+    for signal in (levels, exposed, levels[:, ::2]):  # the last: a strided view, as a colour channel is
+        n = np.ascontiguousarray(normal[:, : signal.shape[1]])
+        want = np.empty(signal.shape, np.uint8)
+        for (i, j), s in np.ndenumerate(signal):
+            var = np.float32(0.0)
+            if cfg.shot_noise:
+                var = var + np.float32(max(np.float32(s), np.float32(0.0))) * np.float32(1.0 / cfg.gain_e_per_dn)
+            if cfg.read_noise_dn > 0:
+                var = var + np.float32(cfg.read_noise_dn**2)
+            value = np.float32(s) + np.float32(np.sqrt(var)) * n[i, j]
+            want[i, j] = int(min(max(np.rint(value), 0.0), 255.0))
+        assert np.array_equal(apply_detector_noise(signal, cfg, None, n), want)
+        # The draws taken from the stream give the same frame as the same draws passed in.
+        drawn = detector_normal(signal.shape, cfg, np.random.default_rng(9))
+        if drawn is not None:
+            assert np.array_equal(apply_detector_noise(signal, cfg, np.random.default_rng(9)),
+                                  apply_detector_noise(signal, cfg, None, drawn))
 
 
 def test_rendered_frame_has_texture_and_is_deterministic(posed_world):

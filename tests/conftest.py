@@ -26,6 +26,20 @@ def make_terrain(height_m: np.ndarray, size_m: float, texture_px: int = 512, see
     )
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _no_progress_monitor_thread():
+    """tqdm's monitor thread, started by the first progress bar (a campaign's, a run's) and alive until the
+    process ends, would leave every later test a second thread; ``bench.report.split_draw`` forks only in a
+    process of one thread, so its tests would then depend on which tests ran before them. No test starts
+    it (the bars draw the same; only their refresh of a stalled bar is lost)."""
+    from tqdm import tqdm
+
+    interval = tqdm.monitor_interval
+    tqdm.monitor_interval = 0
+    yield
+    tqdm.monitor_interval = interval
+
+
 @pytest.fixture
 def flat_terrain() -> Terrain:
     return make_terrain(np.zeros((33, 33)), 256.0)

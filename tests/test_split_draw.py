@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import threading
 
 import numpy as np
 import pytest
@@ -15,7 +16,12 @@ from tests.test_report import descent_telemetry, terrain  # noqa: F401 - the fix
 
 @pytest.fixture
 def combined(monkeypatch):
-    """What each call of ``combine`` returned (None: the halves overlapped)."""
+    """What each call of ``combine`` returned (None: the halves overlapped).
+
+    ``figure_png`` forks only in a process of one thread, so these tests need this one to have no other
+    (a thread another test left running would send every drawing down the one-process path)."""
+    others = [t.name for t in threading.enumerate() if t is not threading.main_thread()]
+    assert not others, f"threads left running by earlier tests: {others}"
     out = []
     real = sd.combine
 
@@ -88,8 +94,6 @@ def test_a_child_that_fails_leaves_the_drawing_to_the_parent(monkeypatch, combin
 
 
 def test_with_other_threads_about_it_does_not_fork(monkeypatch, combined):
-    import threading
-
     monkeypatch.setattr(threading, "active_count", lambda: 2)
     fig = _figure()
     assert sd.figure_png(fig, 80, processes=2) == sd.figure_png(fig, 80)

@@ -118,7 +118,7 @@ def apply_detector_noise(signal_dn: np.ndarray, cfg: CameraConfig, rng: np.rando
     else:
         img = signal_dn.astype(np.float32)
         if noisy:
-            img += noise_sigma_dn(img, cfg) * normal
+            img += noise_sigma_dn(img, cfg.shot_noise, cfg.gain_e_per_dn, cfg.read_noise_dn) * normal
     np.rint(img, out=img)
     np.clip(img, 0.0, UINT8_MAX, out=img)
     return img.astype(np.uint8)
@@ -127,18 +127,18 @@ def apply_detector_noise(signal_dn: np.ndarray, cfg: CameraConfig, rng: np.rando
 @functools.lru_cache(maxsize=8)
 def _sigma_table(shot_noise: bool, gain_e_per_dn: float, read_noise_dn: float) -> np.ndarray:
     """:func:`noise_sigma_dn` of the 256 levels of a uint8 signal, (1, 256) float32 (read-only)."""
-    cfg = CameraConfig(shot_noise=shot_noise, gain_e_per_dn=gain_e_per_dn, read_noise_dn=read_noise_dn)
-    table = noise_sigma_dn(np.arange(256, dtype=np.float32), cfg).reshape(1, 256)
+    table = noise_sigma_dn(np.arange(256, dtype=np.float32), shot_noise, gain_e_per_dn, read_noise_dn).reshape(1, 256)
     table.flags.writeable = False
     return table
 
 
-def noise_sigma_dn(signal_dn: np.ndarray, cfg: CameraConfig) -> np.ndarray:
+def noise_sigma_dn(signal_dn: np.ndarray, shot_noise: bool, gain_e_per_dn: float, read_noise_dn: float) -> np.ndarray:
     """The detector noise's 1-sigma of each pixel of a float32 signal, float32 [DN]:
-    ``sqrt(max(S, 0) / gain + read^2)`` (the shot noise only when ``cfg.shot_noise``)."""
+    ``sqrt(max(S, 0) / gain + read^2)`` (the shot noise only when ``shot_noise``; the
+    :class:`CameraConfig` fields of the same names)."""
     var = np.zeros_like(signal_dn)
-    if cfg.shot_noise:
-        var += np.maximum(signal_dn, 0.0) * np.float32(1.0 / cfg.gain_e_per_dn)
-    if cfg.read_noise_dn > 0:
-        var += np.float32(cfg.read_noise_dn**2)
+    if shot_noise:
+        var += np.maximum(signal_dn, 0.0) * np.float32(1.0 / gain_e_per_dn)
+    if read_noise_dn > 0:
+        var += np.float32(read_noise_dn**2)
     return np.sqrt(var)

@@ -62,12 +62,17 @@ def test_a_helper_inherits_the_servers_imports_frozen_out_of_the_collector():
     assert frozen > 20_000  # what NumPy, SciPy, MuJoCo, OpenCV and landbench's modules made (about 85 000)
 
 
+def _helper_process_class() -> type:
+    """The process class the helpers are made from (the fork server's context)."""
+    from bench.campaign.workers import worker_context
+
+    return type(worker_context().Process(target=print))
+
+
 def _slow_start(monkeypatch, delay_s: float) -> list[float]:
     """Make every helper's start take ``delay_s`` longer (a fork server still importing); returns the
     times the starts began."""
-    from bench.campaign.workers import worker_context
-
-    process_class = type(worker_context().Process(target=print))
+    process_class = _helper_process_class()
     real_start = process_class.start
     began: list[float] = []
 
@@ -96,9 +101,7 @@ def test_the_run_goes_on_while_its_helper_starts(monkeypatch):
 
 
 def test_a_helper_that_cannot_start_is_reported_by_its_first_use(monkeypatch):
-    from bench.campaign.workers import worker_context
-
-    process_class = type(worker_context().Process(target=print))
+    process_class = _helper_process_class()
 
     def failing_start(self):
         raise OSError("no fork server")

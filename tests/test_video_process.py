@@ -6,9 +6,6 @@ two runs; its failures in tests/test_plot_process.py."""
 from __future__ import annotations
 
 import json
-import os
-import time
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -16,7 +13,7 @@ import pytest
 
 import bench.report.run_outputs as ro
 from bench.report.child_process import BATCH, BATCH_MESSAGES, ChildProcess
-from bench.report.video_process import NICE, VideoProcess
+from bench.report.video_process import VideoProcess
 from bench.scenario import load_scenario
 from bench.sim.world_builder import build_terrain, build_world
 from tests.conftest import SMALL_SET, record_instances
@@ -102,50 +99,6 @@ def test_frames_reach_the_process_eight_at_a_time(tmp_path, monkeypatch):
     capture = cv2.VideoCapture(str(path))
     assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == n
     capture.release()
-
-
-def _thread_niceness(pid: int) -> dict[int, int]:
-    """The niceness of each thread of a process, from /proc (field 19 of each task's stat)."""
-    out = {}
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        try:
-            stat = (task / "stat").read_text()
-        except FileNotFoundError:  # the thread ended meanwhile
-            continue
-        out[int(task.name)] = int(stat.rsplit(")", 1)[1].split()[16])
-    return out
-
-
-@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="reads the threads' niceness from Linux's /proc")
-def test_the_video_process_and_its_threads_run_at_the_lowest_priority(tmp_path):
-    """The video is needed only at the run's end: its process, its pipe reader, the GL driver's threads
-    it starts and any thread running before (a memory allocator's) all yield the cores to the closed
-    loop; the run's own priority is untouched."""
-    own = os.getpriority(os.PRIO_PROCESS, 0)
-    expected = min(own + NICE, 19)
-    assert expected > own or own == 19
-    sc = load_scenario(None, ACROSS_CUTOFF)
-    video = VideoProcess(sc, tmp_path / "camera.mp4", fps=10.0, size=(128, 128))
-    with build_world(sc, build_terrain(sc)) as world:
-        video.start(world)
-        for i in range(BATCH_MESSAGES):  # one batch, rendered there: its GL context and threads made
-            video.render_frame(i * 100_000_000, i, world, 1.0, world.truth(), None)
-        pid = video._proc.pid
-        deadline = time.monotonic() + 60.0
-        seen: dict[int, int] = {}
-        # Until the process has its reader thread and has encoded a frame (so rendered one), or a minute passed.
-        while time.monotonic() < deadline:
-            seen = _thread_niceness(pid)
-            if (len(seen) >= 3 and any(p.name.startswith(".camera.") for p in tmp_path.iterdir())
-                    or not video._proc.is_alive()):
-                break
-            time.sleep(0.05)
-        seen = _thread_niceness(pid) if video._proc.is_alive() else seen
-        path = video.close()
-    assert len(seen) >= 2, seen  # the process and its pipe reader at least
-    assert set(seen.values()) == {expected}, seen
-    assert os.getpriority(os.PRIO_PROCESS, 0) == own
-    assert path is not None and path.exists()
 
 
 def test_visual_state_carries_a_frame_to_another_world():

@@ -18,13 +18,6 @@ GL context with the same detector noise (each frame's noise is its own stream: s
 ``SensorSuite.frame_rng``) and encodes every frame, on the second core, while the run flies on (and,
 after the landing, while the run draws its plots).
 
-The second process runs at the lowest CPU priority (``NICE``): its work is needed only when the run ends,
-while every moment the closed loop waits for a core (for its own thread, or for the GL driver's threads
-drawing the flight software's frame) lengthens the run. With two cores and the two processes' GL
-threads, the loop otherwise shares the cores with the video's rendering and encoding; it takes the
-cores first now, and the video uses what the loop leaves (and, after the landing, the time the run
-spends drawing its plots and waiting for the video's end).
-
 The frames are the pixels the run would have rendered: the second world is checked against the
 run's (the digest of everything the renderer uploads, ``World.render_digest``)
 before a frame is written, and its scene is drawn from the run's own body, geom, site, camera and
@@ -33,7 +26,6 @@ light poses, copied at the frame's time (``World.visual_state``).
 
 from __future__ import annotations
 
-import os
 import queue
 import threading
 import traceback
@@ -44,8 +36,6 @@ import numpy as np
 
 from bench.report.child_process import ChildProcess, picklable, unbatched
 from bench.report.report import CameraVideo, frame_caption, track_overlay
-
-NICE = 19  # the second process's niceness increment: the lowest priority (see the module docstring)
 
 
 class VideoProcess(ChildProcess):
@@ -97,23 +87,6 @@ class VideoProcess(ChildProcess):
     # abort() (ChildProcess): its temporary file is deleted, the final path not touched.
 
 
-def _yield_the_cores() -> None:
-    """Lower the second process to the lowest priority (``NICE``): this thread, so the threads it starts from
-    now on (its pipe reader, the GL driver's), and on Linux, where niceness is per thread, the threads already
-    running (a memory allocator's background thread)."""
-    os.nice(NICE)
-    niceness = os.getpriority(os.PRIO_PROCESS, 0)
-    try:
-        threads = [int(tid) for tid in os.listdir("/proc/self/task")]
-    except OSError:  # no /proc: the niceness is the process's
-        return
-    for tid in threads:
-        try:
-            os.setpriority(os.PRIO_PROCESS, tid, niceness)
-        except OSError:  # it ended meanwhile
-            pass
-
-
 def _read_into(conn: Any, inbox: queue.SimpleQueue) -> None:
     """The second process's reader thread: every message into ``inbox`` as it arrives, a batch's one by one
     (EOF: None)."""
@@ -127,7 +100,6 @@ def _read_into(conn: Any, inbox: queue.SimpleQueue) -> None:
 
 def _serve(messages: Any, results: Any, scenario: Any, path: str, fps: float, size: tuple[int, int]) -> None:
     """The second process: build the world, then render, caption and encode each frame in order."""
-    _yield_the_cores()
     inbox: queue.SimpleQueue = queue.SimpleQueue()
     threading.Thread(target=_read_into, args=(messages, inbox), daemon=True).start()
     video = world = None

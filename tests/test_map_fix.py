@@ -176,17 +176,42 @@ def test_descent_sun_unlike_the_maps_gives_fixes_within_a_metre_or_refusals(sun,
     assert max(errors, default=0.0) < 1.5, errors
 
 
+def _nadir_template_side_px(m: OnboardMap, r_est: np.ndarray, res_m: float) -> int:
+    """The coarse template's side [work px] of a nadir frame taken from the estimated position ``r_est``:
+    0.7 of the orthorectified footprint, 0.9 of the frame at the frame's ground-sample distance (the
+    estimated height above the map's DEM under it over the focal length)."""
+    height_m = float(r_est[2]) - float(m.dem_height(float(r_est[0]), float(r_est[1])))
+    footprint = int(min(MapFixConfig().max_ortho_px, 0.9 * H * (height_m / F_PX) / res_m))
+    return int(MapFixConfig().template_frac * footprint)
+
+
 def test_common_error_of_a_fix_grows_as_the_frame_looks_less_like_the_map(onboard):
-    # The fix's common error: the floor plus the gain times ((1 - peak) / peak)^power, in work pixels.
+    # A frame coarser than the map's finest level (230 m: 1.04 m per frame pixel on the 1 m level): the
+    # common error is the floor plus the gain times ((1 - peak) / peak)^power, in work pixels.
     cfg = MapFixConfig()
+    offset = np.array([3.0, -2.0, 0.0])
+    r_high = np.array([0.0, 0.0, float(onboard.dem_height(0.0, 0.0)) + 230.0])
+    high = MapMatcher(onboard, cfg).fix(render_frame(onboard, r_high, attitude(), np.random.default_rng(4)), K,
+                                        attitude(), r_high + offset, 5.0)
+    assert high.ok and high.work_res_m == onboard.image_res_m, high
+    q = ((1.0 - high.peak) / high.peak) ** cfg.common_peak_power
+    expected = high.work_res_m * math.hypot(cfg.common_mode_sigma_px, cfg.common_peak_gain * q)
+    assert high.common_sigma_m == pytest.approx(expected, rel=1e-12)
+    # A frame finer than it (150 m: 0.68 m per frame pixel): its own calibration, the floor at the coarse
+    # template's side (as 1 / side) and a fraction of the peak term; the independent part scaled.
     r_true = np.array([0.0, 0.0, float(onboard.dem_height(0.0, 0.0)) + 150.0])
     frame = render_frame(onboard, r_true, attitude(), np.random.default_rng(4))
-    offset = np.array([3.0, -2.0, 0.0])
     fix = MapMatcher(onboard, cfg).fix(frame, K, attitude(), r_true + offset, 5.0)
     assert fix.ok, fix.reason
+    assert fix.work_res_m == onboard.image_res_m
     q = ((1.0 - fix.peak) / fix.peak) ** cfg.common_peak_power
-    expected = fix.work_res_m * math.hypot(cfg.common_mode_sigma_px, cfg.common_peak_gain * q)
+    side = _nadir_template_side_px(onboard, r_true + offset, fix.work_res_m)
+    expected = fix.work_res_m * math.hypot(cfg.fine_common_sigma_px * cfg.fine_common_side_px / side,
+                                           cfg.fine_peak_scale * cfg.common_peak_gain * q)
     assert fix.common_sigma_m == pytest.approx(expected, rel=1e-12)
+    unscaled = MapMatcher(onboard, cfg.model_copy(update={"fine_independent_scale": 1.0})).fix(
+        frame, K, attitude(), r_true + offset, 5.0)
+    np.testing.assert_allclose(fix.cov_xy_m2, unscaled.cov_xy_m2 * cfg.fine_independent_scale**2, rtol=1e-12)
     np.testing.assert_allclose(fix.total_cov_xy_m2, fix.cov_xy_m2 + np.eye(2) * expected**2, rtol=1e-12)
     # The same ground in a noisier, lower-contrast frame correlates worse with the map: a larger common error.
     dim = np.clip(0.5 * frame.astype(float) + 60.0 + np.random.default_rng(9).normal(0.0, 6.0, frame.shape),

@@ -49,7 +49,7 @@ Algorithm (one frame):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -153,6 +153,12 @@ class MapFixConfig(BaseModel):
         description="work at the coarsest map pyramid level (res * 2^k) not coarser than this many of the frame's "
                     "ground-sample distances at the boresight [-]",
     )
+    refine_passes: int = Field(
+        2, ge=1, le=4,
+        description="passes of the fix: the second and later orthorectify the frame again through the position the "
+                    "pass before measured (the prior window at its smallest), so that the last pass measures a "
+                    "near-zero offset; the sub-pixel peaks' bias grows with the offset's fraction of a pixel [-]",
+    )
     min_psr: float = Field(4.0, ge=0.0, description="smallest peak-to-sidelobe ratio of the coarse peak [-]")
     max_sidelobe_ratio: float = Field(
         0.75, gt=0.0, le=1.0, description="largest ratio of the highest sidelobe to the coarse peak [-]"
@@ -194,16 +200,17 @@ class MapFixConfig(BaseModel):
     # issue 14, thirty-third session) their error RMS was 0.025-0.03 work px at the map's 1 m where the
     # scatter-based independent part alone gave 0.034-0.04, and their error beyond it 0.3-0.6 of the peak
     # term. So such a fix has a calibration of its own: the fields below. The keyframe's fixes keep the model
-    # above (consecutive keyframe fixes share their error, which no per-fix calibration sees). 0.55 and 0.018
-    # px fitted the flight's fixes more closely but are over-confident on frames resampled from the map
-    # itself (mean NEES 8.6 in tests/test_map_fix.py, whose bound is 6): 0.7 and 0.022 px give 5.6 there.
+    # above (consecutive keyframe fixes share their error, which no per-fix calibration sees). With one pass
+    # these values are over-confident on the frames tests/test_map_fix.py resamples from the map from a 4 m
+    # prior (mean NEES 8.6 against its bound of 6: their offset's fraction of a pixel biases the sub-pixel
+    # peaks); the second pass (refine_passes) takes that to 0.91.
     fine_independent_scale: float = Field(
-        0.7, gt=0.0, le=1.0,
+        0.55, gt=0.0, le=1.0,
         description="for a frame finer than the map's finest level, matched at that level: factor on the 1-sigma "
                     "of the fix's independent part [-]",
     )
     fine_common_sigma_px: float = Field(
-        0.022, ge=0.0, le=100.0,
+        0.018, ge=0.0, le=100.0,
         description="for such a frame: the floor of the common error, 1-sigma per axis [work px], at a coarse "
                     "template of fine_common_side_px work px; it grows as 1 / side (a small template, low over the "
                     "ground, errs more: 0.05 work px RMS under 50 px against 0.025-0.03 at 50-140 px)",
@@ -407,7 +414,26 @@ class MapMatcher:
     def fix(self, frame: np.ndarray, K: np.ndarray, R_LC: np.ndarray, r_CL_L: np.ndarray,
             sigma_xy_m: float, sigma_att_rad: float = 0.0,
             keyframe_view: tuple[np.ndarray, float] | None = None) -> MapFix:
-        """One map fix.
+        """One map fix: :meth:`match` through the estimated pose, then ``refine_passes - 1`` times again
+        through the pose it measured (see :attr:`MapFixConfig.refine_passes`); a refused refinement keeps
+        the pass before it. Arguments and return as :meth:`match`."""
+        fix = self.match(frame, K, R_LC, r_CL_L, sigma_xy_m, sigma_att_rad, keyframe_view)
+        r_C = np.asarray(r_CL_L, np.float64)
+        for _ in range(self.cfg.refine_passes - 1):
+            if not fix.ok:
+                break
+            r_next = np.array([fix.r_CM_xy_m[0], fix.r_CM_xy_m[1], r_C[2]])
+            again = self.match(frame, K, R_LC, r_next, 0.0, sigma_att_rad, keyframe_view)
+            if not again.ok:
+                break
+            # The offset is from the pose the caller gave: this pass's plus the passes' before it.
+            fix = replace(again, offset_xy_m=again.r_CM_xy_m - r_C[:2])
+        return fix
+
+    def match(self, frame: np.ndarray, K: np.ndarray, R_LC: np.ndarray, r_CL_L: np.ndarray,
+              sigma_xy_m: float, sigma_att_rad: float = 0.0,
+              keyframe_view: tuple[np.ndarray, float] | None = None) -> MapFix:
+        """One pass of the map fix through the given pose.
 
         Args:
             frame: (H, W) uint8 camera frame.

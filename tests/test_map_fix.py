@@ -87,6 +87,28 @@ def test_map_fix_covariance_matches_its_errors(onboard):
     assert 0.3 < np.mean(nees) < 6.0, (np.mean(nees), np.sqrt(np.mean(np.square(errs), axis=0)))
 
 
+def test_a_second_pass_through_the_measured_pose_removes_the_offsets_sub_pixel_bias(onboard):
+    # From a 4 m prior the first pass measures a large offset whose fraction of a pixel biases the sub-pixel
+    # peaks (0.063 / 0.046 m RMS per axis on these 12 poses); a second pass through the position it measured
+    # sees a near-zero offset (0.017 / 0.015 m) and reports its total from the caller's pose.
+    rng = np.random.default_rng(7)
+    one, two = MapMatcher(onboard, MapFixConfig(refine_passes=1)), MapMatcher(onboard, MapFixConfig(refine_passes=2))
+    e1, e2 = [], []
+    for _ in range(12):
+        xy = rng.uniform(-40.0, 40.0, 2)
+        r_true = np.array([xy[0], xy[1], float(onboard.dem_height(*xy)) + rng.uniform(100.0, 160.0)])
+        R_LC = attitude(*rng.uniform(-5.0, 5.0, 2), rng.uniform(0.0, 360.0))
+        frame = render_frame(onboard, r_true, R_LC, rng)
+        r_est = r_true + np.r_[rng.normal(0.0, 4.0, 2), 0.0]
+        a, b = one.fix(frame, K, R_LC, r_est, 5.0), two.fix(frame, K, R_LC, r_est, 5.0)
+        assert a.ok and b.ok, (a.reason, b.reason)
+        np.testing.assert_allclose(b.offset_xy_m, b.r_CM_xy_m - r_est[:2], rtol=0, atol=1e-12)
+        e1.append(a.r_CM_xy_m - r_true[:2])
+        e2.append(b.r_CM_xy_m - r_true[:2])
+    rms1, rms2 = float(np.sqrt(np.mean(np.square(e1)))), float(np.sqrt(np.mean(np.square(e2))))
+    assert rms2 < 0.03 and rms2 < 0.5 * rms1, (rms1, rms2)
+
+
 def test_featureless_map_is_refused(onboard):
     rng = np.random.default_rng(5)
     flat = OnboardMap(image=np.clip(np.rint(120 + 2.0 * rng.standard_normal(onboard.image.shape)), 0, 255)
@@ -187,8 +209,9 @@ def _nadir_template_side_px(m: OnboardMap, r_est: np.ndarray, res_m: float) -> i
 
 def test_common_error_of_a_fix_grows_as_the_frame_looks_less_like_the_map(onboard):
     # A frame coarser than the map's finest level (230 m: 1.04 m per frame pixel on the 1 m level): the
-    # common error is the floor plus the gain times ((1 - peak) / peak)^power, in work pixels.
-    cfg = MapFixConfig()
+    # common error is the floor plus the gain times ((1 - peak) / peak)^power, in work pixels. One pass, so
+    # that the pose the error model sees is the one given here.
+    cfg = MapFixConfig(refine_passes=1)
     offset = np.array([3.0, -2.0, 0.0])
     r_high = np.array([0.0, 0.0, float(onboard.dem_height(0.0, 0.0)) + 230.0])
     high = MapMatcher(onboard, cfg).fix(render_frame(onboard, r_high, attitude(), np.random.default_rng(4)), K,

@@ -44,6 +44,10 @@ Algorithm (one frame):
        inflates the variance of the mean), plus the sub-pixel floor, plus the
        attitude error and the map DEM's height error seen through the view
        angle (relief parallax).
+    5. **Second pass** (``MapFixConfig.refine_passes``): steps 1-4 again through
+       the position the first pass measured, so that the last pass's offset
+       is near zero (the sub-pixel peaks' bias grows with the offset's
+       fraction of a pixel).
 """
 
 from __future__ import annotations

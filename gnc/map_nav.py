@@ -585,13 +585,12 @@ class MapMatcher:
         # frame), read from the coarse correlation peak.
         # A frame finer than the map's finest level has a calibration of its own (MapFixConfig.fine_*); not the
         # keyframe's fixes.
-        dissimilar = (1.0 - peak) / peak
+        floor_px, peak_scale = cfg.common_mode_sigma_px, 1.0
         if level == 0 and gsd < res and keyframe_view is None:
             var_t = var_t * cfg.fine_independent_scale**2
-            common = res * math.hypot(cfg.fine_common_sigma_px * (cfg.fine_common_side_px / side),
-                                      cfg.fine_peak_scale * cfg.common_peak_gain * dissimilar**cfg.common_peak_power)
-        else:
-            common = res * math.hypot(cfg.common_mode_sigma_px, cfg.common_peak_gain * dissimilar**cfg.common_peak_power)
+            floor_px, peak_scale = cfg.fine_common_sigma_px * (cfg.fine_common_side_px / side), cfg.fine_peak_scale
+        dissimilar = (1.0 - peak) / peak
+        common = res * math.hypot(floor_px, peak_scale * cfg.common_peak_gain * dissimilar**cfg.common_peak_power)
         if keyframe_view is not None:
             r_k, h_k = keyframe_view
             tan_k = float(np.mean(np.hypot(*(np.asarray(centres)[keep] - r_k).T))) / h_k

@@ -108,3 +108,15 @@ def test_track_eval_textures_cli(capsys):
             assert np.isfinite(res[name]["ms_per_frame_min_of_repeats_mean"]), name
     assert main(["track-eval", "--imagery", "textures", "--frames", "2"]) == 2
     assert "--frames" in capsys.readouterr().err
+
+
+def test_track_eval_textures_table(capsys):
+    """The terminal table (no --json): every row of track-eval's report in each texture's block and in the
+    pooled one, which lacked the page faults and raised a KeyError."""
+    from bench.evaluation.track_eval import REPORT_KEYS
+    assert main(["track-eval", "--imagery", "textures", "--frames", "5", "--repeats", "1"]) == 0
+    blocks = capsys.readouterr().out.split("\n\n")
+    assert [b.splitlines()[0].split()[0] for b in blocks[1:]] == [*TEXTURES, "all"]
+    for block in blocks[1:]:
+        labels = [line[:22].strip() for line in block.splitlines()[1:]]
+        assert labels == [label for _, label, _ in REPORT_KEYS] + ["time ratio"], block

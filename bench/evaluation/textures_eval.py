@@ -247,7 +247,7 @@ def run_textures_eval(size: int = 256, frames: int = TEXTURE_FRAMES, repeats: in
             **endpoint_error_stats(np.concatenate(pooled[n]) if pooled[n] else np.zeros(0)),
             **{k: float(np.mean([m[k] for m in per])) for k in (
                 "tracks_per_frame_mean", "mean_lifetime_frames", "ms_per_frame_mean", "ms_per_frame_median",
-                "ms_per_frame_min_of_repeats_mean")},
+                "ms_per_frame_min_of_repeats_mean", "minor_faults_per_frame")},
         }
     return {"imagery": "textures", "size": size, "frames": frames, "repeats": repeats,
             "warp": {**warp.__dict__, "drift_px_per_frame": list(warp.drift_px_per_frame)}, "results": results}

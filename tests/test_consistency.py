@@ -189,3 +189,37 @@ def test_per_step_ensemble_nees_is_in_band_for_a_consistent_filter_and_not_for_a
     doc = campaign(1.0)
     text = consistency_table(json.loads(json.dumps(json_safe(doc))))
     assert "per step (2 m grid, 500-2 m" in text and "r_h" in text
+    assert "spread of the cases' NEES" in text
+
+
+def test_the_spread_of_the_cases_nees_shows_a_mixture_that_the_ensemble_mean_hides():
+    """Half the cases over-confident by 1.5, half conservative by 0.5: the ANEES is a consistent filter's,
+    the spread (the NEES's squared coefficient of variation across cases over a chi-square's 2 / dof) is
+    1.25 + dof / 8 instead of 1, and each step's value is the one computed by hand. Every case conservative
+    by the same 0.4 leaves the spread at 1: a common scale shows in the ANEES, not here."""
+    rng = np.random.default_rng(5)
+    t = np.arange(0.0, 60.0, 0.1)
+    consistent, mixed, scaled = [], [], []
+    for i in range(400):
+        z = np.maximum(rng.uniform(505.0, 560.0) - 10.0 * t, 0.0)
+        nees = {block: rng.chisquare(dof, t.size) for block, dof in NEES_BLOCKS.items()}
+        for scale, rows in ((1.0, consistent), (0.5 if i % 2 else 1.5, mixed), (0.4, scaled)):
+            tel = {"t_s": t, "r_z_m": z, **{f"nees_{b}": v * scale for b, v in nees.items()}}
+            rows.append(json.loads(json.dumps(json_safe(summary_row({"consistency": run_consistency(
+                tel, {"t_s": 59.0}, [])})))))
+    ok = campaign_consistency(consistent)["steps"]["blocks"]
+    mix = campaign_consistency(mixed)["steps"]["blocks"]
+    low = campaign_consistency(scaled)["steps"]["blocks"]
+    for block, dof in NEES_BLOCKS.items():
+        assert ok[block]["spread_median"] == pytest.approx(1.0, abs=0.08), block
+        assert low[block]["spread_median"] == pytest.approx(ok[block]["spread_median"], rel=1e-9), block
+        assert low[block]["below"] >= 245, block
+        assert mix[block]["spread_median"] == pytest.approx(1.25 + dof / 8, rel=0.1), block
+        assert 0.85 < np.nanmedian(np.array(mix[block]["anees"], float)) / dof < 1.15, block  # the mean is right
+        j = 37
+        column = [row["nees_profile"][block][j] for row in mixed]
+        by_hand = np.var(column, ddof=1) / np.mean(column) ** 2 / (2 / dof)
+        assert mix[block]["spread"][j] == pytest.approx(by_hand, rel=1e-9), block
+    # Under two cases at a step the spread is not defined.
+    one = campaign_consistency(consistent[:1])["steps"]["blocks"]["r_h"]
+    assert math.isnan(one["spread_median"]) and all(math.isnan(v) for v in one["spread"])

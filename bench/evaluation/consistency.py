@@ -356,9 +356,19 @@ def campaign_nees_steps(rows: Sequence[Mapping[str, Any]], prob: float = BAND_PR
     Returns:
         ``{"altitudes_m": [...], "n_cases": N, "blocks": {block: {"dof", "anees": [...],
         "n": [...], "band": [[lo, hi] | None, ...], "steps": k, "in_band": i,
-        "below": b, "above": a, "in_band_frac": i / k}}}``. A step counts when at
-        least half of the cases have a value there (so the top of the grid, which
-        only the cases handed over highest reach, does not decide the share).
+        "below": b, "above": a, "in_band_frac": i / k, "spread": [...], "spread_median": m}}}``.
+        A step counts when at least half of the cases have a value there (so the top of the
+        grid, which only the cases handed over highest reach, does not decide the share).
+
+        ``spread`` is, at each step, the squared coefficient of variation of the cases' NEES
+        (unbiased variance over the cases that have one, over the ANEES squared; NaN under two
+        cases) over a chi-square's, ``2 / dof``; ``spread_median`` its median over the counted
+        steps. A consistent filter's cases give 1, and so does one whose covariance is off by
+        the same factor in every case (that shows in the ANEES). A spread well above 1 is a
+        mixture: some cases' errors larger than their covariance says and others' smaller, or
+        a heavy tail. Such a filter leaves its band at more steps than a consistent one even
+        where its ANEES is right, because the ANEES scatters from step to step more than the
+        band allows for.
     """
     profiles = [r["nees_profile"] for r in rows if isinstance(r.get("nees_profile"), Mapping)]
     n_cases = len(profiles)
@@ -379,9 +389,15 @@ def campaign_nees_steps(rows: Sequence[Mapping[str, Any]], prob: float = BAND_PR
         above = counted & (anees > hi)
         steps = int(counted.sum())
         inside = steps - int(below.sum()) - int(above.sum())
+        with np.errstate(invalid="ignore", divide="ignore"):
+            dev = np.where(finite, vals - anees, 0.0)
+            spread = np.where(n >= 2, (dev**2).sum(axis=0) / np.maximum(n - 1, 1) / anees**2 * (dof / 2.0), math.nan)
+        spread_counted = spread[counted & np.isfinite(spread)]
         out["blocks"][block] = {"dof": dof, "anees": anees.tolist(), "n": n.tolist(), "band": band, "steps": steps,
                                 "in_band": inside, "below": int(below.sum()), "above": int(above.sum()),
-                                "in_band_frac": inside / steps if steps else math.nan}
+                                "in_band_frac": inside / steps if steps else math.nan,
+                                "spread": spread.tolist(),
+                                "spread_median": float(np.median(spread_counted)) if spread_counted.size else math.nan}
     return out
 
 
@@ -417,8 +433,11 @@ def consistency_table(doc: Mapping[str, Any]) -> str:
                      f"at k of K steps, below / above):")
         for block, b in steps["blocks"].items():
             if b["steps"]:
+                spread = b.get("spread_median")  # absent from a consistency.json written before it
                 lines.append(f"  {block:<5} {b['in_band']}/{b['steps']} ({100 * b['in_band_frac']:.0f} %), "
-                             f"below {b['below']}, above {b['above']}")
+                             f"below {b['below']}, above {b['above']}"
+                             + (f"; spread of the cases' NEES {spread:.2f} (chi-square: 1)"
+                                if spread is not None and math.isfinite(spread) else ""))
     lag = doc["vision_lag1"]
     if lag.get("n_pairs"):
         lines.append(f"vision residual lag-1 autocorrelation: x {lag['x']:+.3f}, y {lag['y']:+.3f} "

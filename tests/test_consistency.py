@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from bench.evaluation.consistency import (
+    MIN_SPREAD_CASES,
     NEES_ALTITUDES_M,
     NEES_BLOCKS,
     block_nees,
@@ -223,3 +224,9 @@ def test_the_spread_of_the_cases_nees_shows_a_mixture_that_the_ensemble_mean_hid
     # Under two cases at a step the spread is not defined.
     one = campaign_consistency(consistent[:1])["steps"]["blocks"]["r_h"]
     assert math.isnan(one["spread_median"]) and all(math.isnan(v) for v in one["spread"])
+    # The table prints it from MIN_SPREAD_CASES cases on; consistency.json carries it at any count.
+    few = campaign_consistency(mixed[:MIN_SPREAD_CASES - 1])
+    assert math.isfinite(few["steps"]["blocks"]["r_h"]["spread_median"])
+    assert "spread of the cases' NEES" not in consistency_table(json.loads(json.dumps(json_safe(few))))
+    enough = campaign_consistency(mixed[:MIN_SPREAD_CASES])
+    assert "spread of the cases' NEES" in consistency_table(json.loads(json.dumps(json_safe(enough))))

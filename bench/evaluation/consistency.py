@@ -60,6 +60,10 @@ BAND_PROB = 0.95
 BAND_PROB_WIDE = 0.999
 CONSISTENCY_FILE = "consistency.json"
 SCHEMA_VERSION = 1
+# Fewest cases for which the table prints the spread of the cases' NEES: one step's value, for a consistent
+# filter, scatters about 1 with a relative standard deviation of about sqrt((2 + 12 / dof) / N) (0.6 at 20 cases
+# and 2 dof, 0.28 at 100), so under 20 cases it says little; consistency.json carries it at any count.
+MIN_SPREAD_CASES = 20
 
 
 def block_nees(e: np.ndarray, P: np.ndarray) -> tuple[float, ...]:
@@ -437,7 +441,8 @@ def consistency_table(doc: Mapping[str, Any]) -> str:
                 lines.append(f"  {block:<5} {b['in_band']}/{b['steps']} ({100 * b['in_band_frac']:.0f} %), "
                              f"below {b['below']}, above {b['above']}"
                              + (f"; spread of the cases' NEES {spread:.2f} (chi-square: 1)"
-                                if spread is not None and math.isfinite(spread) else ""))
+                                if spread is not None and math.isfinite(spread)
+                                and steps["n_cases"] >= MIN_SPREAD_CASES else ""))
     lag = doc["vision_lag1"]
     if lag.get("n_pairs"):
         lines.append(f"vision residual lag-1 autocorrelation: x {lag['x']:+.3f}, y {lag['y']:+.3f} "

@@ -60,9 +60,10 @@ BAND_PROB = 0.95
 BAND_PROB_WIDE = 0.999
 CONSISTENCY_FILE = "consistency.json"
 SCHEMA_VERSION = 1
-# Fewest cases for which the table prints the spread of the cases' NEES: one step's value, for a consistent
-# filter, scatters about 1 with a relative standard deviation of about sqrt((2 + 12 / dof) / N) (0.6 at 20 cases
-# and 2 dof, 0.28 at 100), so under 20 cases it says little; consistency.json carries it at any count.
+# Fewest cases for which the table prints the spread of the cases' NEES and the cases that drive the ANEES out
+# of its band: one step's spread, for a consistent filter, scatters about 1 with a relative standard deviation
+# of about sqrt((2 + 12 / dof) / N) (0.6 at 20 cases and 2 dof, 0.28 at 100), and leaving one case out of a
+# few moves every step; under 20 cases they say little. consistency.json carries both at any count.
 MIN_SPREAD_CASES = 20
 
 
@@ -373,8 +374,18 @@ def campaign_nees_steps(rows: Sequence[Mapping[str, Any]], prob: float = BAND_PR
         a heavy tail. Such a filter leaves its band at more steps than a consistent one even
         where its ANEES is right, because the ANEES scatters from step to step more than the
         band allows for.
+
+        ``drivers`` names the cases that most keep the ANEES out of its band: for each case,
+        the steps in band with that case left out (each step's ANEES and band over the other
+        cases, the same steps counted) minus the steps in band with all; the
+        :data:`DRIVERS_SHOWN` largest positive gains, as ``[{"case": id, "gain": steps}]``
+        (``id``: the row's ``case``, else its position). A single case that moves many steps
+        is a heavy tail worth flying again.
     """
-    profiles = [r["nees_profile"] for r in rows if isinstance(r.get("nees_profile"), Mapping)]
+    kept = [(r.get("case", i), r["nees_profile"]) for i, r in enumerate(rows)
+            if isinstance(r.get("nees_profile"), Mapping)]
+    ids = [k for k, _ in kept]
+    profiles = [p for _, p in kept]
     n_cases = len(profiles)
     out: dict[str, Any] = {"altitudes_m": list(NEES_PROFILE_ALTITUDES_M), "n_cases": n_cases, "blocks": {}}
     for block, dof in NEES_BLOCKS.items():
@@ -401,8 +412,31 @@ def campaign_nees_steps(rows: Sequence[Mapping[str, Any]], prob: float = BAND_PR
                                 "in_band": inside, "below": int(below.sum()), "above": int(above.sum()),
                                 "in_band_frac": inside / steps if steps else math.nan,
                                 "spread": spread.tolist(),
-                                "spread_median": float(np.median(spread_counted)) if spread_counted.size else math.nan}
+                                "spread_median": float(np.median(spread_counted)) if spread_counted.size else math.nan,
+                                "drivers": _band_drivers(vals, finite, n, counted, inside, dof, prob, ids)}
     return out
+
+
+DRIVERS_SHOWN = 3  # cases named per block by campaign_nees_steps's "drivers"
+
+
+def _band_drivers(vals: np.ndarray, finite: np.ndarray, n: np.ndarray, counted: np.ndarray, inside: int, dof: int,
+                  prob: float, ids: Sequence[Any]) -> list[dict[str, Any]]:
+    """The cases whose removal puts the most counted steps back in band (see :func:`campaign_nees_steps`)."""
+    if vals.shape[0] < 3 or not counted.any():
+        return []
+    total = np.where(finite, vals, 0.0).sum(axis=0)
+    gains = []
+    for i in range(vals.shape[0]):
+        m = n - finite[i]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            a = np.where(m > 0, (total - np.where(finite[i], vals[i], 0.0)) / np.maximum(m, 1), math.nan)
+        bands = [chi2_band(int(k), dof, prob) for k in m]
+        lo = np.array([b[0] if b else math.nan for b in bands])
+        hi = np.array([b[1] if b else math.nan for b in bands])
+        gains.append(int((counted & (a >= lo) & (a <= hi)).sum()) - inside)
+    order = sorted(range(len(gains)), key=lambda i: (-gains[i], i))
+    return [{"case": ids[i], "gain": gains[i]} for i in order[:DRIVERS_SHOWN] if gains[i] > 0]
 
 
 def consistency_table(doc: Mapping[str, Any]) -> str:
@@ -437,12 +471,16 @@ def consistency_table(doc: Mapping[str, Any]) -> str:
                      f"at k of K steps, below / above):")
         for block, b in steps["blocks"].items():
             if b["steps"]:
-                spread = b.get("spread_median")  # absent from a consistency.json written before it
+                spread = b.get("spread_median")  # absent (as "drivers") from a consistency.json written before it
                 lines.append(f"  {block:<5} {b['in_band']}/{b['steps']} ({100 * b['in_band_frac']:.0f} %), "
                              f"below {b['below']}, above {b['above']}"
                              + (f"; spread of the cases' NEES {spread:.2f} (chi-square: 1)"
                                 if spread is not None and math.isfinite(spread)
                                 and steps["n_cases"] >= MIN_SPREAD_CASES else ""))
+                if b.get("drivers") and steps["n_cases"] >= MIN_SPREAD_CASES:
+                    lines.append("        cases that most keep it out of its band: " + ", ".join(
+                        f"{d['case']} (+{d['gain']} step{'s' if d['gain'] > 1 else ''} without it)"
+                        for d in b["drivers"]))
     lag = doc["vision_lag1"]
     if lag.get("n_pairs"):
         lines.append(f"vision residual lag-1 autocorrelation: x {lag['x']:+.3f}, y {lag['y']:+.3f} "

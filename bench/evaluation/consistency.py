@@ -394,12 +394,11 @@ def campaign_nees_steps(rows: Sequence[Mapping[str, Any]], prob: float = BAND_PR
             vals = np.full((0, len(NEES_PROFILE_ALTITUDES_M)), math.nan)
         finite = np.isfinite(vals)
         n = finite.sum(axis=0)
+        total = np.where(finite, vals, 0.0).sum(axis=0)
         with np.errstate(invalid="ignore"):
-            anees = np.where(n > 0, np.where(finite, vals, 0.0).sum(axis=0) / np.maximum(n, 1), math.nan)
-        band = [chi2_band(int(k), dof, prob) for k in n]
+            anees = np.where(n > 0, total / np.maximum(n, 1), math.nan)
+        band, lo, hi = _step_bands(n, dof, prob)
         counted = n >= max(1, math.ceil(0.5 * n_cases))
-        lo = np.array([b[0] if b else math.nan for b in band])
-        hi = np.array([b[1] if b else math.nan for b in band])
         below = counted & (anees < lo)
         above = counted & (anees > hi)
         steps = int(counted.sum())
@@ -413,28 +412,39 @@ def campaign_nees_steps(rows: Sequence[Mapping[str, Any]], prob: float = BAND_PR
                                 "in_band_frac": inside / steps if steps else math.nan,
                                 "spread": spread.tolist(),
                                 "spread_median": float(np.median(spread_counted)) if spread_counted.size else math.nan,
-                                "drivers": _band_drivers(vals, finite, n, counted, inside, dof, prob, ids)}
+                                "drivers": _band_drivers(vals, finite, total, n, lo, hi, counted, inside, dof, prob,
+                                                         ids)}
     return out
+
+
+def _step_bands(n: np.ndarray, dof: int, prob: float) -> tuple[list[list[float] | None], np.ndarray, np.ndarray]:
+    """Each step's :func:`chi2_band` for its count of cases ``n``: the bands, and their lower and upper
+    ends as arrays (NaN where a step has no case)."""
+    band = [chi2_band(int(k), dof, prob) for k in n]
+    return band, np.array([b[0] if b else math.nan for b in band]), np.array([b[1] if b else math.nan for b in band])
 
 
 DRIVERS_SHOWN = 3  # cases named per block by campaign_nees_steps's "drivers"
 
 
-def _band_drivers(vals: np.ndarray, finite: np.ndarray, n: np.ndarray, counted: np.ndarray, inside: int, dof: int,
-                  prob: float, ids: Sequence[Any]) -> list[dict[str, Any]]:
-    """The cases whose removal puts the most counted steps back in band (see :func:`campaign_nees_steps`)."""
+def _band_drivers(vals: np.ndarray, finite: np.ndarray, total: np.ndarray, n: np.ndarray, lo: np.ndarray,
+                  hi: np.ndarray, counted: np.ndarray, inside: int, dof: int, prob: float,
+                  ids: Sequence[Any]) -> list[dict[str, Any]]:
+    """The cases whose removal puts the most counted steps back in band (see :func:`campaign_nees_steps`).
+
+    ``total``, ``n``, ``lo`` and ``hi``: each step's sum of the cases' NEES, their count and band, over all
+    cases. Without one case a step keeps its count and band where that case has no value there, and takes
+    the band of one case fewer where it has."""
     if vals.shape[0] < 3 or not counted.any():
         return []
-    total = np.where(finite, vals, 0.0).sum(axis=0)
+    _, lo_less, hi_less = _step_bands(n - 1, dof, prob)
     gains = []
     for i in range(vals.shape[0]):
         m = n - finite[i]
         with np.errstate(invalid="ignore", divide="ignore"):
             a = np.where(m > 0, (total - np.where(finite[i], vals[i], 0.0)) / np.maximum(m, 1), math.nan)
-        bands = [chi2_band(int(k), dof, prob) for k in m]
-        lo = np.array([b[0] if b else math.nan for b in bands])
-        hi = np.array([b[1] if b else math.nan for b in bands])
-        gains.append(int((counted & (a >= lo) & (a <= hi)).sum()) - inside)
+        lo_i, hi_i = np.where(finite[i], lo_less, lo), np.where(finite[i], hi_less, hi)
+        gains.append(int((counted & (a >= lo_i) & (a <= hi_i)).sum()) - inside)
     order = sorted(range(len(gains)), key=lambda i: (-gains[i], i))
     return [{"case": ids[i], "gain": gains[i]} for i in order[:DRIVERS_SHOWN] if gains[i] > 0]
 
@@ -469,15 +479,15 @@ def consistency_table(doc: Mapping[str, Any]) -> str:
         alt = steps["altitudes_m"]
         lines.append(f"per step ({alt[0] - alt[1]} m grid, {alt[0]}-{alt[-1]} m; ANEES inside its 95 % band "
                      f"at k of K steps, below / above):")
+        enough = steps["n_cases"] >= MIN_SPREAD_CASES
         for block, b in steps["blocks"].items():
             if b["steps"]:
                 spread = b.get("spread_median")  # absent (as "drivers") from a consistency.json written before it
                 lines.append(f"  {block:<5} {b['in_band']}/{b['steps']} ({100 * b['in_band_frac']:.0f} %), "
                              f"below {b['below']}, above {b['above']}"
                              + (f"; spread of the cases' NEES {spread:.2f} (chi-square: 1)"
-                                if spread is not None and math.isfinite(spread)
-                                and steps["n_cases"] >= MIN_SPREAD_CASES else ""))
-                if b.get("drivers") and steps["n_cases"] >= MIN_SPREAD_CASES:
+                                if enough and spread is not None and math.isfinite(spread) else ""))
+                if enough and b.get("drivers"):
                     lines.append("        cases that most keep it out of its band: " + ", ".join(
                         f"{d['case']} (+{d['gain']} step{'s' if d['gain'] > 1 else ''} without it)"
                         for d in b["drivers"]))

@@ -66,6 +66,16 @@ def _telemetry(rng, z0=510.0):
     return tel
 
 
+def _as_written(doc):
+    """A document as it reads back from its JSON file."""
+    return json.loads(json.dumps(json_safe(doc)))
+
+
+def _case_row(tel, log=()):
+    """A campaign row of one run's consistency (touchdown at 59 s), as written."""
+    return _as_written(summary_row({"consistency": run_consistency(tel, {"t_s": 59.0}, list(log))}))
+
+
 def test_a_consistent_ensemble_is_inside_its_bands_and_the_table_reads_it():
     rng = np.random.default_rng(1)
     rows = []
@@ -76,8 +86,7 @@ def test_a_consistent_ensemble_is_inside_its_bands_and_the_table_reads_it():
             y = rng.normal(size=2)
             log.append(SimpleNamespace(t_ns=int(k * 1e8), kind="vision", nis=float(y @ y), accepted=True,
                                        y=y, S=np.eye(2)))
-        summary = {"consistency": run_consistency(tel, {"t_s": 59.0}, log)}
-        rows.append(json.loads(json.dumps(json_safe(summary_row(summary)))))
+        rows.append(_case_row(tel, log))
     doc = campaign_consistency(rows)
     assert doc["n_cases"] == 200
     in_band = sum(sum(b["in_band"]) for b in doc["blocks"].values())
@@ -86,7 +95,7 @@ def test_a_consistent_ensemble_is_inside_its_bands_and_the_table_reads_it():
     v = doc["nis"]["vision"]
     assert v["band"][0] <= v["mean"] <= v["band"][1]
     assert abs(doc["vision_lag1"]["x"]) < 0.02 and abs(doc["vision_lag1"]["y"]) < 0.02
-    text = consistency_table(json.loads(json.dumps(json_safe(doc))))
+    text = consistency_table(_as_written(doc))
     assert "v_h" in text and "NIS vision" in text and "NIS altimeter: no updates" in text
 
 
@@ -166,8 +175,7 @@ def test_per_step_ensemble_nees_is_in_band_for_a_consistent_filter_and_not_for_a
         nees = {block: rng.chisquare(dof, t.size) for block, dof in NEES_BLOCKS.items()}
         for scale, rows in rows_by_scale.items():
             tel = {"t_s": t, "r_z_m": z, **{f"nees_{b}": v * scale for b, v in nees.items()}}
-            summary = {"consistency": run_consistency(tel, {"t_s": 59.0}, [])}
-            rows.append(json.loads(json.dumps(json_safe(summary_row(summary)))))
+            rows.append(_case_row(tel))
 
     def campaign(scale):
         return campaign_consistency(rows_by_scale[scale])
@@ -188,7 +196,7 @@ def test_per_step_ensemble_nees_is_in_band_for_a_consistent_filter_and_not_for_a
         assert over[block]["above"] >= 245 and over[block]["in_band_frac"] < 0.05
         assert under[block]["below"] >= 245
     doc = campaign(1.0)
-    text = consistency_table(json.loads(json.dumps(json_safe(doc))))
+    text = consistency_table(_as_written(doc))
     assert "per step (2 m grid, 500-2 m" in text and "r_h" in text
     assert "spread of the cases' NEES" in text
 
@@ -206,8 +214,7 @@ def test_the_spread_of_the_cases_nees_shows_a_mixture_that_the_ensemble_mean_hid
         nees = {block: rng.chisquare(dof, t.size) for block, dof in NEES_BLOCKS.items()}
         for scale, rows in ((1.0, consistent), (0.5 if i % 2 else 1.5, mixed), (0.4, scaled)):
             tel = {"t_s": t, "r_z_m": z, **{f"nees_{b}": v * scale for b, v in nees.items()}}
-            rows.append(json.loads(json.dumps(json_safe(summary_row({"consistency": run_consistency(
-                tel, {"t_s": 59.0}, [])})))))
+            rows.append(_case_row(tel))
     ok = campaign_consistency(consistent)["steps"]["blocks"]
     mix = campaign_consistency(mixed)["steps"]["blocks"]
     low = campaign_consistency(scaled)["steps"]["blocks"]
@@ -227,9 +234,9 @@ def test_the_spread_of_the_cases_nees_shows_a_mixture_that_the_ensemble_mean_hid
     # The table prints it from MIN_SPREAD_CASES cases on; consistency.json carries it at any count.
     few = campaign_consistency(mixed[:MIN_SPREAD_CASES - 1])
     assert math.isfinite(few["steps"]["blocks"]["r_h"]["spread_median"])
-    assert "spread of the cases' NEES" not in consistency_table(json.loads(json.dumps(json_safe(few))))
+    assert "spread of the cases' NEES" not in consistency_table(_as_written(few))
     enough = campaign_consistency(mixed[:MIN_SPREAD_CASES])
-    assert "spread of the cases' NEES" in consistency_table(json.loads(json.dumps(json_safe(enough))))
+    assert "spread of the cases' NEES" in consistency_table(_as_written(enough))
 
 
 def test_the_cases_that_keep_the_ensemble_nees_out_of_its_band_are_named():
@@ -243,7 +250,7 @@ def test_the_cases_that_keep_the_ensemble_nees_out_of_its_band_are_named():
         nees = {b: np.full(t.size, 40.0 * dof) if i == 17 else rng.chisquare(dof, t.size)
                 for b, dof in NEES_BLOCKS.items()}
         tel = {"t_s": t, "r_z_m": z, **{f"nees_{b}": v for b, v in nees.items()}}
-        row = json.loads(json.dumps(json_safe(summary_row({"consistency": run_consistency(tel, {"t_s": 59.0}, [])}))))
+        row = _case_row(tel)
         row["case"] = 100 + i
         rows.append(row)
     steps = campaign_consistency(rows)["steps"]
@@ -255,10 +262,10 @@ def test_the_cases_that_keep_the_ensemble_nees_out_of_its_band_are_named():
         assert first["case"] == 117, (block, b["drivers"])
         assert first["gain"] == without["blocks"][block]["in_band"] - b["in_band"] > 180, block
         assert len(b["drivers"]) <= 3 and all(d["gain"] > 0 for d in b["drivers"])
-    text = consistency_table(json.loads(json.dumps(json_safe(campaign_consistency(rows)))))
+    text = consistency_table(_as_written(campaign_consistency(rows)))
     assert "cases that most keep it out of its band: 117 (+" in text
     # Too few cases to leave one out: none named; under MIN_SPREAD_CASES the table does not print them.
     assert campaign_consistency(rows[:2])["steps"]["blocks"]["r_h"]["drivers"] == []
     few = campaign_consistency(rows[10:10 + MIN_SPREAD_CASES - 1])
     assert few["steps"]["blocks"]["r_h"]["drivers"]
-    assert "cases that most keep it out" not in consistency_table(json.loads(json.dumps(json_safe(few))))
+    assert "cases that most keep it out" not in consistency_table(_as_written(few))

@@ -225,6 +225,20 @@ class MapFixConfig(BaseModel):
     fine_peak_scale: float = Field(
         0.45, ge=0.0, le=1.0, description="for such a frame: factor on the common error's peak term [-]"
     )
+    # The step from that calibration to the one above at gsd = res leaves the fixes just coarser than the map's
+    # 1 m level (gsd 1.0-1.25 res, about 240-300 m at the default camera) three to four times more conservative
+    # than their errors (mean e^2 / var 0.24-0.45 per axis in 0.05-wide bins of gsd / res, 165 fixes of 80
+    # cases; 0.7-1.4 with a blend to 1.5), and their error grows smoothly with gsd / res. A blend
+    # (fine_blend_gsd_ratio 1.5) took the dip that step makes in the position's NEES out of 100-case campaigns,
+    # but made the few cases whose fixes err most (a sun far from the map's) sure of a wrong position: steps of
+    # r_h in band 71 -> 82 % on seed 7, 90 -> 86 % on seed 1, 85 -> 62 % on seed 5 (README, issue 14,
+    # thirty-fifth session). So the step stays the default and the blend is a setting.
+    fine_blend_gsd_ratio: float = Field(
+        1.0, ge=1.0, le=4.0,
+        description="a frame at the map's finest level whose ground-sample distance is between 1 and this many "
+                    "work px takes a geometric blend of the fine_* calibration and the one above, weighted "
+                    "linearly in gsd / res (coarse_weight); 1.0: a step at gsd = res [-]",
+    )
 
     @model_validator(mode="after")
     def _inliers_fit_the_grid(self) -> MapFixConfig:
@@ -233,6 +247,17 @@ class MapFixConfig(BaseModel):
                              f"patches of patch_grid = {self.patch_grid}: every fix would be refused; allowed: at "
                              f"most patch_grid^2")
         return self
+
+
+def coarse_weight(gsd_over_res: float, blend_ratio: float) -> float:
+    """The weight [0, 1] of the coarse calibration of a fix's error against the fine one (``MapFixConfig.fine_*``)
+    for a frame of ``gsd_over_res`` frame pixels per work pixel: 0 for a frame finer than the work level, 1 from
+    ``blend_ratio`` on, linear between; with ``blend_ratio`` 1, a step at 1."""
+    if gsd_over_res < 1.0:
+        return 0.0
+    if blend_ratio <= 1.0:
+        return 1.0
+    return min((gsd_over_res - 1.0) / (blend_ratio - 1.0), 1.0)
 
 
 @dataclass(frozen=True)
@@ -253,6 +278,8 @@ class MapFix:
         n_patches: Patches matched; n_inliers: kept after outlier rejection.
         scale: Fitted scale of the patch offsets about the nadir point [-] (an altitude error shows here).
         work_res_m: Resolution the fix worked at [m/px].
+        gsd_m: The frame's ground-sample distance at the boresight [m/px] (NaN on a refusal before the coarse
+            correlation).
     """
 
     ok: bool
@@ -268,6 +295,7 @@ class MapFix:
     scale: float = float("nan")
     work_res_m: float = float("nan")
     common_sigma_m: float = float("nan")
+    gsd_m: float = float("nan")
 
     @property
     def total_cov_xy_m2(self) -> np.ndarray:
@@ -507,7 +535,7 @@ class MapMatcher:
                           work_res_m=res)
         corr = cv2.matchTemplate(img[lo_r:hi_r, lo_c:hi_c], tmpl, cv2.TM_CCOEFF_NORMED)
         prow, pcol, peak, psr, sidelobe = peak_to_sidelobe(corr)
-        diag = dict(psr=psr, sidelobe_ratio=sidelobe, peak=peak, work_res_m=res)
+        diag = dict(psr=psr, sidelobe_ratio=sidelobe, peak=peak, work_res_m=res, gsd_m=gsd)
         if peak < cfg.min_peak or psr < cfg.min_psr or sidelobe > cfg.max_sidelobe_ratio:
             return MapFix(False, "coarse peak not clear of its sidelobes", _nan2(), np.full((2, 2), np.nan),
                           _nan2(), **diag)
@@ -583,14 +611,18 @@ class MapMatcher:
         # The part common to every patch, and to consecutive frames (the same ground under slowly changing
         # views): a floor, plus a part that grows as the frame looks less like the map (another sun, a blurrier
         # frame), read from the coarse correlation peak.
-        # A frame finer than the map's finest level has a calibration of its own (MapFixConfig.fine_*); not the
-        # keyframe's fixes.
-        floor_px, peak_scale = cfg.common_mode_sigma_px, 1.0
-        if level == 0 and gsd < res and keyframe_view is None:
-            var_t = var_t * cfg.fine_independent_scale**2
-            floor_px, peak_scale = cfg.fine_common_sigma_px * (cfg.fine_common_side_px / side), cfg.fine_peak_scale
+        # A frame finer than the map's finest level has a calibration of its own (MapFixConfig.fine_*), and one
+        # up to fine_blend_gsd_ratio times coarser a blend of the two; not the keyframe's fixes.
         dissimilar = (1.0 - peak) / peak
-        common = res * math.hypot(floor_px, peak_scale * cfg.common_peak_gain * dissimilar**cfg.common_peak_power)
+        peak_px = cfg.common_peak_gain * dissimilar**cfg.common_peak_power
+        common = res * math.hypot(cfg.common_mode_sigma_px, peak_px)
+        w = coarse_weight(gsd / res, cfg.fine_blend_gsd_ratio)
+        if level == 0 and w < 1.0 and keyframe_view is None:
+            common_fine = res * math.hypot(cfg.fine_common_sigma_px * (cfg.fine_common_side_px / side),
+                                           cfg.fine_peak_scale * cfg.common_peak_gain
+                                           * dissimilar**cfg.common_peak_power)
+            common = common_fine ** (1.0 - w) * common**w
+            var_t = var_t * cfg.fine_independent_scale ** (2.0 * (1.0 - w))
         if keyframe_view is not None:
             r_k, h_k = keyframe_view
             tan_k = float(np.mean(np.hypot(*(np.asarray(centres)[keep] - r_k).T))) / h_k
@@ -647,6 +679,14 @@ class MapNavConfig(BaseModel):
     keyframe_min_altitude_m: float = Field(
         5.0, ge=0.0, description="no keyframe fixes below this estimated height [m]"
     )
+    relock_after: int = Field(
+        2, ge=0, le=100,
+        description="once locked, this many map fixes in a row that the filter's gate refuses, each agreeing "
+                    "with the one before (the first lock's confirmation test), say that the filter's position "
+                    "is what is off: its horizontal sigmas are scaled so that the last one's innovation, against "
+                    "the horizontal position's covariance alone, is about its 2 degrees of freedom, and that "
+                    "fix is applied again (a re-lock); 0: never, the fixes stay refused [-]",
+    )
     fix: MapFixConfig = MapFixConfig()
 
     @model_validator(mode="after")
@@ -654,6 +694,9 @@ class MapNavConfig(BaseModel):
         if self.min_altitude_m >= self.max_altitude_m:
             raise ValueError(f"map_nav.min_altitude_m = {self.min_altitude_m} must be below map_nav.max_altitude_m = "
                              f"{self.max_altitude_m}: no height would take a map fix; allowed: min < max")
+        if self.relock_after == 1:
+            raise ValueError("map_nav.relock_after = 1: a re-lock needs refused fixes that agree with one another, "
+                             "so at least two; allowed: 0 (never) or 2 and more")
         if self.keyframe and self.keyframe_min_altitude_m >= self.min_altitude_m:
             raise ValueError(f"map_nav.keyframe_min_altitude_m = {self.keyframe_min_altitude_m} must be below "
                              f"map_nav.min_altitude_m = {self.min_altitude_m}: the keyframe would take no fix; "
@@ -675,6 +718,7 @@ class MapNavStats:
     unconfirmed: int = 0  # accepted by the matcher, waiting for or failing the consecutive-frame check
     updates: int = 0  # handed to the filter
     gate_rejected: int = 0
+    relocks: int = 0  # re-locks after fixes the gate refused (MapNavConfig.relock_after)
     locked: bool = False
     never_locked: bool = False  # the fixes' height window was left without a lock (no keyframe then)
     search_sigmas_max: float = 0.0  # the widest coarse search window used [sigma of the prior]
@@ -726,6 +770,15 @@ class MapNavigator:
     knew), so that the confirmed fix passes the filter's gate. After the lock the window is
     the prior's again.
 
+    Re-lock (``relock_after``): a fix with a larger error than its covariance says (a sun far from
+    the map's) can leave the filter both off and sure of itself, and then its gate refuses the good
+    fixes that follow, to the end of the fixes. So, once locked, ``relock_after`` fixes in a row
+    refused by the gate, each agreeing with the one before (the confirmation's test), scale the
+    filter's horizontal position sigmas (:meth:`NavFilter.inflate_horizontal_position`) until the
+    last one's innovation, against the position's covariance alone, is about its 2 degrees of
+    freedom, and that fix is applied again. Refused fixes that disagree with one another, or a
+    matcher's refusal between them, do not count.
+
     Keyframe (``keyframe``): below ``min_altitude_m`` the map's resolution no longer helps and the
     filter would fly the last of the descent on IMU and altimeter (vision stops at its cut-off).
     So the first frame below ``min_altitude_m`` becomes a keyframe: it is laid on the
@@ -756,6 +809,7 @@ class MapNavigator:
         self._last_t_ns: int | None = None
         # (t_ns, offset, independent covariance, common 1-sigma) of a first fix awaiting confirmation
         self._pending: tuple[int, np.ndarray, np.ndarray, float] | None = None
+        self._gated: list[tuple[int, np.ndarray, np.ndarray, float]] = []  # the same, of fixes gated out in a row
         self._bias_t_ns: int | None = None  # time the filter's b_map was last carried to (None: not yet)
         self._bias_sigma_m = 0.0  # the 1-sigma it was carried at [m]
         self._window_refusals = 0  # window refusals before the first lock
@@ -818,23 +872,19 @@ class MapNavigator:
             key = REFUSALS[fix.reason]
             self.stats.refused[key] = self.stats.refused.get(key, 0) + 1
             self._pending = None
+            self._gated.clear()
             self._window_refusals += fix.reason in WINDOW_REFUSALS  # kept until the lock: the window only grows
             self.stats.log.append((t_ns, fix, False, None))
             return fix
+        this = (t_ns, fix.offset_xy_m.copy(), fix.cov_xy_m2.copy(), fix.common_sigma_m)
         if not self.stats.locked:
             pending = self._pending
-            self._pending = (t_ns, fix.offset_xy_m.copy(), fix.cov_xy_m2.copy(), fix.common_sigma_m)
+            self._pending = this
             if pending is None:
                 self.stats.unconfirmed += 1
                 self.stats.log.append((t_ns, fix, False, None))
                 return fix
-            d = fix.offset_xy_m - pending[1]
-            # The common error's change between the two (Gauss-Markov: 2 sigma^2 (1 - phi)), each's own error,
-            # and the filter's drift.
-            phi = self._common_correlation(t_ns - pending[0])
-            common_var = 2.0 * (1.0 - phi) * max(fix.common_sigma_m, pending[3]) ** 2
-            S = fix.cov_xy_m2 + pending[2] + np.eye(2) * (self.cfg.confirm_drift_m**2 + common_var)
-            if not float(d @ np.linalg.solve(S, d)) <= self.cfg.confirm_sigmas**2:
+            if not self._agree(pending, this):
                 self.stats.unconfirmed += 1
                 self.stats.log.append((t_ns, fix, False, None))
                 return fix
@@ -853,9 +903,38 @@ class MapNavigator:
             R = fix.total_cov_xy_m2
         rec = nav_filter.update_map_position(t_ns, fix.r_CM_xy_m, R, lever[:2])
         self.stats.updates += 1
-        self.stats.gate_rejected += int(not rec.accepted)
+        if rec.accepted:
+            self._gated.clear()
+        else:
+            self.stats.gate_rejected += 1
+            self._gated.append(this)
+            n = self.cfg.relock_after
+            if n and len(self._gated) >= n and all(self._agree(a, b) for a, b in zip(self._gated[-n:-1],
+                                                                                    self._gated[-n + 1:])):
+                # The fixes agree with one another and not with the filter: the filter's position is off by
+                # more than it knows (a biased fix it took earlier). Scale its sigmas so that the innovation,
+                # against the horizontal position's covariance alone, is about its 2 degrees of freedom, and
+                # apply the fix again.
+                y = np.asarray(rec.y, float)
+                nis_r = float(y @ np.linalg.solve(nav_filter.ekf.P[0:2, 0:2], y))
+                nav_filter.inflate_horizontal_position(math.sqrt(max(nis_r / 2.0, 1.0)))
+                rec = nav_filter.update_map_position(t_ns, fix.r_CM_xy_m, R, lever[:2])
+                self.stats.relocks += 1
+                self._gated.clear()
         self.stats.log.append((t_ns, fix, True, bool(rec.accepted)))
         return fix
+
+    def _agree(self, first: tuple[int, np.ndarray, np.ndarray, float],
+               then: tuple[int, np.ndarray, np.ndarray, float]) -> bool:
+        """Do two fixes' offsets from the filter's estimate, each ``(t_ns, offset, independent covariance,
+        common 1-sigma)``, agree to ``confirm_sigmas``? The difference's covariance is each's own error, the
+        common error's change between the two (Gauss-Markov: ``2 sigma^2 (1 - phi)``) and the filter's drift
+        (``confirm_drift_m``)."""
+        d = then[1] - first[1]
+        phi = self._common_correlation(then[0] - first[0])
+        common_var = 2.0 * (1.0 - phi) * max(then[3], first[3]) ** 2
+        S = then[2] + first[2] + np.eye(2) * (self.cfg.confirm_drift_m**2 + common_var)
+        return float(d @ np.linalg.solve(S, d)) <= self.cfg.confirm_sigmas**2
 
     def _keyframe_frame(self, t_ns: int, frame: np.ndarray, nav_filter, R_LC: np.ndarray, r_C: np.ndarray,
                         lever: np.ndarray, sigma_att: float) -> MapFix | None:

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from bench.maps import onboard_map_from_product
 from bench.maps.synthetic import render_map_frame
 from bench.scenario.seeding import component_rng
-from gnc.map_nav import MapFixConfig, MapMatcher, OnboardMap, peak_to_sidelobe
+from gnc.map_nav import MapFixConfig, MapMatcher, OnboardMap, coarse_weight, peak_to_sidelobe
 from models.orbital_map import OrbitalMapConfig, render_orbital_map
 from models.terrain import TerrainConfig, generate_surface
 
@@ -212,10 +212,12 @@ def _nadir_template_side_px(m: OnboardMap, r_est: np.ndarray, res_m: float) -> i
 
 
 def test_common_error_of_a_fix_grows_as_the_frame_looks_less_like_the_map(onboard):
-    # A frame coarser than the map's finest level (230 m: 1.04 m per frame pixel on the 1 m level): the
-    # common error is the floor plus the gain times ((1 - peak) / peak)^power, in work pixels. One pass, so
-    # that the pose the error model sees is the one given here.
+    # A frame coarser than the map's finest level (230 m: 1.04 m per frame pixel on the 1 m level): with the
+    # step between the two calibrations (fine_blend_gsd_ratio = 1, the default), the common error is the floor plus the
+    # gain times ((1 - peak) / peak)^power, in work pixels. One pass, so that the pose the error model sees
+    # is the one given here.
     cfg = MapFixConfig(refine_passes=1)
+    assert cfg.fine_blend_gsd_ratio == 1.0
     offset = np.array([3.0, -2.0, 0.0])
     r_high = np.array([0.0, 0.0, float(onboard.dem_height(0.0, 0.0)) + 230.0])
     high = MapMatcher(onboard, cfg).fix(render_frame(onboard, r_high, attitude(), np.random.default_rng(4)), K,
@@ -245,3 +247,49 @@ def test_common_error_of_a_fix_grows_as_the_frame_looks_less_like_the_map(onboar
                   0, 255).astype(np.uint8)
     worse = MapMatcher(onboard, cfg).fix(dim, K, attitude(), r_true + offset, 5.0)
     assert worse.ok and worse.peak < fix.peak and worse.common_sigma_m > fix.common_sigma_m
+
+
+def test_coarse_weight_is_zero_below_the_work_level_linear_to_the_blend_ratio_and_one_beyond():
+    for ratio in (1.25, 1.5, 2.0):
+        assert coarse_weight(0.6, ratio) == 0.0 and coarse_weight(0.999, ratio) == 0.0
+        assert coarse_weight(1.0, ratio) == 0.0
+        for q in np.linspace(1.0, ratio, 7):
+            assert coarse_weight(float(q), ratio) == pytest.approx((q - 1.0) / (ratio - 1.0), abs=1e-12)
+        assert coarse_weight(ratio, ratio) == pytest.approx(1.0)
+        assert coarse_weight(ratio + 0.3, ratio) == 1.0
+    # A ratio of 1: the step at gsd = res.
+    assert coarse_weight(0.99, 1.0) == 0.0 and coarse_weight(1.0, 1.0) == 1.0 and coarse_weight(1.3, 1.0) == 1.0
+
+
+def test_a_frame_just_coarser_than_the_map_blends_the_fine_and_coarse_calibrations(onboard):
+    # 230 m over the 1 m level: 1.04 m per frame pixel, so with a blend from 1 to 1.5 frame px per work px
+    # the coarse calibration weighs (gsd / res - 1) / 0.5, and the common error is the geometric blend of
+    # the fine one (floor at the template's side, a fraction of the peak term) and the coarse one; the
+    # independent part takes that fraction of the fine scale. Recomputed here from the fix's peak, its
+    # ground-sample distance (checked against the nadir geometry) and the template's side.
+    cfg = MapFixConfig(refine_passes=1, fine_blend_gsd_ratio=1.5)
+    offset = np.array([3.0, -2.0, 0.0])
+    r_true = np.array([0.0, 0.0, float(onboard.dem_height(0.0, 0.0)) + 230.0])
+    frame = render_frame(onboard, r_true, attitude(), np.random.default_rng(4))
+    r_est = r_true + offset
+    fix = MapMatcher(onboard, cfg).fix(frame, K, attitude(), r_est, 5.0)
+    assert fix.ok and fix.work_res_m == onboard.image_res_m, fix
+    height_est = float(r_est[2]) - float(onboard.dem_height(float(r_est[0]), float(r_est[1])))
+    assert fix.gsd_m == pytest.approx(height_est / F_PX, rel=1e-6)
+    w = (fix.gsd_m / fix.work_res_m - 1.0) / (cfg.fine_blend_gsd_ratio - 1.0)
+    assert 0.0 < w < 1.0
+    q = ((1.0 - fix.peak) / fix.peak) ** cfg.common_peak_power
+    coarse = fix.work_res_m * math.hypot(cfg.common_mode_sigma_px, cfg.common_peak_gain * q)
+    side = _nadir_template_side_px(onboard, r_est, fix.work_res_m)
+    fine = fix.work_res_m * math.hypot(cfg.fine_common_sigma_px * cfg.fine_common_side_px / side,
+                                       cfg.fine_peak_scale * cfg.common_peak_gain * q)
+    assert fine < coarse
+    assert fix.common_sigma_m == pytest.approx(fine ** (1.0 - w) * coarse**w, rel=1e-9)
+    assert fine < fix.common_sigma_m < coarse
+    # The step's fix of the same frame: the coarse calibration whole, the independent part unscaled.
+    step = MapMatcher(onboard, cfg.model_copy(update={"fine_blend_gsd_ratio": 1.0})).fix(frame, K, attitude(), r_est,
+                                                                                        5.0)
+    assert step.common_sigma_m == pytest.approx(coarse, rel=1e-12)
+    np.testing.assert_allclose(fix.cov_xy_m2, step.cov_xy_m2 * cfg.fine_independent_scale ** (2.0 * (1.0 - w)),
+                               rtol=1e-9)
+    np.testing.assert_allclose(fix.r_CM_xy_m, step.r_CM_xy_m, rtol=0, atol=0)  # the measurement is the same

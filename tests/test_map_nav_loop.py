@@ -165,6 +165,69 @@ def test_a_hand_over_error_beyond_the_search_window_is_acquired_by_widening_it(o
     assert np.all(np.abs(f.x[:2] - r_B[:2]) < 1.0), f.x[:2] - r_B[:2]
 
 
+def _locked_then_overconfident(onboard, cfg, bias_xy_m):
+    """A navigator locked at the truth (two agreeing fixes of a frame from it), then the filter's horizontal
+    position moved by ``bias_xy_m`` and its horizontal sigmas shrunk 20-fold: the state a biased fix that the
+    filter trusted leaves behind. Returns the filter, the navigator, the frame, the body's truth and the time."""
+    rot = _attitude(15.0)
+    q, R_LB = rot.as_quat(scalar_first=True), rot.as_matrix()
+    r_B = np.array([8.0, -12.0, float(onboard.dem_height(8.0, -12.0)) + 150.0])
+    f = _filter(r_B + np.array([2.0, -1.5, 0.0]), q)
+    nav = MapNavigator(onboard, cfg, K, R_BC, LEVER_B)
+    frame = render_map_frame(onboard, K, r_B + R_LB @ LEVER_B, R_LB @ R_BC, np.random.default_rng(0))
+    nav.on_frame(0, frame, f)
+    nav.on_frame(10_000_000, frame, f)
+    assert nav.stats.locked and nav.stats.updates == 1 and nav.stats.gate_rejected == 0
+    f.ekf.x[0:2] += bias_xy_m
+    d = np.ones(f.P.shape[0])
+    d[0:2] = 0.05
+    f.ekf.P = f.P * np.outer(d, d)
+    return f, nav, frame, r_B, 20_000_000
+
+
+@pytest.mark.parametrize("relock_after", [0, 2, 3])
+def test_fixes_the_gate_refuses_that_agree_with_one_another_re_lock_the_filter(onboard, relock_after):
+    # 3 m off with sigmas of centimetres: every fix of the truth's frame is far outside the gate. Without a
+    # re-lock the filter keeps its error to the end; with one, the n-th agreeing refused fix scales the
+    # horizontal sigmas until its innovation is about 2 sigma-squared and is applied: the filter is back at
+    # the truth.
+    cfg = MapNavConfig(period_ns=10_000_000, relock_after=relock_after)
+    bias = np.array([3.0, -2.0])
+    f, nav, frame, r_B, t0 = _locked_then_overconfident(onboard, cfg, bias)
+    sigma_before = np.sqrt(np.diag(f.P)[:2])
+    for k in range(5):
+        nav.on_frame(t0 + k * 10_000_000, frame, f)
+        if relock_after and k + 1 < relock_after:
+            assert nav.stats.relocks == 0 and nav.stats.gate_rejected == k + 1
+    err = f.x[:2] - r_B[:2]
+    if relock_after == 0:
+        assert nav.stats.relocks == 0 and nav.stats.gate_rejected == 5
+        assert np.all(np.abs(err - bias) < 0.5), err  # still where the bias put it
+    else:
+        assert nav.stats.relocks == 1 and nav.stats.gate_rejected == relock_after
+        assert np.all(np.abs(err) < 0.3), err
+        assert np.all(np.sqrt(np.diag(f.P)[:2]) > sigma_before)
+    # Every fix was handed to the filter, and the log says which the gate took in the end.
+    assert nav.stats.updates == 6
+    assert sum(1 for *_, used, ok in nav.stats.log if used and ok) == 6 - nav.stats.gate_rejected + nav.stats.relocks
+
+
+def test_refused_fixes_that_disagree_with_one_another_do_not_re_lock(onboard):
+    # The gate refuses both, but the second shows ground 15 m from the first: one of them is wrong, and a
+    # re-lock would trust it, so the filter keeps its state.
+    cfg = MapNavConfig(period_ns=10_000_000, relock_after=2)
+    f, nav, frame, r_B, t0 = _locked_then_overconfident(onboard, cfg, np.array([3.0, -2.0]))
+    rot = _attitude(15.0)
+    R_LB = rot.as_matrix()
+    moved = r_B + np.array([0.0, 6.0, 0.0])
+    frame_b = render_map_frame(onboard, K, moved + R_LB @ LEVER_B, R_LB @ R_BC, np.random.default_rng(1))
+    x0 = f.x
+    for k, fr in enumerate((frame, frame_b, frame, frame_b)):
+        nav.on_frame(t0 + k * 10_000_000, fr, f)
+    assert nav.stats.gate_rejected == 4 and nav.stats.relocks == 0
+    assert np.array_equal(f.x, x0)
+
+
 def test_inflating_the_horizontal_position_scales_its_rows_and_columns():
     f = _filter(np.array([1.0, 2.0, 300.0]), [1.0, 0.0, 0.0, 0.0])
     rng = np.random.default_rng(3)
@@ -200,6 +263,10 @@ def test_nav_map_switch_is_off_by_default_and_checked():
     with pytest.raises(ScenarioError, match="estimator.regional_relief_sigma_m / regional_relief_length_m = 0.05"):
         load_scenario(None, ["nav_map=on", "estimator.regional_relief_sigma_m=5.0"])
     load_scenario(None, ["estimator.regional_relief_sigma_m=5.0"])  # not read without map fixes
+    # A re-lock needs two refused fixes that agree (0 turns it off).
+    with pytest.raises(ScenarioError, match="map_nav.relock_after = 1: .* allowed: 0 \\(never\\) or 2 and more"):
+        load_scenario(None, ["nav_map=on", "map_nav.relock_after=1"])
+    assert load_scenario(None, ["nav_map=on", "map_nav.relock_after=0"]).map_nav.relock_after == 0
 
 
 @pytest.mark.slow

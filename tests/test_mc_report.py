@@ -369,6 +369,10 @@ def test_map_nav_lines_against_hand_computed_figures():
     rows.append({"case": 40, "outcome": "landed", "landed": True})  # a case flown without map navigation
     text = "\n".join(map_nav_lines(rows))
     assert "map navigation over 40 cases: 1080 fixes used of 1200 attempts (1120 accepted by the matcher, 40 gated out)" in text
+    # Campaigns written since the re-lock (MapNavConfig.relock_after) count them too.
+    for i, r in enumerate(rows[:40]):
+        r["map_nav_relocks"] = 1 if i in (3, 17, 29) else 0
+    assert "(1120 accepted by the matcher, 40 gated out, 3 re-locks)" in "\n".join(map_nav_lines(rows))
     assert "false locks: 2/1120 fixes" in text and "cases with one: 1/40" in text and "1 used by the filter" in text
 
     def three_sigma_and_max(dx, dy):

@@ -341,9 +341,11 @@ def map_nav_lines(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     cases_false = int(np.sum(false > 0))
     f_lo, f_hi = wilson_interval(n_false, accepted)
     c_lo, c_hi = wilson_interval(cases_false, len(nav))
+    relocks = column(nav, "map_nav_relocks")  # absent from campaigns written before the re-lock
+    relocked = f", {int(np.nansum(relocks))} re-locks" if np.isfinite(relocks).any() else ""
     lines = [f"map navigation over {len(nav)} cases: {updates} fixes used of {attempts} attempts "
              f"({accepted} accepted by the matcher, "
-             f"{int(np.nansum(column(nav, 'map_nav_gate_rejected')))} gated out)",
+             f"{int(np.nansum(column(nav, 'map_nav_gate_rejected')))} gated out{relocked})",
              f"  false locks: {n_false}/{accepted} fixes (Wilson {CONFIDENCE:.0%} {f_lo:.2%} – {f_hi:.2%}); "
              f"cases with one: {cases_false}/{len(nav)} (Wilson {c_lo:.1%} – {c_hi:.1%}), "
              f"{int(np.nansum(column(nav, 'map_nav_false_locks_used')))} used by the filter"]

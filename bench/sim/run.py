@@ -554,7 +554,7 @@ def _map_nav_summary(fsw: FlightSoftware, map_truth: Any, truth_log: list[tuple[
         "target_xy_L_m": [float(c) for c in map_truth.target_xy_L_m],
         "attempts": stats.attempts, "refused": dict(stats.refused), "unconfirmed": stats.unconfirmed,
         "search_sigmas_max": stats.search_sigmas_max, "locked": stats.locked, "never_locked": stats.never_locked,
-        "updates": stats.updates, "gate_rejected": stats.gate_rejected,
+        "updates": stats.updates, "gate_rejected": stats.gate_rejected, "relocks": stats.relocks,
         "fixes_accepted_by_matcher": len(errs),
         **_fix_error_stats(errs, nis, ""),
         "false_locks": false_locks, "false_locks_used": used_false,

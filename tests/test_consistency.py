@@ -17,7 +17,10 @@ from bench.evaluation.consistency import (
     campaign_consistency,
     chi2_band,
     consistency_table,
+    consistent_in_band_share,
     run_consistency,
+    step_correlation,
+    step_phi,
 )
 from bench.report.io import json_safe
 from bench.campaign.mc import summary_row
@@ -199,6 +202,13 @@ def test_per_step_ensemble_nees_is_in_band_for_a_consistent_filter_and_not_for_a
     text = consistency_table(_as_written(doc))
     assert "per step (2 m grid, 500-2 m" in text and "r_h" in text
     assert "spread of the cases' NEES" in text
+    # Steps independent here: a consistent filter's share of them in band is about 0.95, and this one's is
+    # typical of it; the wrong ones' are not.
+    assert "a consistent filter, steps correlated as these (phi 0.0" in text
+    for block in NEES_BLOCKS:
+        ref = ok["blocks"][block]["consistent_share"]
+        assert ref["phi"] < 0.2 and 0.93 < ref["mean"] < 0.97 and ref["p"] > 0.02, (block, ref)
+        assert over[block]["consistent_share"]["p"] == 0.0 and under[block]["consistent_share"]["p"] == 0.0
 
 
 def test_the_spread_of_the_cases_nees_shows_a_mixture_that_the_ensemble_mean_hides():
@@ -269,3 +279,91 @@ def test_the_cases_that_keep_the_ensemble_nees_out_of_its_band_are_named():
     few = campaign_consistency(rows[10:10 + MIN_SPREAD_CASES - 1])
     assert few["steps"]["blocks"]["r_h"]["drivers"]
     assert "cases that most keep it out" not in consistency_table(_as_written(few))
+
+
+def _gauss_markov_nees(rng, n_cases, dof, phi, T, start=None):
+    """Cases' NEES over T steps of a consistent filter whose error is first-order Gauss-Markov from step to
+    step (each of dof components x_k = phi x_(k-1) + sqrt(1 - phi^2) w_k), by explicit loops; NaN before
+    each case's ``start`` step (the steps it never reached)."""
+    vals = np.full((n_cases, T), np.nan)
+    for i in range(n_cases):
+        x = rng.normal(size=dof)
+        for k in range(T):
+            if k:
+                x = phi * x + math.sqrt(1.0 - phi * phi) * rng.normal(size=dof)
+            if start is None or k >= start[i]:
+                vals[i, k] = float(x @ x)
+    return vals
+
+
+def test_step_correlation_is_the_explicit_sum_over_cases_and_pairs_of_steps():
+    rng = np.random.default_rng(3)
+    vals = rng.chisquare(2, (6, 14))
+    vals[1, :4] = np.nan
+    vals[4, 9:] = np.nan
+    finite = np.isfinite(vals)
+    got = step_correlation(vals, finite)
+    mean = [np.mean([vals[i, t] for i in range(6) if finite[i, t]]) for t in range(14)]
+    for k in range(14):
+        num = sa = sb = 0.0
+        for i in range(6):
+            for t in range(14 - k):
+                if finite[i, t] and finite[i, t + k]:
+                    a, b = vals[i, t] - mean[t], vals[i, t + k] - mean[t + k]
+                    num, sa, sb = num + a * b, sa + a * a, sb + b * b
+        assert got[k] == pytest.approx(num / math.sqrt(sa * sb), rel=1e-9, abs=1e-12), k
+    assert got[0] == pytest.approx(1.0)
+
+
+def test_step_phi_recovers_the_correlation_of_a_gauss_markov_error():
+    rng = np.random.default_rng(8)
+    for phi, dof in ((0.97, 2), (0.99, 1), (0.9, 3)):
+        start = rng.integers(0, 40, 150)
+        vals = _gauss_markov_nees(rng, 150, dof, phi, 250, start)
+        est = step_phi(step_correlation(vals, np.isfinite(vals)))
+        assert est == pytest.approx(phi, abs=0.01), (phi, dof, est)
+    white = rng.chisquare(2, (150, 250))
+    assert step_phi(step_correlation(white, np.isfinite(white))) < 0.1
+
+
+def test_consistent_in_band_share_agrees_with_flying_the_cases_themselves():
+    """The reference's draws (the ANEES as a Gaussian AR(1) through the chi-square quantile) against the
+    exact thing: each of 40 cases' two error components drawn as Gauss-Markov sequences and the ANEES of
+    the campaign taken step by step, 300 campaigns each way; and, with independent steps, its 5 % quantile
+    against the binomial one. The data's own campaign is drawn by explicit loops."""
+    from scipy.stats import binom
+
+    rng = np.random.default_rng(12)
+    n_cases, dof, T = 40, 2, 250
+    lo_hi = chi2_band(n_cases, dof)
+    lo, hi = np.full(T, lo_hi[0]), np.full(T, lo_hi[1])
+    counted = np.ones(T, bool)
+    for phi in (0.98, 0.9):
+        data = _gauss_markov_nees(rng, n_cases, dof, phi, T)
+        finite = np.isfinite(data)
+        anees = data.mean(axis=0)
+        share = float(((anees >= lo) & (anees <= hi)).mean())
+        ref = consistent_in_band_share(data, finite, lo, hi, counted, dof, share, np.random.default_rng(1), 300)
+        # 300 campaigns at once: every case's components as Gauss-Markov sequences, the ANEES step by step.
+        x = rng.normal(size=(300, n_cases, dof))
+        inside = np.zeros(300)
+        for k in range(T):
+            if k:
+                x = ref["phi"] * x + math.sqrt(1.0 - ref["phi"] ** 2) * rng.normal(size=x.shape)
+            a = (x * x).sum(axis=2).mean(axis=1)
+            inside += (a >= lo[k]) & (a <= hi[k])
+        exact = inside / T
+        assert ref["mean"] == pytest.approx(np.mean(exact), abs=0.02), (phi, ref, np.mean(exact))
+        assert ref["q05"] == pytest.approx(np.quantile(exact, 0.05), abs=0.05), (phi, ref, np.quantile(exact, 0.05))
+        assert ref["p"] > 0.02  # a consistent campaign's share is not an outlier of its own reference
+    white = rng.chisquare(dof, (n_cases, T))
+    ref = consistent_in_band_share(white, np.isfinite(white), lo, hi, counted, dof, 0.95, np.random.default_rng(2))
+    assert ref["q05"] == pytest.approx(binom.ppf(0.05, T, 0.95) / T, abs=0.012)
+    # A conservative filter (every NEES times 0.6) is far outside: p = 0.
+    low = 0.6 * white
+    share = float(((low.mean(axis=0) >= lo) & (low.mean(axis=0) <= hi)).mean())
+    assert consistent_in_band_share(low, np.isfinite(low), lo, hi, counted, dof, share,
+                                    np.random.default_rng(2))["p"] == 0.0
+    # Under three cases there is nothing to correlate.
+    assert consistent_in_band_share(white[:2], np.isfinite(white[:2]), lo, hi, counted, dof, 0.9,
+                                    np.random.default_rng(2)) is None

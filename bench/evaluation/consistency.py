@@ -30,7 +30,9 @@ cases by altitude because the cases' trajectories differ in time). A campaign's
 ANEES at each step against that step's band gives the share of steps inside
 it: the filter is consistent throughout the descent, not only at a few heights.
 Neighbouring steps are correlated (the same errors a second apart), so that share
-is a description of where the filter is off, not a count of independent trials.
+is a description of where the filter is off, not a count of independent trials; it
+is judged against the shares a consistent filter would give with that correlation
+(:func:`consistent_in_band_share`).
 """
 
 from __future__ import annotations
@@ -60,10 +62,11 @@ BAND_PROB = 0.95
 BAND_PROB_WIDE = 0.999
 CONSISTENCY_FILE = "consistency.json"
 SCHEMA_VERSION = 1
-# Fewest cases for which the table prints the spread of the cases' NEES and the cases that drive the ANEES out
-# of its band: one step's spread, for a consistent filter, scatters about 1 with a relative standard deviation
-# of about sqrt((2 + 12 / dof) / N) (0.6 at 20 cases and 2 dof, 0.28 at 100), and leaving one case out of a
-# few moves every step; under 20 cases they say little. consistency.json carries both at any count.
+# Fewest cases for which the table prints the spread of the cases' NEES, the cases that drive the ANEES out
+# of its band and what share of steps a consistent filter would have in band: one step's spread, for a
+# consistent filter, scatters about 1 with a relative standard deviation of about sqrt((2 + 12 / dof) / N)
+# (0.6 at 20 cases and 2 dof, 0.28 at 100), and leaving one case out of a few moves every step; under 20
+# cases they say little. consistency.json carries them at any count.
 MIN_SPREAD_CASES = 20
 
 
@@ -350,13 +353,16 @@ def campaign_consistency(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
             "blocks": blocks, "nis": nis, "vision_lag1": lag1, "steps": campaign_nees_steps(cases)}
 
 
-def campaign_nees_steps(rows: Sequence[Mapping[str, Any]], prob: float = BAND_PROB) -> dict[str, Any]:
+def campaign_nees_steps(rows: Sequence[Mapping[str, Any]], prob: float = BAND_PROB,
+                        rng: np.random.Generator | None = None) -> dict[str, Any]:
     """The ensemble NEES at every step of the dense altitude grid, against each step's band.
 
     Args:
         rows: Case rows carrying ``nees_profile`` (block -> list over
             :data:`NEES_PROFILE_ALTITUDES_M`); rows without it are skipped.
         prob: The band's probability.
+        rng: The draws of :func:`consistent_in_band_share` (default: a generator seeded with
+            :data:`NULL_SEED`, so that the document is a function of the cases alone).
 
     Returns:
         ``{"altitudes_m": [...], "n_cases": N, "blocks": {block: {"dof", "anees": [...],
@@ -381,7 +387,13 @@ def campaign_nees_steps(rows: Sequence[Mapping[str, Any]], prob: float = BAND_PR
         :data:`DRIVERS_SHOWN` largest positive gains, as ``[{"case": id, "gain": steps}]``
         (``id``: the row's ``case``, else its position). A single case that moves many steps
         is a heavy tail worth flying again.
+
+        ``consistent_share`` says what share of steps in band a consistent filter would give
+        with these cases and this step-to-step correlation (:func:`consistent_in_band_share`):
+        neighbouring steps share their errors, so even a consistent filter's share scatters
+        well below ``prob`` from campaign to campaign, and a share is judged against that.
     """
+    rng = np.random.default_rng(NULL_SEED) if rng is None else rng
     kept = [(r.get("case", i), r["nees_profile"]) for i, r in enumerate(rows)
             if isinstance(r.get("nees_profile"), Mapping)]
     ids = [k for k, _ in kept]
@@ -413,7 +425,10 @@ def campaign_nees_steps(rows: Sequence[Mapping[str, Any]], prob: float = BAND_PR
                                 "spread": spread.tolist(),
                                 "spread_median": float(np.median(spread_counted)) if spread_counted.size else math.nan,
                                 "drivers": _band_drivers(vals, finite, total, n, lo, hi, counted, inside, dof, prob,
-                                                         ids)}
+                                                         ids),
+                                "consistent_share": consistent_in_band_share(vals, finite, lo, hi, counted, dof,
+                                                                             inside / steps if steps else math.nan,
+                                                                             rng)}
     return out
 
 
@@ -425,6 +440,94 @@ def _step_bands(n: np.ndarray, dof: int, prob: float) -> tuple[list[list[float] 
 
 
 DRIVERS_SHOWN = 3  # cases named per block by campaign_nees_steps's "drivers"
+NULL_DRAWS = 400  # campaigns a consistent filter flies per block in consistent_in_band_share
+NULL_SEED = 14  # its default generator's seed
+
+
+def step_correlation(vals: np.ndarray, finite: np.ndarray) -> np.ndarray:
+    """The correlation of the cases' NEES between steps ``k`` apart, for every lag ``k`` (lag 0: 1).
+
+    Each case's NEES less the step's mean over the cases; at lag ``k`` the sum of the products of
+    a case's values ``k`` steps apart over the root of the products of their sums of squares,
+    over every case and pair of steps where both are finite. NaN at a lag with no such pair. The
+    sums over pairs are cross-correlations along the steps, taken by FFT.
+    """
+    T = vals.shape[1]
+    n = finite.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(n > 0, np.where(finite, vals, 0.0).sum(axis=0) / np.maximum(n, 1), 0.0)
+    z = np.where(finite, vals - mean, 0.0)
+    f = finite.astype(float)
+    size = 2 * T
+
+    def xcorr(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # sum over cases and t of a[t] b[t + k], k = 0..T-1
+        spec = np.conj(np.fft.rfft(a, size, axis=1)) * np.fft.rfft(b, size, axis=1)
+        return np.fft.irfft(spec.sum(axis=0), size)[:T]
+
+    num, sa, sb = xcorr(z, z), xcorr(z * z, f), xcorr(f, z * z)
+    den = np.sqrt(np.clip(sa, 0.0, None) * np.clip(sb, 0.0, None))
+    scale = max(float(den[0]), 1e-300)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 1e-12 * scale, num / den, math.nan)
+
+
+def step_phi(corr: np.ndarray, floor: float = 0.05) -> float:
+    """The per-step correlation ``phi`` of a first-order Gauss-Markov (AR(1)) error whose squares have the NEES
+    correlation ``corr`` (:func:`step_correlation`): such an error's NEES correlates as ``phi^(2k)`` at lag ``k``,
+    so ``log phi`` is the least-squares slope of ``log corr`` against ``2k`` through the origin, over the lags
+    from 1 to the last before ``corr`` first falls to ``floor`` (below it, the estimate is mostly noise). 0 when
+    lag 1 is already at or below ``floor``."""
+    c = np.asarray(corr, float)
+    low = np.flatnonzero(~(c[1:] > floor))
+    last = int(low[0]) if low.size else c.size - 1  # lags 1..last are above the floor
+    if last < 1:
+        return 0.0
+    k = np.arange(1, last + 1, dtype=float)
+    return float(math.exp(float((k * np.log(c[1:last + 1])).sum()) / (2.0 * float((k * k).sum()))))
+
+
+def consistent_in_band_share(vals: np.ndarray, finite: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                             counted: np.ndarray, dof: int, observed: float, rng: np.random.Generator,
+                             draws: int = NULL_DRAWS) -> dict[str, float] | None:
+    """The share of steps in band that a consistent filter would give, with these cases' step-to-step correlation.
+
+    A consistent filter's error at each step is Gaussian with its covariance, so a case's NEES is
+    the sum of ``dof`` squared standard normals; taken as first-order Gauss-Markov sequences over
+    the steps (``x_k = phi x_{k-1} + sqrt(1 - phi^2) w_k``), their NEES correlate as ``phi^(2k)``, and
+    ``phi`` is fitted to the cases' NEES correlation between steps (:func:`step_phi`; on the campaigns
+    of issue 14 that correlation at lags 1 to 80 follows ``phi^(2k)`` to within a few hundredths). The
+    ANEES at a step of ``n`` cases is then chi-square with ``n dof`` degrees of freedom over ``n``, and
+    from step to step it correlates as ``phi^2``: each of ``draws`` campaigns draws it as a Gaussian
+    AR(1) sequence of correlation ``phi^2`` carried through that chi-square's quantile function (a
+    Gaussian copula: exact in the marginals, and in the correlation as ``n dof`` grows), judged against
+    the same bands (``lo``, ``hi``) over the same counted steps.
+
+    The cases' NEES correlation includes whatever makes this filter inconsistent (a mixture of cases
+    reads as more correlation), so the reference is, if anything, wider than a consistent filter's.
+
+    Returns:
+        ``{"phi", "mean", "median", "q05", "p"}``: the fitted ``phi``; the mean, median and 5 % quantile of the
+        drawn shares; and ``p``, the fraction of draws whose share is at most ``observed`` (one-sided: a
+        share this low or lower from a consistent filter). None with under 3 cases or no counted step.
+    """
+    from scipy.special import ndtr  # scipy.special is imported already (gnc.numeric); ndtr only here
+
+    n_cases, T = vals.shape
+    if n_cases < 3 or not counted.any() or not math.isfinite(observed):
+        return None
+    phi = step_phi(step_correlation(vals, finite))
+    rho = phi * phi
+    u = rng.standard_normal((draws, T))
+    innov = math.sqrt(1.0 - rho * rho)
+    for k in range(1, T):
+        u[:, k] = rho * u[:, k - 1] + innov * u[:, k]
+    n = finite.sum(axis=0)
+    cols = np.flatnonzero(counted)  # counted steps have n >= 1
+    q = np.clip(ndtr(u[:, cols]), 1e-15, 1.0 - 1e-15)
+    anees = chi2_ppf(q, n[cols] * dof) / n[cols]
+    shares = ((anees >= lo[cols]) & (anees <= hi[cols])).sum(axis=1) / float(cols.size)
+    return {"phi": phi, "mean": float(shares.mean()), "median": float(np.median(shares)),
+            "q05": float(np.quantile(shares, 0.05)), "p": float((shares <= observed).mean())}
 
 
 def _band_drivers(vals: np.ndarray, finite: np.ndarray, total: np.ndarray, n: np.ndarray, lo: np.ndarray,
@@ -487,6 +590,11 @@ def consistency_table(doc: Mapping[str, Any]) -> str:
                              f"below {b['below']}, above {b['above']}"
                              + (f"; spread of the cases' NEES {spread:.2f} (chi-square: 1)"
                                 if enough and spread is not None and math.isfinite(spread) else ""))
+                ref = b.get("consistent_share")  # absent from a consistency.json written before it
+                if enough and ref:
+                    lines.append(f"        a consistent filter, steps correlated as these (phi {ref['phi']:.3f}): "
+                                 f"median {100 * ref['median']:.0f} %, 5 % quantile {100 * ref['q05']:.0f} %; "
+                                 f"this share or less: p = {ref['p']:.2f}")
                 if enough and b.get("drivers"):
                     lines.append("        cases that most keep it out of its band: " + ", ".join(
                         f"{d['case']} (+{d['gain']} step{'s' if d['gain'] > 1 else ''} without it)"

@@ -224,15 +224,21 @@ def test_common_error_of_a_fix_grows_as_the_frame_looks_less_like_the_map(onboar
                                         attitude(), r_high + offset, 5.0)
     assert high.ok and high.work_res_m == onboard.image_res_m, high
     q = ((1.0 - high.peak) / high.peak) ** cfg.common_peak_power
-    expected = high.work_res_m * math.hypot(cfg.common_mode_sigma_px, cfg.common_peak_gain * q)
+    expected = cfg.coarse_common_scale * high.work_res_m * math.hypot(cfg.common_mode_sigma_px,
+                                                                      cfg.common_peak_gain * q)
     assert high.common_sigma_m == pytest.approx(expected, rel=1e-12)
+    assert high.coarse_weight == 1.0
+    assert cfg.coarse_common_scale == 1.0  # the default: the calibration as chosen in closed loop
+    rescaled = MapMatcher(onboard, cfg.model_copy(update={"coarse_common_scale": 0.8})).fix(
+        render_frame(onboard, r_high, attitude(), np.random.default_rng(4)), K, attitude(), r_high + offset, 5.0)
+    assert rescaled.common_sigma_m == pytest.approx(0.8 * high.common_sigma_m, rel=1e-12)
     # A frame finer than it (150 m: 0.68 m per frame pixel): its own calibration, the floor at the coarse
     # template's side (as 1 / side) and a fraction of the peak term; the independent part scaled.
     r_true = np.array([0.0, 0.0, float(onboard.dem_height(0.0, 0.0)) + 150.0])
     frame = render_frame(onboard, r_true, attitude(), np.random.default_rng(4))
     fix = MapMatcher(onboard, cfg).fix(frame, K, attitude(), r_true + offset, 5.0)
     assert fix.ok, fix.reason
-    assert fix.work_res_m == onboard.image_res_m
+    assert fix.work_res_m == onboard.image_res_m and fix.coarse_weight == 0.0  # the fine calibration whole
     q = ((1.0 - fix.peak) / fix.peak) ** cfg.common_peak_power
     side = _nadir_template_side_px(onboard, r_true + offset, fix.work_res_m)
     expected = fix.work_res_m * math.hypot(cfg.fine_common_sigma_px * cfg.fine_common_side_px / side,
@@ -279,12 +285,13 @@ def test_a_frame_just_coarser_than_the_map_blends_the_fine_and_coarse_calibratio
     w = (fix.gsd_m / fix.work_res_m - 1.0) / (cfg.fine_blend_gsd_ratio - 1.0)
     assert 0.0 < w < 1.0
     q = ((1.0 - fix.peak) / fix.peak) ** cfg.common_peak_power
-    coarse = fix.work_res_m * math.hypot(cfg.common_mode_sigma_px, cfg.common_peak_gain * q)
+    coarse = cfg.coarse_common_scale * fix.work_res_m * math.hypot(cfg.common_mode_sigma_px, cfg.common_peak_gain * q)
     side = _nadir_template_side_px(onboard, r_est, fix.work_res_m)
     fine = fix.work_res_m * math.hypot(cfg.fine_common_sigma_px * cfg.fine_common_side_px / side,
                                        cfg.fine_peak_scale * cfg.common_peak_gain * q)
     assert fine < coarse
     assert fix.common_sigma_m == pytest.approx(fine ** (1.0 - w) * coarse**w, rel=1e-9)
+    assert fix.coarse_weight == pytest.approx(w, rel=1e-12)
     assert fine < fix.common_sigma_m < coarse
     # The step's fix of the same frame: the coarse calibration whole, the independent part unscaled.
     step = MapMatcher(onboard, cfg.model_copy(update={"fine_blend_gsd_ratio": 1.0})).fix(frame, K, attitude(), r_est,

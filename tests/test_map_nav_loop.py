@@ -228,6 +228,32 @@ def test_refused_fixes_that_disagree_with_one_another_do_not_re_lock(onboard):
     assert np.array_equal(f.x, x0)
 
 
+@pytest.mark.parametrize("height_m, coarse", [(230.0, True), (150.0, False)])
+def test_the_common_error_is_carried_for_the_correlation_time_of_the_fix_kind(onboard, height_m, coarse):
+    # 230 m: 1.04 m per frame pixel over the 1 m level, a coarse fix (coarse_weight 1), whose common error lasts
+    # coarse_common_time_s (20 s here; the default is common_time_s's 5 s); 150 m: 0.68 m, a fine one,
+    # common_time_s. Fixes 10 ms apart: b_map is carried from one to the next with phi = exp(-0.01 s / tau)
+    # (the first update resets it: phi 0).
+    rot = _attitude(5.0)
+    q, R_LB = rot.as_quat(scalar_first=True), rot.as_matrix()
+    r_B = np.array([0.0, 0.0, float(onboard.dem_height(0.0, 0.0)) + height_m])
+    f = make_estimator(None, r_B + np.array([1.5, -1.0, 0.0]), np.zeros(3), 0, altimeter_mount_B_m=np.zeros(3),
+                       map_bias_sigma_m=0.5)
+    f.set_attitude(AttitudeMessage(0, q))
+    phis, step = [], f.step_map_bias
+    f.step_map_bias = lambda phi, sigma_m, scale=1.0: (phis.append(phi), step(phi, sigma_m, scale))
+    cfg = MapNavConfig(period_ns=10_000_000, coarse_common_time_s=20.0)
+    nav = MapNavigator(onboard, cfg, K, R_BC, LEVER_B)
+    frame = render_map_frame(onboard, K, r_B + R_LB @ LEVER_B, R_LB @ R_BC, np.random.default_rng(0))
+    fixes = [nav.on_frame(k * 10_000_000, frame, f) for k in range(4)]
+    assert all(fx.ok for fx in fixes) and nav.stats.updates == 3
+    assert all(fx.coarse_weight == (1.0 if coarse else 0.0) for fx in fixes)
+    tau = cfg.coarse_common_time_s if coarse else cfg.common_time_s
+    assert cfg.coarse_common_time_s != cfg.common_time_s
+    assert phis[0] == 0.0
+    np.testing.assert_allclose(phis[1:], math.exp(-0.01 / tau), rtol=1e-12)
+
+
 def test_inflating_the_horizontal_position_scales_its_rows_and_columns():
     f = _filter(np.array([1.0, 2.0, 300.0]), [1.0, 0.0, 0.0, 0.0])
     rng = np.random.default_rng(3)

@@ -239,8 +239,8 @@ class MapFixConfig(BaseModel):
     # mean at the 2 m level): the two offset each other, per fix too conservative (mean e^2 / var 0.24-0.79 per
     # axis) and in time too trusting. Scaling the coarse fixes' common error by 0.8 and carrying it for 20 s
     # (MapNavConfig.coarse_common_time_s) put seed 7's 100 cases at 91 % of r_h's steps in band (71 % now), but
-    # seed 1's at 55 % (90 %) and seed 5's at 40 % (85 %): the few cases whose fixes err most then dominate (README, issue 14,
-    # thirty-fifth session). So the defaults keep today's model, and both are settings.
+    # seed 1's at 55 % (90 %) and seed 5's at 40 % (85 %): the few cases whose fixes err most then dominate
+    # (README, issue 14, thirty-fifth session). So the defaults keep today's model, and both are settings.
     coarse_common_scale: float = Field(
         1.0, gt=0.0, le=4.0,
         description="factor on the common error's 1-sigma of the coarse calibration (common_mode_sigma_px and "

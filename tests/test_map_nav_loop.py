@@ -213,7 +213,7 @@ def test_fixes_the_gate_refuses_that_agree_with_one_another_re_lock_the_filter(o
 
 
 def test_refused_fixes_that_disagree_with_one_another_do_not_re_lock(onboard):
-    # The gate refuses both, but the second shows ground 15 m from the first: one of them is wrong, and a
+    # The gate refuses both, but the second shows ground 6 m from the first: one of them is wrong, and a
     # re-lock would trust it, so the filter keeps its state.
     cfg = MapNavConfig(period_ns=10_000_000, relock_after=2)
     f, nav, frame, r_B, t0 = _locked_then_overconfident(onboard, cfg, np.array([3.0, -2.0]))

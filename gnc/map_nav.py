@@ -704,6 +704,13 @@ class MapNavConfig(BaseModel):
     keyframe_min_altitude_m: float = Field(
         5.0, ge=0.0, description="no keyframe fixes below this estimated height [m]"
     )
+    rekeyframe: bool = Field(
+        True,
+        description="when a keyframe fix is refused and the view has left the keyframe (the lander has flown "
+                    "off it, a late divert: the template and its smallest search window around the boresight's "
+                    "ground point reach beyond the keyframe's grid), that frame becomes the keyframe, laid "
+                    "through the pose then [-]",
+    )
     relock_after: int = Field(
         2, ge=0, le=100,
         description="once locked, this many map fixes in a row that the filter's gate refuses, each agreeing "
@@ -757,11 +764,15 @@ class MapNavStats:
     keyframe_updates: int = 0
     keyframe_gate_rejected: int = 0
     keyframe_log: list = None  # type: ignore[assignment]  # as ``log``, for the keyframe fixes
+    # every keyframe taken, (t_ns, estimated camera position in L (3,) [m], height above the map's ground [m]):
+    # the first, and those taken again when the lander's view left the one before (MapNavigator)
+    keyframes: list = None  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
         self.refused = dict.fromkeys(REFUSALS.values(), 0) if self.refused is None else self.refused
         self.log = [] if self.log is None else self.log
         self.keyframe_log = [] if self.keyframe_log is None else self.keyframe_log
+        self.keyframes = [] if self.keyframes is None else self.keyframes
 
 
 class MapNavigator:
@@ -982,32 +993,66 @@ class MapNavigator:
                 stats.never_locked = True
                 return None
             stats.frames_used += 1
-            made = make_keyframe(self.matcher.map, frame, self.K, R_LC, r_C, self.cfg.fix.max_ortho_px)
-            if made is None:
+            if not self._take_keyframe(t_ns, frame, nav_filter, R_LC, r_C, sigma_att):
                 stats.keyframe_refused += 1
-                return None
-            keyframe, height = made
-            nav_filter.map_bias_to_keyframe(t_ns, sigma_att * height)
-            self._keyframe = MapMatcher(keyframe, self.cfg.fix)
-            stats.keyframe_t_ns, stats.keyframe_height_m = t_ns, height
-            stats.keyframe_r_C_m = r_C.copy()
             return None
         stats.frames_used += 1
         stats.keyframe_attempts += 1
         # How far the keyframe's height error shows here: its magnification about its nadir, at this nadir.
-        gain = (r_C[:2] - stats.keyframe_r_C_m[:2]) / stats.keyframe_height_m
+        _, r_k, h_k = stats.keyframes[-1]
+        gain = (r_C[:2] - r_k[:2]) / h_k
         sigma_xy = math.sqrt(max(float(np.linalg.eigvalsh(nav_filter.map_prior_cov_xy(t_ns, gain))[-1]), 0.0))
-        fix = self._keyframe.fix(frame, self.K, R_LC, r_C, sigma_xy, sigma_att,
-                                 keyframe_view=(stats.keyframe_r_C_m[:2], stats.keyframe_height_m))
+        fix = self._keyframe.fix(frame, self.K, R_LC, r_C, sigma_xy, sigma_att, keyframe_view=(r_k[:2], h_k))
         if not fix.ok:
             stats.keyframe_refused += 1
             stats.keyframe_log.append((t_ns, fix, False, None))
+            if self.cfg.rekeyframe and self._off_keyframe(R_LC, r_C, frame.shape):
+                # The lander has flown off the keyframe (a late divert): this frame becomes the keyframe, laid
+                # through the pose now, so that the rest of the descent is not flown on the IMU alone.
+                self._take_keyframe(t_ns, frame, nav_filter, R_LC, r_C, sigma_att)
             return fix
         rec = nav_filter.update_map_position(t_ns, fix.r_CM_xy_m, fix.total_cov_xy_m2, lever[:2], gain)
         stats.keyframe_updates += 1
         stats.keyframe_gate_rejected += int(not rec.accepted)
         stats.keyframe_log.append((t_ns, fix, True, bool(rec.accepted)))
         return fix
+
+
+    def _off_keyframe(self, R_LC: np.ndarray, r_C: np.ndarray, frame_shape: tuple[int, ...]) -> bool:
+        """Has the view left the keyframe? True when the coarse template of a frame from here (its side the
+        matcher's: ``template_frac`` of the frame's footprint at its ground-sample distance, at most
+        ``max_ortho_px`` keyframe pixels) with the smallest search window around it (``min_search_px``) would
+        reach beyond the keyframe's grid, its centre at the boresight's ground point."""
+        km, cfg = self._keyframe.map, self.cfg.fix
+        seen = boresight_ground(km, R_LC, r_C)
+        if seen is None:
+            return False
+        g, _, slant = seen
+        res = km.image_res_m
+        rows, cols = km.image.shape
+        x0, y0 = km.image_origin_xy_m
+        footprint_m = min(cfg.max_ortho_px * res, 0.9 * min(frame_shape[:2]) * slant / self.K[0, 0])
+        reach = 0.5 * cfg.template_frac * footprint_m + cfg.min_search_px * res
+        return bool(g[0] - reach < x0 or g[0] + reach > x0 + cols * res
+                    or g[1] - reach < y0 or g[1] + reach > y0 + rows * res)
+
+    def _take_keyframe(self, t_ns: int, frame: np.ndarray, nav_filter, R_LC: np.ndarray, r_C: np.ndarray,
+                       sigma_att: float) -> bool:
+        """Lay this frame on the map's DEM through the estimated pose as the keyframe, and make the filter's
+        ``b_map`` and ``b_kz`` that pose's error (:meth:`NavFilter.map_bias_to_keyframe`). False when no
+        keyframe could be made from it."""
+        stats = self.stats
+        made = make_keyframe(self.matcher.map, frame, self.K, R_LC, r_C, self.cfg.fix.max_ortho_px)
+        if made is None:
+            return False
+        keyframe, height = made
+        nav_filter.map_bias_to_keyframe(t_ns, sigma_att * height)
+        self._keyframe = MapMatcher(keyframe, self.cfg.fix)
+        if stats.keyframe_t_ns is None:  # the summary's keyframe is the first
+            stats.keyframe_t_ns, stats.keyframe_height_m = t_ns, height
+            stats.keyframe_r_C_m = r_C.copy()
+        stats.keyframes.append((t_ns, r_C.copy(), height))
+        return True
 
 
 def make_keyframe(onboard_map: OnboardMap, frame: np.ndarray, K: np.ndarray, R_LC: np.ndarray, r_CL_L: np.ndarray,

@@ -181,10 +181,77 @@ def test_the_keyframe_summary_scores_each_fix_against_truth_and_its_own_sigma():
     log = [(1, fix(1, [0.0, 0.0], 0.1), True, True), (2, fix(2, [0.0, 0.2], 0.1), True, True),
            (3, fix(3, [0.6, 0.0], 0.1), True, False), (3, fix(3, [9.0, 9.0], 0.1, ok=False), False, None)]
     stats = SimpleNamespace(keyframe_t_ns=0, keyframe_r_C_m=r_k, keyframe_height_m=r_k[2], keyframe_log=log,
-                            keyframe_attempts=4, keyframe_refused=1, keyframe_updates=3, keyframe_gate_rejected=1)
+                            keyframe_attempts=4, keyframe_refused=1, keyframe_updates=3, keyframe_gate_rejected=1,
+                            keyframes=[(0, r_k, r_k[2])])
     s = _keyframe_summary(stats, shift, truth_at)
+    assert s["keyframes"] == 1
     assert s["keyframe_err_xy_m"] == pytest.approx(list(e_k)) and s["keyframe_err_z_m"] == pytest.approx(dz_k)
     assert s["keyframe_fix_err_max_m"] == pytest.approx(0.6)
     assert s["keyframe_fix_err_rms_m"] == pytest.approx(np.sqrt((0.0 + 0.04 + 0.36) / 3))
     assert s["keyframe_fix_nis_mean"] == pytest.approx((0.0 + 4.0 + 36.0) / 3)
     assert s["keyframe_false_locks"] == 1
+
+
+def test_fixes_after_a_second_keyframe_are_scored_against_it():
+    """The lander flew off its first keyframe and a second was taken at t = 2 (laid through another pose, with
+    another error): the fix at t = 1 is scored against the first, those at t = 3 and 4 against the second,
+    each written out by hand; the summary's keyframe fields stay the first's."""
+    from types import SimpleNamespace
+
+    from bench.sim.run import _keyframe_summary
+
+    shift = np.array([0.5, 0.5])
+    truth_at = {0: np.array([0.0, 0.0, 45.0]), 1: np.array([4.0, 1.0, 35.0]), 2: np.array([12.0, 3.0, 30.0]),
+                3: np.array([15.0, 4.0, 29.0]), 4: np.array([18.0, 5.0, 28.0])}
+    keyframes = [(0, np.array([0.2, -0.1, 45.3]), 45.3), (2, np.array([11.6, 3.3, 29.8]), 29.8)]
+
+    def fix(t, k, err_xy):
+        _, r_k, h_k = keyframes[k]
+        e_k, dz_k = r_k[:2] - (truth_at[k * 2][:2] + shift), r_k[2] - truth_at[k * 2][2]
+        r_est = truth_at[t][:2] + np.array([0.1, -0.2])
+        r_cm = truth_at[t][:2] + shift + e_k + (r_est - r_k[:2]) / h_k * dz_k + np.asarray(err_xy)
+        return SimpleNamespace(ok=True, r_CM_xy_m=r_cm, offset_xy_m=r_cm - r_est, total_cov_xy_m2=np.eye(2) * 0.01)
+
+    log = [(1, fix(1, 0, [0.0, 0.1]), True, True), (3, fix(3, 1, [0.2, 0.0]), True, True),
+           (4, fix(4, 1, [0.0, 0.0]), True, True)]
+    stats = SimpleNamespace(keyframe_t_ns=0, keyframe_r_C_m=keyframes[0][1], keyframe_height_m=45.3,
+                            keyframe_log=log, keyframe_attempts=3, keyframe_refused=0, keyframe_updates=3,
+                            keyframe_gate_rejected=0, keyframes=keyframes)
+    s = _keyframe_summary(stats, shift, truth_at)
+    assert s["keyframes"] == 2 and s["keyframe_t_s"] == 0.0 and s["keyframe_height_m"] == 45.3
+    assert s["keyframe_fix_err_max_m"] == pytest.approx(0.2)
+    assert s["keyframe_fix_err_rms_m"] == pytest.approx(np.sqrt((0.01 + 0.04 + 0.0) / 3))
+
+
+@pytest.mark.parametrize("rekeyframe", [True, False])
+def test_a_lander_that_flies_off_its_keyframe_takes_another(onboard, rekeyframe):
+    """A late divert below the map fixes: the keyframe taken at 40 m, then the lander 10 m lower and 16-19 m
+    to the east, its estimate drifting a little (the filter's sigma grown by 0.3 m each frame): the template
+    and its window no longer fit in the keyframe, so its fixes are refused. With ``rekeyframe`` the first such
+    refusal lays that frame as a second keyframe and the next fixes match against it; without, every one is
+    refused. A frame that fails near the keyframe's centre (a blank one) takes no new keyframe."""
+    rot = Rotation.from_euler("xyz", [1.0, -2.0, 30.0], degrees=True)
+    q, R_LB = rot.as_quat(scalar_first=True), rot.as_matrix()
+    r_B = np.array([-10.0, 8.0, float(onboard.dem_height(-10.0, 8.0)) + 40.0])
+    f = make_estimator(None, r_B, np.zeros(3), 0, altimeter_mount_B_m=np.zeros(3), map_bias_sigma_m=0.5)
+    f.set_attitude(AttitudeMessage(0, q))
+    nav = MapNavigator(onboard, MapNavConfig(period_ns=10_000_000, rekeyframe=rekeyframe), K, R_BC, np.zeros(3))
+    nav.stats.locked = True
+    nav.on_frame(0, render_map_frame(onboard, K, r_B, R_LB @ R_BC, np.random.default_rng(0)), f)
+    assert len(nav.stats.keyframes) == 1
+    blank = np.full((256, 256), 120, np.uint8)
+    assert not nav.on_frame(10_000_000, blank, f).ok and len(nav.stats.keyframes) == 1
+    outcomes = []
+    for k in range(2, 6):
+        r_now = r_B + np.array([14.0 + k, 0.0, -10.0])
+        f.ekf.x[0:3] = r_now
+        f.ekf.P[0:2, 0:2] += np.eye(2) * 0.3**2
+        frame = render_map_frame(onboard, K, r_now, R_LB @ R_BC, np.random.default_rng(k))
+        outcomes.append(nav.on_frame(k * 10_000_000, frame, f).ok)
+    if rekeyframe:
+        assert len(nav.stats.keyframes) == 2 and not outcomes[0] and any(outcomes[1:]), outcomes
+        t_k, r_k, h_k = nav.stats.keyframes[1]
+        assert t_k == 20_000_000 and r_k[0] == pytest.approx(r_B[0] + 16.0) and 28.0 < h_k < 32.0
+        assert nav.stats.keyframe_t_ns == 0  # the summary's keyframe is the first
+    else:
+        assert len(nav.stats.keyframes) == 1 and not any(outcomes), outcomes

@@ -590,20 +590,26 @@ def _keyframe_summary(stats: Any, shift: np.ndarray, truth_at: dict[int, np.ndar
     minus (truth + map shift + e_xy + g e_z), ``g`` the estimated camera's displacement from the
     keyframe's over the keyframe's height (the flight software's own model, fed here with the
     truth's errors). A false lock is one accepted with an error beyond 5 of its own sigmas, as for
-    map fixes.
+    map fixes. When the lander flew off a keyframe and another was taken (``keyframes`` counts them; the
+    ``keyframe_*`` fields above are the first's), each fix is scored against the one it was matched to.
     """
     t_k = stats.keyframe_t_ns
     e_k = dz_k = None
     if t_k is not None and t_k in truth_at:
         e_k = stats.keyframe_r_C_m[:2] - (truth_at[t_k][:2] + shift)
         dz_k = float(stats.keyframe_r_C_m[2] - truth_at[t_k][2])
+    # Every keyframe (the first, and those taken again when the lander flew off the one before), with its errors;
+    # a fix is scored against the last one taken at or before it.
+    kfs = [(t, r, h, r[:2] - (truth_at[t][:2] + shift), float(r[2] - truth_at[t][2]))
+           for t, r, h in stats.keyframes if t in truth_at]
     errs: list[float] = []
     nis: list[float] = []
-    if e_k is not None:
+    if e_k is not None and kfs:
 
         def expected(t_ns: int, fix: Any) -> np.ndarray:
-            g = (fix.r_CM_xy_m - fix.offset_xy_m - stats.keyframe_r_C_m[:2]) / stats.keyframe_height_m
-            return truth_at[t_ns][:2] + shift + e_k + g * dz_k
+            _, r, h, e, dz = [k for k in kfs if k[0] <= t_ns][-1]
+            g = (fix.r_CM_xy_m - fix.offset_xy_m - r[:2]) / h
+            return truth_at[t_ns][:2] + shift + e + g * dz
 
         errs, nis, _ = _scored_fixes(stats.keyframe_log, truth_at, expected)
     return {
@@ -611,6 +617,7 @@ def _keyframe_summary(stats: Any, shift: np.ndarray, truth_at: dict[int, np.ndar
         "keyframe_height_m": None if t_k is None else float(stats.keyframe_height_m),
         "keyframe_err_xy_m": None if e_k is None else [float(c) for c in e_k],
         "keyframe_err_z_m": dz_k,
+        "keyframes": len(stats.keyframes),
         "keyframe_attempts": stats.keyframe_attempts, "keyframe_refused": stats.keyframe_refused,
         "keyframe_updates": stats.keyframe_updates, "keyframe_gate_rejected": stats.keyframe_gate_rejected,
         **_fix_error_stats(errs, nis, "keyframe_"),

@@ -405,3 +405,8 @@ def test_map_nav_lines_against_hand_computed_figures():
     nis = (8 * 1.0 + 18 * 3.0) / 26
     assert (f"keyframe in 3/4 cases: 26 fixes used of 30 attempts (3 refused, 1 gated out); fix error RMS "
             f"{pooled:.3f} m, mean NIS {nis:.2f} (2 expected), false locks 1") in " ".join(line.split()), line
+    assert "taken again" not in line  # a campaign from before keyframes could be taken again
+    for r, n in zip(kf, (1, 4, 0, 0)):
+        r["map_nav_keyframes"] = n
+    line = next(ln for ln in map_nav_lines(kf) if "keyframe" in ln)
+    assert line.endswith("false locks 1; 3 keyframes taken again in 1 case"), line

@@ -382,9 +382,13 @@ def _keyframe_lines(nav: Sequence[Mapping[str, Any]]) -> list[str]:
     ok_nis = np.isfinite(nis) & (used > 0)
     nis_mean = float(np.sum(used[ok_nis] * nis[ok_nis]) / np.sum(used[ok_nis])) if ok_nis.any() else math.nan
     false = int(np.nansum(column(nav, "map_nav_keyframe_false_locks")))
+    taken = column(nav, "map_nav_keyframes")  # absent from campaigns written before a keyframe could be taken again
+    n_again = int(np.sum(taken > 1))
+    again = (f"; {int(np.nansum(np.maximum(taken - 1, 0)))} keyframes taken again in {n_again} "
+             f"case{'' if n_again == 1 else 's'}" if np.isfinite(taken).any() else "")
     return [f"  keyframe in {int(np.isfinite(kf_t).sum())}/{len(nav)} cases: {updates} fixes used of {attempts} "
             f"attempts ({refused} refused, {gated} gated out); fix error RMS {_fmt(pooled, '.3f', 'm')}, "
-            f"mean NIS {_fmt(nis_mean, '.2f', '')} (2 expected), false locks {false}"]
+            f"mean NIS {_fmt(nis_mean, '.2f', '')} (2 expected), false locks {false}{again}"]
 
 
 # =================================================================== figure

@@ -827,7 +827,8 @@ class MapNavigator:
     ``keyframe_min_altitude_m`` a frame is matched against the keyframe by the same matcher (its
     search window from the covariance of ``r + v lag + b_map``, no confirmation: the keyframe is the
     lander's own frame under the same sun) and taken as a map-position update with the fix's whole
-    covariance. Map fixes stop once the keyframe is taken.
+    covariance. Map fixes stop once the keyframe is taken. A lander that flies off its keyframe (a late
+    divert; ``rekeyframe``) lays the frame whose fix was refused for it as a new keyframe, the same way.
 
     Args:
         onboard_map: The map.
@@ -1016,7 +1017,6 @@ class MapNavigator:
         stats.keyframe_gate_rejected += int(not rec.accepted)
         stats.keyframe_log.append((t_ns, fix, True, bool(rec.accepted)))
         return fix
-
 
     def _off_keyframe(self, R_LC: np.ndarray, r_C: np.ndarray, frame_shape: tuple[int, ...]) -> bool:
         """Has the view left the keyframe? True when the coarse template of a frame from here (its side the

@@ -756,9 +756,6 @@ class MapNavStats:
     search_sigmas_max: float = 0.0  # the widest coarse search window used [sigma of the prior]
     log: list = None  # type: ignore[assignment]  # (t_ns, MapFix, used: bool, gate_accepted: bool | None)
     frames_used: int = 0  # frames taken: map-fix attempts, the keyframe, keyframe-fix attempts
-    keyframe_t_ns: int | None = None  # when the keyframe was taken
-    keyframe_height_m: float = float("nan")  # the camera's estimated height above the map's ground then [m]
-    keyframe_r_C_m: np.ndarray | None = None  # the estimated camera position in L it was laid on the ground from (3,) [m]
     keyframe_attempts: int = 0
     keyframe_refused: int = 0  # keyframe fixes refused by the matcher (and keyframes not made)
     keyframe_updates: int = 0
@@ -773,6 +770,22 @@ class MapNavStats:
         self.log = [] if self.log is None else self.log
         self.keyframe_log = [] if self.keyframe_log is None else self.keyframe_log
         self.keyframes = [] if self.keyframes is None else self.keyframes
+
+    # The first keyframe's (the summary's keyframe), read from ``keyframes``.
+    @property
+    def keyframe_t_ns(self) -> int | None:
+        """When the first keyframe was taken [ns]; None before."""
+        return self.keyframes[0][0] if self.keyframes else None
+
+    @property
+    def keyframe_r_C_m(self) -> np.ndarray | None:
+        """The estimated camera position in L it was laid on the ground from (3,) [m]; None before."""
+        return self.keyframes[0][1] if self.keyframes else None
+
+    @property
+    def keyframe_height_m(self) -> float:
+        """The camera's estimated height above the map's ground then [m]; NaN before."""
+        return self.keyframes[0][2] if self.keyframes else float("nan")
 
 
 class MapNavigator:
@@ -1048,9 +1061,6 @@ class MapNavigator:
         keyframe, height = made
         nav_filter.map_bias_to_keyframe(t_ns, sigma_att * height)
         self._keyframe = MapMatcher(keyframe, self.cfg.fix)
-        if stats.keyframe_t_ns is None:  # the summary's keyframe is the first
-            stats.keyframe_t_ns, stats.keyframe_height_m = t_ns, height
-            stats.keyframe_r_C_m = r_C.copy()
         stats.keyframes.append((t_ns, r_C.copy(), height))
         return True
 

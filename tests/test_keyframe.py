@@ -180,9 +180,8 @@ def test_the_keyframe_summary_scores_each_fix_against_truth_and_its_own_sigma():
 
     log = [(1, fix(1, [0.0, 0.0], 0.1), True, True), (2, fix(2, [0.0, 0.2], 0.1), True, True),
            (3, fix(3, [0.6, 0.0], 0.1), True, False), (3, fix(3, [9.0, 9.0], 0.1, ok=False), False, None)]
-    stats = SimpleNamespace(keyframe_t_ns=0, keyframe_r_C_m=r_k, keyframe_height_m=r_k[2], keyframe_log=log,
-                            keyframe_attempts=4, keyframe_refused=1, keyframe_updates=3, keyframe_gate_rejected=1,
-                            keyframes=[(0, r_k, r_k[2])])
+    stats = SimpleNamespace(keyframe_log=log, keyframe_attempts=4, keyframe_refused=1, keyframe_updates=3,
+                            keyframe_gate_rejected=1, keyframes=[(0, r_k, r_k[2])])
     s = _keyframe_summary(stats, shift, truth_at)
     assert s["keyframes"] == 1
     assert s["keyframe_err_xy_m"] == pytest.approx(list(e_k)) and s["keyframe_err_z_m"] == pytest.approx(dz_k)
@@ -214,8 +213,7 @@ def test_fixes_after_a_second_keyframe_are_scored_against_it():
 
     log = [(1, fix(1, 0, [0.0, 0.1]), True, True), (3, fix(3, 1, [0.2, 0.0]), True, True),
            (4, fix(4, 1, [0.0, 0.0]), True, True)]
-    stats = SimpleNamespace(keyframe_t_ns=0, keyframe_r_C_m=keyframes[0][1], keyframe_height_m=45.3,
-                            keyframe_log=log, keyframe_attempts=3, keyframe_refused=0, keyframe_updates=3,
+    stats = SimpleNamespace(keyframe_log=log, keyframe_attempts=3, keyframe_refused=0, keyframe_updates=3,
                             keyframe_gate_rejected=0, keyframes=keyframes)
     s = _keyframe_summary(stats, shift, truth_at)
     assert s["keyframes"] == 2 and s["keyframe_t_s"] == 0.0 and s["keyframe_height_m"] == 45.3

@@ -593,18 +593,15 @@ def _keyframe_summary(stats: Any, shift: np.ndarray, truth_at: dict[int, np.ndar
     map fixes. When the lander flew off a keyframe and another was taken (``keyframes`` counts them; the
     ``keyframe_*`` fields above are the first's), each fix is scored against the one it was matched to.
     """
-    t_k = stats.keyframe_t_ns
-    e_k = dz_k = None
-    if t_k is not None and t_k in truth_at:
-        e_k = stats.keyframe_r_C_m[:2] - (truth_at[t_k][:2] + shift)
-        dz_k = float(stats.keyframe_r_C_m[2] - truth_at[t_k][2])
     # Every keyframe (the first, and those taken again when the lander flew off the one before), with its errors;
     # a fix is scored against the last one taken at or before it.
     kfs = [(t, r, h, r[:2] - (truth_at[t][:2] + shift), float(r[2] - truth_at[t][2]))
            for t, r, h in stats.keyframes if t in truth_at]
+    t_k, _, h_k = stats.keyframes[0] if stats.keyframes else (None, None, None)
+    e_k, dz_k = kfs[0][3:] if kfs and kfs[0][0] == t_k else (None, None)
     errs: list[float] = []
     nis: list[float] = []
-    if e_k is not None and kfs:
+    if e_k is not None:
 
         def expected(t_ns: int, fix: Any) -> np.ndarray:
             _, r, h, e, dz = [k for k in kfs if k[0] <= t_ns][-1]
@@ -614,7 +611,7 @@ def _keyframe_summary(stats: Any, shift: np.ndarray, truth_at: dict[int, np.ndar
         errs, nis, _ = _scored_fixes(stats.keyframe_log, truth_at, expected)
     return {
         "keyframe_t_s": None if t_k is None else t_k / NS_PER_S,
-        "keyframe_height_m": None if t_k is None else float(stats.keyframe_height_m),
+        "keyframe_height_m": None if t_k is None else float(h_k),
         "keyframe_err_xy_m": None if e_k is None else [float(c) for c in e_k],
         "keyframe_err_z_m": dz_k,
         "keyframes": len(stats.keyframes),

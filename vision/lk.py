@@ -17,11 +17,17 @@ the tests check that both agree on the same inputs.
 :func:`forward_backward` tracks points forward and back again and rejects the
 ones that do not return to where they started.
 
+:func:`lk_bias_gain` and :func:`lk_bias` give the bias of the translational solve
+where the motion varies across its window (a descent's zoom and turn), for the
+motion gradient :func:`affine_flow_fit` fits: the tracker's LK bias correction
+(``TrackerConfig.lk_affine_correction``).
+
 Rate: once per frame for all live tracks.
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Literal
 
@@ -477,3 +483,132 @@ def forward_backward(
     valid = fwd.status & bwd.status
     err = np.where(valid, err, np.inf)
     return FBResult(xy=fwd.xy, ok=valid & (err <= fb_max_px), fb_error=err, back_xy=bwd.xy)
+
+
+AFFINE_FIT_MIN_POINTS = 4
+"""Fewest tracks from which :func:`affine_flow_fit` fits a frame's motion field."""
+AFFINE_MAX_NORM = 0.25
+"""Largest accepted frame-to-frame motion gradient |A| (Frobenius) [-]: a 25 % change of scale or a
+14 deg turn between two frames is no motion a tracker seeded by block matching follows; beyond it the
+fit is taken as failed."""
+
+
+def affine_flow_fit(xy0: np.ndarray | list, disp: np.ndarray | list) -> np.ndarray | None:
+    """The gradient ``A`` of a frame's motion field: least squares ``disp = c + A xy0``.
+
+    Args:
+        xy0: (N, 2) positions in frame k [px] (an array, or a list of pairs).
+        disp: (N, 2) their displacements to frame k+1 [px].
+
+    Returns:
+        A (2, 2) [-], ``A[i, j] = d(disp_i) / d(xy0_j)`` (the motion's Jacobian minus the
+        identity), or None: fewer than ``AFFINE_FIT_MIN_POINTS`` points, points on a line, or
+        ``|A| > AFFINE_MAX_NORM``.
+    """
+    z = np.concatenate([np.asarray(xy0, np.float64).reshape(-1, 2), np.asarray(disp, np.float64).reshape(-1, 2)],
+                       axis=1)
+    n = z.shape[0]
+    if n < AFFINE_FIT_MIN_POINTS:
+        return None
+    z = z - z.mean(axis=0)
+    (sxx, sxy, bxx, bxy), (_, syy, byx, byy) = (z[:, :2].T @ z).tolist()  # b[j][i] = sum x_j d_i
+    det = sxx * syy - sxy * sxy
+    if not det > 1e-9 * sxx * syy:
+        return None
+    # A[i, :] = M^-1 [sum x d_i, sum y d_i], M = [[sxx, sxy], [sxy, syy]].
+    a = np.array([[syy * bxx - sxy * byx, sxx * byx - sxy * bxx],
+                  [syy * bxy - sxy * byy, sxx * byy - sxy * bxy]]) / det
+    if not float((a * a).sum()) <= AFFINE_MAX_NORM * AFFINE_MAX_NORM:  # also catches NaN
+        return None
+    return a
+
+
+def lk_bias_gain(image: np.ndarray, xy: np.ndarray, window: int) -> np.ndarray:
+    """The gain ``K`` of a translational LK solve's bias on the motion's gradient ``A``.
+
+    Where the displacement varies across the window, ``d(x) = d0 + A (x - xy)``, the solve of
+    ``G d = e`` (eq. 4.5) linearised about the truth returns ``d0 + b`` with
+
+        ``b = G^-1 sum_w g g^T A (x - xy) = K vec(A)``,  ``vec(A) = (A_xx, A_xy, A_yx, A_yy)``,
+
+    the gradient-weighted mean of the displacement's variation: zero for a window whose gradient
+    energy is centred on the point, up to ``|A| x`` its off-centre distance otherwise (a 2 % zoom
+    and gradient energy 2 px off centre: 0.04 px). ``g`` is the central-difference gradient
+    (eqs. 3.1-3.2; its scale cancels) over the integer window nearest ``xy``, ``x - xy`` measured
+    from the sub-pixel point. ``K`` depends only on the point's own texture, which moves with it,
+    so a track can keep it for a few frames (:func:`lk_bias`).
+
+    Args:
+        image: Frame k (the solve's first image), 2-D [DN].
+        xy: (N, 2) the points in frame k [px]; their window plus a one-pixel ring must lie inside
+            ``image`` (indices are clipped to it otherwise).
+        window: The solve's window side [px], odd.
+
+    Returns:
+        (N, 2, 4) float64 ``K`` [px]; 0 where ``G`` is singular.
+    """
+    n = xy.shape[0]
+    h = window // 2
+    side = window + 2
+    height, width = image.shape
+    ij = np.rint(xy).astype(np.intp)
+    np.maximum(ij, h + 1, out=ij)
+    np.minimum(ij, _upper(width - h - 2, height - h - 2), out=ij)
+    st = image.strides
+    view = np.ndarray((height - side + 1, width - side + 1, side, side), image.dtype, image, 0, st + st)
+    # Each patch flattened: the window's pixels are those of the patch's rows and columns 1 .. window,
+    # a run of flat indices [side + 1, side * (side - 1) - 1) that also holds the ring's columns
+    # (weighted 0 by the moment basis). Gradients along the run are then long contiguous operations.
+    p = view[ij[:, 1] - h - 1, ij[:, 0] - h - 1].reshape(n, side * side).astype(np.float32)
+    lo, hi = side + 1, side * (side - 1) - 1
+    gx = p[:, lo + 1 : hi + 1] - p[:, lo - 1 : hi - 1]
+    gy = p[:, lo + side : hi + side] - p[:, lo - side : hi - side]
+    q = np.empty((3, n, hi - lo), np.float32)
+    np.multiply(gx, gx, out=q[0])
+    np.multiply(gx, gy, out=q[1])
+    np.multiply(gy, gy, out=q[2])
+    # m[product (xx, xy, yy), point, (sum, sum * ox, sum * oy)] over the window (o from its centre pixel)
+    m = (q.reshape(3 * n, hi - lo) @ _moment_basis(window)).astype(np.float64).reshape(3, n, 4)
+    s = m[:, :, 0]
+    # With x - xy = o - f (f: the point's offset from its window's centre pixel):
+    # r2[point, product, axis] = sum g_i g_j (x - xy)_axis.
+    f = xy - ij
+    r2 = (m[:, :, 1:3] - s[:, :, None] * f[None]).transpose(1, 0, 2).copy()
+    # T[point, i] = sum_jk A_jk sum g_i g_j r_k: row i reads products (i, i + 1) -> 4 numbers, a view.
+    t = np.ndarray((n, 2, 4), np.float64, r2, 0, (r2.strides[0], r2.strides[1], r2.strides[2]))
+    gxx, gxy, gyy = s
+    det = gxx * gyy - gxy * gxy
+    inv = 1.0 / np.where(det > 1e-9 * gxx * gyy, det, np.inf)
+    ginv = (s[[2, 1, 1, 0]].T * (inv[:, None] * _SIGNS)).reshape(n, 2, 2)
+    return ginv @ t
+
+
+_SIGNS = np.array([1.0, -1.0, -1.0, 1.0])
+
+
+@functools.lru_cache(maxsize=16)
+def _upper(x_max: int, y_max: int) -> np.ndarray:
+    """The (2,) intp upper bounds (x, y) of :func:`lk_bias_gain`'s window centres (read-only)."""
+    a = np.array([x_max, y_max], np.intp)
+    a.flags.writeable = False
+    return a
+
+
+@functools.lru_cache(maxsize=16)
+def _moment_basis(window: int) -> np.ndarray:
+    """(run, 4) float32 rows [1, ox, oy, 0] over the flat run of :func:`lk_bias_gain`'s patch
+    (side = window + 2), zero on the ring's columns (the fourth column pads the product to a
+    shape OpenBLAS multiplies faster); read-only."""
+    side, h = window + 2, window // 2
+    j = np.arange(side + 1, side * (side - 1) - 1)
+    oy, ox = j // side - h - 1, j % side - h - 1
+    inside = (np.abs(ox) <= h).astype(np.float32)
+    b = np.stack([inside, inside * ox, inside * oy, 0 * inside], axis=1).astype(np.float32)
+    b.flags.writeable = False
+    return b
+
+
+def lk_bias(gain: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """(N, 2) bias ``b = K vec(A)`` [px] of translational LK solves with gains ``gain`` (N, 2, 4)
+    (:func:`lk_bias_gain`) under the motion gradient ``a`` (2, 2) (:func:`affine_flow_fit`)."""
+    return (gain.reshape(-1, 4) @ a.reshape(4)).reshape(-1, 2)

@@ -75,6 +75,16 @@ def test_track_eval_cli_json(capsys):
         for key in ("tracks_per_frame_mean", "epe_median_px", "epe_p95_px", "within_1px_frac",
                     "mean_lifetime_frames", "ms_per_frame_min_of_repeats_mean"):
             assert np.isfinite(res[name][key]), (name, key)
+    # The sub-pixel refinement the tracker ran with at that size: 'auto' is off at 256 px.
+    assert report["tracker_setup"] == {"256": {"lk_bias_correction": False, "fb_blend": 0.3}}
+
+
+def test_track_eval_table_names_the_sub_pixel_refinement_per_size(capsys):
+    assert main(["track-eval", "--size", "256", "--frames", "12", "--repeats", "1",
+                 "--set", "tracker.lk_affine_correction=on"]) == 0
+    assert "256x256 (LK bias correction on)" in capsys.readouterr().out
+    assert main(["track-eval", "--size", "256", "--frames", "12", "--repeats", "1"]) == 0
+    assert "256x256 (LK bias correction off, blend 0.3)" in capsys.readouterr().out
 
 
 def test_track_eval_bad_flags(capsys):

@@ -548,6 +548,11 @@ class TrackerConfig(BaseModel):
             return side_px > LK_BIAS_AUTO_MIN_SIDE_PX and not self.fb_blend
         return self.lk_affine_correction == "on"
 
+    def subpixel_setup(self, side_px: int) -> dict[str, object]:
+        """How frames of shorter side ``side_px`` are refined to sub-pixel: ``{"lk_bias_correction":
+        bool, "fb_blend": float}`` (for reports)."""
+        return {"lk_bias_correction": self.corrects_lk_bias(side_px), "fb_blend": self.blend_weight(side_px)}
+
     def blend_weight(self, side_px: int) -> float:
         """The forward-backward blend for frames of shorter side ``side_px``: ``fb_blend``, or when
         unset 0.3 without the LK bias correction and 0 with it [-]."""

@@ -33,6 +33,7 @@ from bench.evaluation.tracking_eval import (
     OpenCVBaseline,
     Stepper,
     endpoint_error_stats,
+    format_subpixel_setup,
     run_interleaved,
     sequence_metrics,
 )
@@ -250,6 +251,7 @@ def run_textures_eval(size: int = 256, frames: int = TEXTURE_FRAMES, repeats: in
                 "ms_per_frame_min_of_repeats_mean", "minor_faults_per_frame")},
         }
     return {"imagery": "textures", "size": size, "frames": frames, "repeats": repeats,
+            "tracker_setup": tcfg.subpixel_setup(size),
             "warp": {**warp.__dict__, "drift_px_per_frame": list(warp.drift_px_per_frame)}, "results": results}
 
 
@@ -259,7 +261,8 @@ def format_textures_eval(report: dict[str, Any], keys: Sequence[tuple[str, str, 
     lines = [f"scikit-image textures warped by a descent: {report['size']}x{report['size']}, {report['frames']} "
              f"frames each, zoom {100 * w['zoom_per_frame']:.1f} %/frame from scale {w['start_scale']}, "
              f"{w['rotation_deg_per_frame']} deg/frame, drift {w['drift_px_per_frame']} px/frame, tilt "
-             f"{w['tilt_per_px']}/px, noise {w['noise_dn']} DN; {report['repeats']} timed repeats"]
+             f"{w['tilt_per_px']}/px, noise {w['noise_dn']} DN; {report['repeats']} timed repeats"
+             f"{format_subpixel_setup(report.get('tracker_setup'))}"]
     ms = "ms_per_frame_min_of_repeats_mean"
     for tex, res in report["results"].items():
         lines.append(f"\n{tex}" + "".join(f"{name:>14}" for name in res))

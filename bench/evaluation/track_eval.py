@@ -18,7 +18,7 @@ from typing import Any
 
 from bench.sim.descent import render_descent
 from bench.scenario import Scenario
-from bench.evaluation.tracking_eval import BaselineConfig, OpenCVBaseline, compare
+from bench.evaluation.tracking_eval import BaselineConfig, OpenCVBaseline, compare, format_subpixel_setup
 from vision import Tracker, TrackerConfig
 
 REPORT_KEYS = (
@@ -39,7 +39,9 @@ def run_track_eval(scenario: Scenario, sizes: list[int], frames: int, repeats: i
     """Render a descent per image size and compare the trackers on it.
 
     Returns:
-        ``{"frames": N, "descent": {...}, "results": {"256": {"tracker": metrics, "opencv": metrics}, ...}}``.
+        ``{"frames": N, "descent": {...}, "results": {"256": {"tracker": metrics, "opencv": metrics}, ...},
+        "tracker_setup": {"256": {"lk_bias_correction": bool, "fb_blend": w}, ...}}``: the tracker's
+        sub-pixel refinement at each size (``TrackerConfig.subpixel_setup``).
     """
     tcfg = tracker_config or TrackerConfig()
     bcfg = baseline_config or BaselineConfig()
@@ -49,6 +51,7 @@ def run_track_eval(scenario: Scenario, sizes: list[int], frames: int, repeats: i
         "descent": {"from_altitude_m": scenario.initial.r_BL_L_m[2], "to_altitude_m": 30.0,
                     "camera_period_ns": scenario.camera.period_ns, "fovy_deg": scenario.camera.fovy_deg},
         "results": {},
+        "tracker_setup": {},
     }
     for size in sizes:
         cam = scenario.camera.model_copy(update={"width_px": size, "height_px": size})
@@ -60,7 +63,9 @@ def run_track_eval(scenario: Scenario, sizes: list[int], frames: int, repeats: i
             list(d.frames), list(d.depths), d.K, poses, repeats=repeats,
         )
         out["results"][str(size)] = res
+        out["tracker_setup"][str(size)] = tcfg.subpixel_setup(size)
     return out
+
 
 
 def format_track_eval(report: dict[str, Any]) -> str:
@@ -69,7 +74,8 @@ def format_track_eval(report: dict[str, Any]) -> str:
              f"{1e9 / d['camera_period_ns']:.0f} Hz, {report['repeats']} timed repeats (ms/frame: mean over frames "
              "of the fastest repeat)"]
     for size, res in report["results"].items():
-        lines.append(f"\n{size}x{size}" + "".join(f"{name:>14}" for name in res))
+        setup = format_subpixel_setup(report.get("tracker_setup", {}).get(size))
+        lines.append(f"\n{size}x{size}{setup}" + "".join(f"{name:>14}" for name in res))
         for key, label, fmt in REPORT_KEYS:
             lines.append(f"  {label:<20}" + "".join(f"{fmt.format(m[key]):>14}" for m in res.values()))
     return "\n".join(lines)

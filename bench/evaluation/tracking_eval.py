@@ -682,6 +682,15 @@ def synthetic_descent(
 
 
 # ----------------------------------------------------------------------- CLI
+def format_subpixel_setup(setup: dict[str, Any] | None) -> str:
+    """``" (LK bias correction on)"`` or ``" (LK bias correction off, blend 0.3)"`` for a size's header."""
+    if not setup:
+        return ""
+    if setup["lk_bias_correction"]:
+        return " (LK bias correction on)"
+    return f" (LK bias correction off, blend {setup['fb_blend']:g})"
+
+
 def _table(results: Mapping[str, Mapping[str, float]], title: str) -> str:
     keys = [
         "tracks_per_frame_mean",

@@ -51,6 +51,21 @@ def test_lk_bias_gain_matches_an_explicit_loop(window):
         np.testing.assert_allclose(got, _bias_loop(image, xy, a, window), rtol=2e-4, atol=1e-7)
 
 
+def test_the_blended_gain_weights_the_two_windows_gains():
+    """The forward-backward blend reports (1 - w) x the forward (13 px) solve + w x the backward (9 px)
+    one, whose motion is the inverse, -A to first order: its bias is (1 - w) b_13 + w b_9."""
+    rng = np.random.default_rng(5)
+    image = rng.integers(0, 256, (40, 200)).astype(np.uint8)
+    xy = np.column_stack([rng.uniform(10, 190, 8), rng.uniform(10, 30, 8)])
+    a = rng.normal(0.0, 0.02, (2, 2))
+    got = lk_bias(lk_bias_gain(image, xy, 13, 9, 0.3), a)
+    want = 0.7 * _bias_loop(image, xy, a, 13) + 0.3 * _bias_loop(image, xy, a, 9)
+    np.testing.assert_allclose(got, want, rtol=2e-4, atol=1e-9)
+    # No blend, or a backward window as large as the forward one: the one window's gain.
+    np.testing.assert_array_equal(lk_bias_gain(image, xy, 13, 9, 0.0), lk_bias_gain(image, xy, 13))
+    np.testing.assert_allclose(lk_bias_gain(image, xy, 11, 13, 0.3), lk_bias_gain(image, xy, 11), rtol=1e-12)
+
+
 def test_lk_bias_gain_of_an_empty_set_and_points_at_the_edge():
     image = np.random.default_rng(0).integers(0, 256, (40, 40)).astype(np.uint8)
     assert lk_bias_gain(image, np.zeros((0, 2)), 13).shape == (0, 2, 4)
@@ -130,12 +145,10 @@ def test_auto_is_off_at_the_reference_size_and_on_above_it():
     cfg = TrackerConfig()
     assert cfg.lk_affine_correction == "auto"
     assert not cfg.corrects_lk_bias(LK_BIAS_AUTO_MIN_SIDE_PX) and cfg.corrects_lk_bias(LK_BIAS_AUTO_MIN_SIDE_PX + 1)
-    assert cfg.blend_weight(256) == 0.3 and cfg.blend_weight(512) == 0.0
-    # A blend asked for keeps 'auto' off at every size; with 'on' it is refused, naming both fields.
-    assert not TrackerConfig(fb_blend=0.5).corrects_lk_bias(512)
-    assert TrackerConfig(fb_blend=0.5).blend_weight(512) == 0.5
-    with pytest.raises(ValueError, match=r"fb_blend = 0.5 with lk_affine_correction = 'on'"):
-        TrackerConfig(fb_blend=0.5, lk_affine_correction="on")
+    assert cfg.subpixel_setup(256) == {"lk_bias_correction": False, "fb_blend": 0.3}
+    assert cfg.subpixel_setup(512) == {"lk_bias_correction": True, "fb_blend": 0.3}
+    assert not TrackerConfig(lk_affine_correction="off").corrects_lk_bias(512)
+    assert TrackerConfig(lk_affine_correction="on").corrects_lk_bias(128)
     # The same tracks as 'off' at 256 px, as 'on' above it.
     imgs, _, _ = _warped_sequence(256, 8)
     for a, b in zip(_run(TrackerConfig(), imgs), _run(TrackerConfig(lk_affine_correction="off"), imgs)):

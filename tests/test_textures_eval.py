@@ -102,7 +102,7 @@ def test_track_eval_textures_cli(capsys):
     assert main(["track-eval", "--imagery", "textures", "--frames", "5", "--repeats", "1", "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["imagery"] == "textures" and report["size"] == SIZE
-    assert report["tracker_setup"] == {"lk_bias_correction": SIZE > 256, "fb_blend": 0.0 if SIZE > 256 else 0.3}
+    assert report["tracker_setup"] == {"lk_bias_correction": SIZE > 256, "fb_blend": 0.3}
     assert set(report["results"]) == {*TEXTURES, "all"}
     for res in report["results"].values():
         for name in ("tracker", "opencv"):

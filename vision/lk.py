@@ -523,7 +523,8 @@ def affine_flow_fit(xy0: np.ndarray | list, disp: np.ndarray | list) -> np.ndarr
     return a
 
 
-def lk_bias_gain(image: np.ndarray, xy: np.ndarray, window: int) -> np.ndarray:
+def lk_bias_gain(image: np.ndarray, xy: np.ndarray, window: int, blend_window: int | None = None,
+                 blend: float = 0.0) -> np.ndarray:
     """The gain ``K`` of a translational LK solve's bias on the motion's gradient ``A``.
 
     Where the displacement varies across the window, ``d(x) = d0 + A (x - xy)``, the solve of
@@ -538,11 +539,18 @@ def lk_bias_gain(image: np.ndarray, xy: np.ndarray, window: int) -> np.ndarray:
     from the sub-pixel point. ``K`` depends only on the point's own texture, which moves with it,
     so a track can keep it for a few frames (:func:`lk_bias`).
 
+    With ``blend``: the gain of the forward-backward blend's position, the forward solve in
+    ``window`` less ``blend`` x the round trip through a backward solve in ``blend_window``
+    (:func:`forward_backward_opencv_ok`), i.e. ``(1 - blend) K_window + blend K_blend_window``: the
+    backward solve runs on the inverse motion, ``-A`` to first order, over the same texture.
+
     Args:
         image: Frame k (the solve's first image), 2-D [DN].
         xy: (N, 2) the points in frame k [px]; their window plus a one-pixel ring must lie inside
             ``image`` (indices are clipped to it otherwise).
         window: The solve's window side [px], odd.
+        blend_window: The backward solve's window side [px], odd, at most ``window`` (None: ``window``).
+        blend: The blend's weight on the backward solve [-], 0..1.
 
     Returns:
         (N, 2, 4) float64 ``K`` [px]; 0 where ``G`` is singular.
@@ -567,20 +575,27 @@ def lk_bias_gain(image: np.ndarray, xy: np.ndarray, window: int) -> np.ndarray:
     np.multiply(gx, gx, out=q[0])
     np.multiply(gx, gy, out=q[1])
     np.multiply(gy, gy, out=q[2])
-    # m[product (xx, xy, yy), point, (sum, sum * ox, sum * oy)] over the window (o from its centre pixel)
-    m = (q.reshape(3 * n, hi - lo) @ _moment_basis(window)).astype(np.float64).reshape(3, n, 4)
-    s = m[:, :, 0]
+    inner = window if blend_window is None or not blend else min(blend_window, window)
+    windows = 1 if inner == window else 2
+    # m[product (xx, xy, yy), point, window, (sum, sum * ox, sum * oy, -)] (o from the centre pixel)
+    basis = _moment_basis(window, inner)
+    m = (q.reshape(3 * n, hi - lo) @ basis).astype(np.float64).reshape(3, n, windows, 4)
+    s = m[..., 0]
     # With x - xy = o - f (f: the point's offset from its window's centre pixel):
-    # r2[point, product, axis] = sum g_i g_j (x - xy)_axis.
+    # r2[point, window, product, axis] = sum g_i g_j (x - xy)_axis.
     f = xy - ij
-    r2 = (m[:, :, 1:3] - s[:, :, None] * f[None]).transpose(1, 0, 2).copy()
-    # T[point, i] = sum_jk A_jk sum g_i g_j r_k: row i reads products (i, i + 1) -> 4 numbers, a view.
-    t = np.ndarray((n, 2, 4), np.float64, r2, 0, (r2.strides[0], r2.strides[1], r2.strides[2]))
+    r2 = (m[..., 1:3] - s[..., None] * f[None, :, None, :]).transpose(1, 2, 0, 3).copy()
+    # T[point, window, i] = sum_jk A_jk sum g_i g_j r_k: row i reads products (i, i + 1), a view.
+    st2 = r2.strides
+    t = np.ndarray((n, windows, 2, 4), np.float64, r2, 0, (st2[0], st2[1], st2[2], st2[3]))
     gxx, gxy, gyy = s
     det = gxx * gyy - gxy * gxy
     inv = 1.0 / np.where(det > 1e-9 * gxx * gyy, det, np.inf)
-    ginv = (s[[2, 1, 1, 0]].T * (inv[:, None] * _SIGNS)).reshape(n, 2, 2)
-    return ginv @ t
+    ginv = (s[[2, 1, 1, 0]].transpose(1, 2, 0) * (inv[..., None] * _SIGNS)).reshape(n, windows, 2, 2)
+    k = ginv @ t
+    if windows == 1:
+        return k[:, 0]
+    return (1.0 - blend) * k[:, 0] + blend * k[:, 1]
 
 
 _SIGNS = np.array([1.0, -1.0, -1.0, 1.0])
@@ -595,15 +610,19 @@ def _upper(x_max: int, y_max: int) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=16)
-def _moment_basis(window: int) -> np.ndarray:
-    """(run, 4) float32 rows [1, ox, oy, 0] over the flat run of :func:`lk_bias_gain`'s patch
-    (side = window + 2), zero on the ring's columns (the fourth column pads the product to a
-    shape OpenBLAS multiplies faster); read-only."""
+def _moment_basis(window: int, inner: int) -> np.ndarray:
+    """(run, 4) or (run, 8) float32 rows [1, ox, oy, 0] over the flat run of :func:`lk_bias_gain`'s
+    patch (side = window + 2), zero on the ring's columns, then the same for the centred ``inner``
+    window when it is smaller (the fourth columns pad the product to a shape OpenBLAS multiplies
+    faster); read-only."""
     side, h = window + 2, window // 2
     j = np.arange(side + 1, side * (side - 1) - 1)
     oy, ox = j // side - h - 1, j % side - h - 1
-    inside = (np.abs(ox) <= h).astype(np.float32)
-    b = np.stack([inside, inside * ox, inside * oy, 0 * inside], axis=1).astype(np.float32)
+    cols = []
+    for w in (window,) if inner == window else (window, inner):
+        inside = ((np.abs(ox) <= w // 2) & (np.abs(oy) <= w // 2)).astype(np.float32)
+        cols += [inside, inside * ox, inside * oy, 0 * inside]
+    b = np.stack(cols, axis=1).astype(np.float32)
     b.flags.writeable = False
     return b
 

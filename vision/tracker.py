@@ -70,7 +70,6 @@ from vision.fixation import (
 )
 from vision.lk import (
     AFFINE_MAX_NORM,
-    affine_flow_fit,
     forward_backward,
     forward_backward_opencv_ok,
     forward_opencv_fast,
@@ -84,7 +83,7 @@ TEMPLATE_SIZE_MAX = 256
 """Largest template side [px] (``TrackerConfig.template_size``, also for frames scaled up)."""
 
 FB_BLEND_DEFAULT = 0.3
-"""``TrackerConfig.fb_blend`` when unset and the LK bias correction is off [-]."""
+"""``TrackerConfig.fb_blend``'s default [-]."""
 LK_BIAS_AUTO_MIN_SIDE_PX = 256
 """``lk_affine_correction = "auto"`` corrects the LK bias in frames whose shorter side exceeds this [px]."""
 
@@ -327,16 +326,18 @@ class TrackerConfig(BaseModel):
       a translational window on a descent's zoom returns the gradient-weighted
       mean of the displacement over the window, ``G^-1 sum g g^T A (x - xy)``
       off the point's own (the texture's gradient energy is rarely centred on
-      it); with A fitted to the templates' displacements that bias is taken
-      out. On the photographs it nearly halves the median error (0.047 ->
-      0.029 px at 256^2, 0.051 -> 0.024 at 512^2; the baseline 0.043 and
-      0.046), on the rendered descents it takes 10-20 % off. It costs about
-      30 us a frame (the gains are recomputed every ``lk_bias_refresh_frames``
-      frames and when tracks are added): about 10 % of the tracker's time at
-      256^2, which would spend most of the time margin over the baseline
-      there, so ``"auto"`` turns it on only in larger frames. The blend
-      (``fb_blend``) was the cheap half of the same correction and is off
-      where the correction is on.
+      it); with A fitted to the templates' displacements the bias of the
+      reported position (the blend of the two windows' solves) is taken out.
+      On the photographs it takes the median error from 0.047 to 0.029 px at
+      256^2 and from 0.051 to 0.024 at 512^2 (the baseline 0.043 and 0.046),
+      on the rendered descents 10-20 % off. It costs 30-40 us a frame (the
+      gains are recomputed every ``lk_bias_refresh_frames`` frames and when
+      tracks are added): 11-14 % of the tracker's time at 256^2, which would
+      spend most of the time margin over the baseline there, so ``"auto"``
+      turns it on only in larger frames. The blend stays: on a featureless
+      mare at 512^2 the correction without it safe-aborted 3 of 20 cases
+      against 1 (the blend's averaging of two solves keeps the vision
+      measurement in its gate); the correction corrects the blended position.
 
     Re-detection is adaptive: it runs when the live tracks fall below
     ``redetect_below_frac`` of what the templates held after their last
@@ -450,22 +451,20 @@ class TrackerConfig(BaseModel):
         description="LK window of the backward solve of the forward-backward check [px]; odd; the smaller of "
         "this and lk_window is used (None: lk_window)",
     )
-    fb_blend: float | None = Field(
-        None, ge=0.0, le=1.0,
+    fb_blend: float = Field(
+        FB_BLEND_DEFAULT, ge=0.0, le=1.0,
         description="sub-pixel refinement from the forward-backward check: the track's new position is the forward "
         "LK solution minus this fraction of the round trip (back-tracked point - start), i.e. (1 - w) x the "
-        "forward (lk_window) displacement + w x the backward (fb_window) one; 0: the forward solution; None: 0.3 "
-        "where the LK bias correction is off, 0 where it is on (the two are alternatives) [-]",
+        "forward (lk_window) displacement + w x the backward (fb_window) one; 0: the forward solution [-]",
     )
     lk_affine_correction: Literal["auto", "on", "off"] = Field(
         "auto",
-        description="sub-pixel refinement: each track's LK displacement less the bias that its translational "
-        "window takes from the frame's motion gradient A (a descent's zoom and turn across the window), "
-        "b = G^-1 sum g g^T A (x - xy) (vision.lk.lk_bias_gain), A fitted to the templates' block-matching "
-        "displacements (or, with fewer than four templates, to the tracks'); 'auto': on for frames whose shorter "
-        f"side exceeds {LK_BIAS_AUTO_MIN_SIDE_PX} px (unless fb_blend is set above 0), off at and below it, where "
-        "its cost (about 10 % of the tracker's time) would spend the tracker's time lead over the OpenCV "
-        "baseline [-]",
+        description="sub-pixel refinement: each track's position (the forward-backward blend) less the bias that "
+        "its translational windows take from the frame's motion gradient A (a descent's zoom and turn across the "
+        "window), b = G^-1 sum g g^T A (x - xy) per window (vision.lk.lk_bias_gain), A fitted to the templates' "
+        "block-matching displacements (none with fewer than four templates); 'auto': on for frames whose shorter "
+        f"side exceeds {LK_BIAS_AUTO_MIN_SIDE_PX} px, off at and below it, where its cost (11-14 % of the "
+        "tracker's time) would spend the tracker's time lead over the OpenCV baseline [-]",
     )
     lk_bias_refresh_frames: int = Field(
         8, ge=1, le=1000,
@@ -533,32 +532,19 @@ class TrackerConfig(BaseModel):
                 f"+ lk_window // 2 + {TILE_GUARD_PX}, so the LK tile around a template fits in every frame that "
                 f"holds one (template_size={self.template_size}, lk_window={self.lk_window})"
             )
-        if self.lk_affine_correction == "on" and self.fb_blend:
-            raise ValueError(
-                f"fb_blend = {self.fb_blend} with lk_affine_correction = 'on': the two are alternative sub-pixel "
-                "refinements; leave fb_blend unset (or 0) to correct the bias, or set lk_affine_correction = 'off' "
-                "to blend"
-            )
         return self
 
     def corrects_lk_bias(self, side_px: int) -> bool:
         """Whether frames of shorter side ``side_px`` [px] get the LK bias correction: 'on', or
-        'auto' in frames larger than ``LK_BIAS_AUTO_MIN_SIDE_PX`` unless ``fb_blend`` is set above 0."""
+        'auto' in frames larger than ``LK_BIAS_AUTO_MIN_SIDE_PX``."""
         if self.lk_affine_correction == "auto":
-            return side_px > LK_BIAS_AUTO_MIN_SIDE_PX and not self.fb_blend
+            return side_px > LK_BIAS_AUTO_MIN_SIDE_PX
         return self.lk_affine_correction == "on"
 
     def subpixel_setup(self, side_px: int) -> dict[str, object]:
         """How frames of shorter side ``side_px`` are refined to sub-pixel: ``{"lk_bias_correction":
         bool, "fb_blend": float}`` (for reports)."""
-        return {"lk_bias_correction": self.corrects_lk_bias(side_px), "fb_blend": self.blend_weight(side_px)}
-
-    def blend_weight(self, side_px: int) -> float:
-        """The forward-backward blend for frames of shorter side ``side_px``: ``fb_blend``, or when
-        unset 0.3 without the LK bias correction and 0 with it [-]."""
-        if self.fb_blend is not None:
-            return self.fb_blend
-        return 0.0 if self.corrects_lk_bias(side_px) else FB_BLEND_DEFAULT
+        return {"lk_bias_correction": self.corrects_lk_bias(side_px), "fb_blend": self.fb_blend}
 
     @property
     def target_tracks(self) -> int:
@@ -649,7 +635,6 @@ class Tracker:
         self._gain = np.zeros((0, 2, 4), np.float64)  # each track's LK bias gain (lk_affine_correction) [px]
         self._gain_steps = -1  # steps since every track's bias gain was computed (-1: due now)
         self._correct_bias = False  # config_for: whether this frame size gets the LK bias correction
-        self._blend = FB_BLEND_DEFAULT  # config_for: the forward-backward blend in use
         self._tpl_of = np.zeros(0, np.int64)  # index of each track's template
         self._next_id = 0
         self._mos_cache: tuple | None = None  # (frame, its LK mosaic, tile corners) of the last step
@@ -667,9 +652,7 @@ class Tracker:
             # of them are at least that minus template_size apart.
             gap = cfg.template_separation_frac * min(shape[:2]) / math.sqrt(2.0) - cfg.template_size
             self._merge_top_up = gap >= cfg.min_track_separation_px
-            side = int(min(shape[:2]))
-            self._correct_bias = self.config.corrects_lk_bias(side)
-            self._blend = self.config.blend_weight(side)
+            self._correct_bias = self.config.corrects_lk_bias(int(min(shape[:2])))
             self._lk_kwargs = seeded_lk_kwargs(
                 cfg.lk_window, cfg.lk_max_iter, cfg.lk_eps_px, cfg.lk_min_eig, back_window,
                 back_max_iter=cfg.fb_max_iter, back_eps=cfg.fb_eps_px,
@@ -933,7 +916,7 @@ class Tracker:
         elif cfg.lk_backend == "opencv" and cfg.fb_check:
             kw_fwd, kw_back = self._lk_kwargs
             q_mos, ok = forward_backward_opencv_ok(mos_prev, mos_cur, pts, kw_fwd, kw_back, cfg.fb_max_px,
-                                                   self._blend)
+                                                   cfg.fb_blend)
         elif cfg.lk_backend == "opencv":
             q_mos, ok, resid = forward_opencv_fast(
                 mos_prev, mos_cur, pts[0], pts[1], cfg.lk_window, cfg.lk_max_iter, cfg.lk_eps_px, cfg.lk_min_eig
@@ -948,8 +931,8 @@ class Tracker:
                                   window=cfg.lk_window, max_iter=cfg.lk_max_iter, eps=cfg.lk_eps_px,
                                   min_eig=cfg.lk_min_eig, back_window=back_window)
             q_mos, ok = fb.xy, fb.fb_error <= cfg.fb_max_px
-            if self._blend:
-                q_mos = q_mos - self._blend * (fb.back_xy - p_mos)
+            if cfg.fb_blend:
+                q_mos = q_mos - cfg.fb_blend * (fb.back_xy - p_mos)
         inside = (q_mos >= g[:, 8:10]) & (q_mos <= g[:, 10:12])
         ok &= inside[:, 0] & inside[:, 1]
         # The frame-(k+1) mosaic is next step's frame-k mosaic for the
@@ -994,15 +977,17 @@ class Tracker:
         """
         cfg = self._cfg
         if self._gain_steps < 0 or self._gain_steps >= cfg.lk_bias_refresh_frames - 1:
-            gain = lk_bias_gain(mos_prev, p_mos[idx], cfg.lk_window)
+            # The bias of the position reported: the forward-backward blend of the two solves, when on.
+            back = cfg.fb_window if cfg.fb_check and cfg.fb_blend else None
+            gain = lk_bias_gain(mos_prev, p_mos[idx], cfg.lk_window, back, cfg.fb_blend if back else 0.0)
             self._gain_steps = 0
         else:
             gain = (self._gain if live is None else self._gain[live])[idx]
             self._gain_steps += 1
         self._gain = gain
+        # A from the templates spread over the frame; with fewer than four (a featureless frame) the
+        # tracks bunch in one or two sub-images, where a fit's error would move them all alike.
         a = _affine_from_templates(kept)
-        if a is None:
-            a = affine_flow_fit(old_xy, new_xy - old_xy)
         return new_xy if a is None else new_xy - lk_bias(gain, a)
 
     def fixation_areas(self, img: np.ndarray, n: int) -> FixationAreas:

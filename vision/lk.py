@@ -511,16 +511,27 @@ def affine_flow_fit(xy0: np.ndarray | list, disp: np.ndarray | list) -> np.ndarr
     if n < AFFINE_FIT_MIN_POINTS:
         return None
     z = z - z.mean(axis=0)
-    (sxx, sxy, bxx, bxy), (_, syy, byx, byy) = (z[:, :2].T @ z).tolist()  # b[j][i] = sum x_j d_i
+    (sxx, sxy, bxx, bxy), (_, syy, byx, byy) = (z[:, :2].T @ z).tolist()
+    return affine_from_moments(sxx, sxy, syy, bxx, bxy, byx, byy)
+
+
+def affine_from_moments(sxx: float, sxy: float, syy: float, bxx: float, bxy: float, byx: float,
+                        byy: float) -> np.ndarray | None:
+    """:func:`affine_flow_fit`'s solution from the centred moments of the positions (``sxx = sum x x``,
+    ``sxy``, ``syy``) and of positions with displacements (``bxy = sum x d_y``, ``b[j][i] = sum x_j d_i``).
+
+    Returns:
+        A (2, 2) [-], or None: points on a line, or ``|A| > AFFINE_MAX_NORM``.
+    """
     det = sxx * syy - sxy * sxy
     if not det > 1e-9 * sxx * syy:
         return None
     # A[i, :] = M^-1 [sum x d_i, sum y d_i], M = [[sxx, sxy], [sxy, syy]].
-    a = np.array([[syy * bxx - sxy * byx, sxx * byx - sxy * bxx],
-                  [syy * bxy - sxy * byy, sxx * byy - sxy * bxy]]) / det
-    if not float((a * a).sum()) <= AFFINE_MAX_NORM * AFFINE_MAX_NORM:  # also catches NaN
+    axx, axy = (syy * bxx - sxy * byx) / det, (sxx * byx - sxy * bxx) / det
+    ayx, ayy = (syy * bxy - sxy * byy) / det, (sxx * byy - sxy * bxy) / det
+    if not axx * axx + axy * axy + ayx * ayx + ayy * ayy <= AFFINE_MAX_NORM * AFFINE_MAX_NORM:  # also NaN
         return None
-    return a
+    return np.array([[axx, axy], [ayx, ayy]])
 
 
 def lk_bias_gain(image: np.ndarray, xy: np.ndarray, window: int, blend_window: int | None = None,

@@ -69,7 +69,7 @@ from vision.fixation import (
     ssd_maps_rows,
 )
 from vision.lk import (
-    AFFINE_MAX_NORM,
+    affine_from_moments,
     forward_backward,
     forward_backward_opencv_ok,
     forward_opencv_fast,
@@ -182,8 +182,9 @@ def _median_rows(a: np.ndarray) -> np.ndarray:
 
 def _affine_from_templates(kept: list[tuple]) -> np.ndarray | None:
     """The motion gradient ``A`` (2, 2) [-] fitted to the kept templates' block-matching
-    displacements ``(t, bx, by, sx, sy)``: ``s = c + A (b - s)`` over their new top-left
-    corners ``b`` (None: fewer than four, or on a line)."""
+    displacements ``(t, bx, by, sx, sy)``: ``s = c + A (b - s)`` over their old top-left
+    corners ``b - s`` (None: fewer than four, on a line, or too large; as
+    :func:`vision.lk.affine_flow_fit`, in plain floats: seven points cost less than the arrays)."""
     n = len(kept)
     if n < 4:
         return None
@@ -204,14 +205,7 @@ def _affine_from_templates(kept: list[tuple]) -> np.ndarray | None:
         bxy += x * v
         byx += y * u
         byy += y * v
-    det = sxx * syy - sxy * sxy
-    if not det > 1e-9 * sxx * syy:
-        return None
-    axx, axy = (syy * bxx - sxy * byx) / det, (sxx * byx - sxy * bxx) / det
-    ayx, ayy = (syy * bxy - sxy * byy) / det, (sxx * byy - sxy * bxy) / det
-    if not axx * axx + axy * axy + ayx * ayx + ayy * ayy <= AFFINE_MAX_NORM * AFFINE_MAX_NORM:  # also NaN
-        return None
-    return np.array([[axx, axy], [ayx, ayy]])
+    return affine_from_moments(sxx, sxy, syy, bxx, bxy, byx, byy)
 
 
 def similarity_prediction(xy: np.ndarray, disp: np.ndarray, new_xy: np.ndarray) -> np.ndarray:
@@ -329,7 +323,7 @@ class TrackerConfig(BaseModel):
       it); with A fitted to the templates' displacements the bias of the
       reported position (the blend of the two windows' solves) is taken out.
       On the photographs it takes the median error from 0.047 to 0.029 px at
-      256^2 and from 0.051 to 0.024 at 512^2 (the baseline 0.043 and 0.046),
+      256^2 and from 0.051 to 0.025 at 512^2 (the baseline 0.043 and 0.046),
       on the rendered descents 10-20 % off. It costs 30-40 us a frame (the
       gains are recomputed every ``lk_bias_refresh_frames`` frames and when
       tracks are added): 11-14 % of the tracker's time at 256^2, which would

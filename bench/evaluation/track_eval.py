@@ -67,7 +67,6 @@ def run_track_eval(scenario: Scenario, sizes: list[int], frames: int, repeats: i
     return out
 
 
-
 def format_track_eval(report: dict[str, Any]) -> str:
     d = report["descent"]
     lines = [f"descent {d['from_altitude_m']:.0f} m -> {d['to_altitude_m']:.0f} m, {report['frames']} frames at "

@@ -942,7 +942,7 @@ class Tracker:
         old_xy = xy[idx]
         new_xy = q_mos[idx] + g[idx, 6:8]
         if self._correct_bias:
-            new_xy = self._without_lk_bias(mos_prev, pts[0], idx, live, old_xy, new_xy, kept)
+            new_xy = self._without_lk_bias(mos_prev, pts[0], idx, live, new_xy, kept)
         self._xy = new_xy
         self._flow = self._xy - old_xy
         self._tpl_of = tpl_of[idx]
@@ -966,13 +966,13 @@ class Tracker:
         return old_xy
 
     def _without_lk_bias(self, mos_prev: np.ndarray, p_mos: np.ndarray, idx: np.ndarray, live: np.ndarray | None,
-                         old_xy: np.ndarray, new_xy: np.ndarray, kept: list[tuple]) -> np.ndarray:
+                         new_xy: np.ndarray, kept: list[tuple]) -> np.ndarray:
         """The LK bias correction: the surviving tracks' new positions ``new_xy`` (frame k+1) less
         their LK window's bias under this frame's motion gradient (:func:`vision.lk.lk_bias_gain`).
 
         ``idx`` indexes the survivors among the solved points (``live``: the solved among all
-        tracks), ``p_mos`` the solved points in frame k's mosaic, ``old_xy`` the survivors in frame
-        k. Keeps the survivors' gains for the next step: all recomputed every
+        tracks), ``p_mos`` the solved points in frame k's mosaic, ``kept`` the templates' block
+        matches (``A``'s fit). Keeps the survivors' gains for the next step: all recomputed every
         ``lk_bias_refresh_frames`` steps and at the first step after tracks were added.
         """
         cfg = self._cfg

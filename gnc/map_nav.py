@@ -867,9 +867,13 @@ class MapNavigator:
         self._keyframe: MapMatcher | None = None
         self._keyframe_possible = cfg.keyframe  # False once the filter turns out to carry no b_map
 
-    def _common_correlation(self, dt_ns: int) -> float:
-        """Correlation of the fixes' common error over ``dt_ns`` (Gauss-Markov, ``common_time_s``) [-]."""
-        return math.exp(-dt_ns / NS_PER_S / self.cfg.common_time_s)
+    def _common_correlation(self, dt_ns: int, coarse_weight: float = 0.0) -> float:
+        """Correlation of the fixes' common error over ``dt_ns`` (Gauss-Markov) [-]: its correlation time is
+        ``common_time_s`` for a fix of a frame finer than the map (``coarse_weight`` 0), ``coarse_common_time_s``
+        for a coarse one (1), geometric between (:attr:`MapFix.coarse_weight`)."""
+        w = coarse_weight
+        tau_s = self.cfg.common_time_s ** (1.0 - w) * self.cfg.coarse_common_time_s**w
+        return math.exp(-dt_ns / NS_PER_S / tau_s)
 
     def _window_scale(self) -> float:
         """The factor on the prior's search window now (1 once locked; see the class docstring)."""
@@ -947,9 +951,8 @@ class MapNavigator:
             # (common_time_s for a fine frame, coarse_common_time_s for a coarse one), at this fix's 1-sigma
             # (reset at the first update, or when the flight software restarted).
             sigma_c = fix.common_sigma_m
-            w = fix.coarse_weight
-            tau_s = self.cfg.common_time_s ** (1.0 - w) * self.cfg.coarse_common_time_s**w
-            phi = 0.0 if self._bias_t_ns is None else math.exp(-(t_ns - self._bias_t_ns) / NS_PER_S / tau_s)
+            phi = (0.0 if self._bias_t_ns is None
+                   else self._common_correlation(t_ns - self._bias_t_ns, fix.coarse_weight))
             nav_filter.step_map_bias(phi, sigma_c, sigma_c / self._bias_sigma_m if self._bias_sigma_m > 0 else 1.0)
             self._bias_t_ns, self._bias_sigma_m = t_ns, sigma_c
             R = fix.cov_xy_m2

@@ -16,7 +16,7 @@ import pytest
 from bench.evaluation.textures_eval import DescentWarp, _pair_errors, descent_homographies, warp_frames
 from bench.evaluation.tracking_eval import lunar_texture
 from vision import Tracker, TrackerConfig
-from vision.lk import AFFINE_MAX_NORM, affine_flow_fit, lk_bias, lk_bias_gain, lucas_kanade
+from vision.lk import AFFINE_MAX_NORM, lk_bias, lk_bias_gain, lucas_kanade
 from vision.tracker import LK_BIAS_AUTO_MIN_SIDE_PX, _affine_from_templates
 
 
@@ -102,21 +102,26 @@ def test_the_bias_is_what_the_reference_lk_solve_gets_wrong_under_a_zoom():
     assert np.median(np.linalg.norm(err - b, axis=1)) < 0.5 * e_mag
 
 
-def test_affine_flow_fit_recovers_the_motion_gradient_and_refuses_what_it_cannot_fit():
+def test_the_templates_fit_recovers_the_motion_gradient_and_refuses_what_it_cannot_fit():
+    """The tracker's fit of ``A`` over its templates' block matches ``(t, new corner bx, by, displacement sx,
+    sy)``, in plain floats."""
+
+    def kept(xy, disp):
+        return [(t, x + u, y + v, u, v) for t, ((x, y), (u, v)) in enumerate(zip(xy.tolist(), disp.tolist()))]
+
     rng = np.random.default_rng(1)
     a = np.array([[0.021, -0.004], [0.005, 0.018]])
     xy = rng.uniform(0, 256, (60, 2))
     disp = np.array([0.7, -0.3]) + xy @ a.T + rng.normal(0.0, 0.02, xy.shape)
-    np.testing.assert_allclose(affine_flow_fit(xy, disp), a, atol=5e-4)
-    assert affine_flow_fit(xy[:3], disp[:3]) is None  # too few
+    np.testing.assert_allclose(_affine_from_templates(kept(xy, disp)), a, atol=5e-4)
+    assert _affine_from_templates(kept(xy[:3], disp[:3])) is None  # too few
     line = np.column_stack([np.arange(10.0), 2.0 * np.arange(10.0)])
-    assert affine_flow_fit(line, line @ a.T) is None  # on a line
+    assert _affine_from_templates(kept(line, line @ a.T)) is None  # on a line
     big = np.eye(2) * AFFINE_MAX_NORM
-    assert affine_flow_fit(xy, xy @ big.T) is None  # no frame-to-frame motion a tracker follows
-    # The tracker's fit over its templates' block matches: (t, new corner bx, by, displacement sx, sy).
-    kept = [(t, x + u, y + v, u, v) for t, ((x, y), (u, v)) in enumerate(zip(xy[:7].tolist(), disp[:7].tolist()))]
-    np.testing.assert_allclose(_affine_from_templates(kept), affine_flow_fit(xy[:7], disp[:7]), rtol=1e-9)
-    assert _affine_from_templates(kept[:3]) is None
+    assert _affine_from_templates(kept(xy, xy @ big.T)) is None  # no frame-to-frame motion a tracker follows
+    # Seven templates: the least-squares solution of disp = c + A xy, computed independently.
+    coef = np.linalg.lstsq(np.column_stack([np.ones(7), xy[:7]]), disp[:7], rcond=None)[0]
+    np.testing.assert_allclose(_affine_from_templates(kept(xy[:7], disp[:7])), coef[1:].T, rtol=1e-9)
 
 
 def _warped_sequence(size: int, frames: int = 20) -> tuple[list[np.ndarray], list[np.ndarray], tuple[int, int]]:

@@ -19,7 +19,7 @@ ones that do not return to where they started.
 
 :func:`lk_bias_gain` and :func:`lk_bias` give the bias of the translational solve
 where the motion varies across its window (a descent's zoom and turn), for the
-motion gradient :func:`affine_flow_fit` fits: the tracker's LK bias correction
+motion gradient :func:`affine_from_moments` solves for: the tracker's LK bias correction
 (``TrackerConfig.lk_affine_correction``).
 
 Rate: once per frame for all live tracks.
@@ -485,40 +485,18 @@ def forward_backward(
     return FBResult(xy=fwd.xy, ok=valid & (err <= fb_max_px), fb_error=err, back_xy=bwd.xy)
 
 
-AFFINE_FIT_MIN_POINTS = 4
-"""Fewest tracks from which :func:`affine_flow_fit` fits a frame's motion field."""
 AFFINE_MAX_NORM = 0.25
 """Largest accepted frame-to-frame motion gradient |A| (Frobenius) [-]: a 25 % change of scale or a
 14 deg turn between two frames is no motion a tracker seeded by block matching follows; beyond it the
 fit is taken as failed."""
 
 
-def affine_flow_fit(xy0: np.ndarray | list, disp: np.ndarray | list) -> np.ndarray | None:
-    """The gradient ``A`` of a frame's motion field: least squares ``disp = c + A xy0``.
-
-    Args:
-        xy0: (N, 2) positions in frame k [px] (an array, or a list of pairs).
-        disp: (N, 2) their displacements to frame k+1 [px].
-
-    Returns:
-        A (2, 2) [-], ``A[i, j] = d(disp_i) / d(xy0_j)`` (the motion's Jacobian minus the
-        identity), or None: fewer than ``AFFINE_FIT_MIN_POINTS`` points, points on a line, or
-        ``|A| > AFFINE_MAX_NORM``.
-    """
-    z = np.concatenate([np.asarray(xy0, np.float64).reshape(-1, 2), np.asarray(disp, np.float64).reshape(-1, 2)],
-                       axis=1)
-    n = z.shape[0]
-    if n < AFFINE_FIT_MIN_POINTS:
-        return None
-    z = z - z.mean(axis=0)
-    (sxx, sxy, bxx, bxy), (_, syy, byx, byy) = (z[:, :2].T @ z).tolist()
-    return affine_from_moments(sxx, sxy, syy, bxx, bxy, byx, byy)
-
-
 def affine_from_moments(sxx: float, sxy: float, syy: float, bxx: float, bxy: float, byx: float,
                         byy: float) -> np.ndarray | None:
-    """:func:`affine_flow_fit`'s solution from the centred moments of the positions (``sxx = sum x x``,
-    ``sxy``, ``syy``) and of positions with displacements (``bxy = sum x d_y``, ``b[j][i] = sum x_j d_i``).
+    """The gradient ``A`` of a frame's motion field, least squares ``d = c + A x`` over its points, from the
+    centred moments of the positions (``sxx = sum x x``, ``sxy``, ``syy``) and of positions with displacements
+    (``bxy = sum x d_y``, ``b[j][i] = sum x_j d_i``); ``A[i, j] = d(d_i) / d(x_j)``, the motion's Jacobian
+    minus the identity.
 
     Returns:
         A (2, 2) [-], or None: points on a line, or ``|A| > AFFINE_MAX_NORM``.
@@ -640,5 +618,5 @@ def _moment_basis(window: int, inner: int) -> np.ndarray:
 
 def lk_bias(gain: np.ndarray, a: np.ndarray) -> np.ndarray:
     """(N, 2) bias ``b = K vec(A)`` [px] of translational LK solves with gains ``gain`` (N, 2, 4)
-    (:func:`lk_bias_gain`) under the motion gradient ``a`` (2, 2) (:func:`affine_flow_fit`)."""
+    (:func:`lk_bias_gain`) under the motion gradient ``a`` (2, 2) (:func:`affine_from_moments`)."""
     return (gain.reshape(-1, 4) @ a.reshape(4)).reshape(-1, 2)

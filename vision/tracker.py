@@ -82,8 +82,6 @@ from vision.tracks import Tracks, check_image
 TEMPLATE_SIZE_MAX = 256
 """Largest template side [px] (``TrackerConfig.template_size``, also for frames scaled up)."""
 
-FB_BLEND_DEFAULT = 0.3
-"""``TrackerConfig.fb_blend``'s default [-]."""
 LK_BIAS_AUTO_MIN_SIDE_PX = 256
 """``lk_affine_correction = "auto"`` corrects the LK bias in frames whose shorter side exceeds this [px]."""
 
@@ -184,7 +182,7 @@ def _affine_from_templates(kept: list[tuple]) -> np.ndarray | None:
     """The motion gradient ``A`` (2, 2) [-] fitted to the kept templates' block-matching
     displacements ``(t, bx, by, sx, sy)``: ``s = c + A (b - s)`` over their old top-left
     corners ``b - s`` (None: fewer than four, on a line, or too large; as
-    :func:`vision.lk.affine_flow_fit`, in plain floats: seven points cost less than the arrays)."""
+    :func:`vision.lk.affine_from_moments`, the moments in plain floats: seven points cost less than arrays)."""
     n = len(kept)
     if n < 4:
         return None
@@ -452,7 +450,7 @@ class TrackerConfig(BaseModel):
         "this and lk_window is used (None: lk_window)",
     )
     fb_blend: float = Field(
-        FB_BLEND_DEFAULT, ge=0.0, le=1.0,
+        0.3, ge=0.0, le=1.0,
         description="sub-pixel refinement from the forward-backward check: the track's new position is the forward "
         "LK solution minus this fraction of the round trip (back-tracked point - start), i.e. (1 - w) x the "
         "forward (lk_window) displacement + w x the backward (fb_window) one; 0: the forward solution [-]",

@@ -152,6 +152,8 @@ def test_auto_is_off_at_the_reference_size_and_on_above_it():
     assert not cfg.corrects_lk_bias(LK_BIAS_AUTO_MIN_SIDE_PX) and cfg.corrects_lk_bias(LK_BIAS_AUTO_MIN_SIDE_PX + 1)
     assert cfg.subpixel_setup(256) == {"lk_bias_correction": False, "fb_blend": 0.3}
     assert cfg.subpixel_setup(512) == {"lk_bias_correction": True, "fb_blend": 0.3}
+    # Without the forward-backward check there is no backward solve to blend with.
+    assert TrackerConfig(fb_check=False).subpixel_setup(256) == {"lk_bias_correction": False, "fb_blend": 0.0}
     assert not TrackerConfig(lk_affine_correction="off").corrects_lk_bias(512)
     assert TrackerConfig(lk_affine_correction="on").corrects_lk_bias(128)
     # The same tracks as 'off' at 256 px, as 'on' above it.

@@ -541,8 +541,10 @@ class TrackerConfig(BaseModel):
 
     def subpixel_setup(self, side_px: int) -> dict[str, object]:
         """How frames of shorter side ``side_px`` are refined to sub-pixel: ``{"lk_bias_correction":
-        bool, "fb_blend": float}`` (for reports)."""
-        return {"lk_bias_correction": self.corrects_lk_bias(side_px), "fb_blend": self.fb_blend}
+        bool, "fb_blend": float}`` (for reports; the blend is 0 without the forward-backward check, which
+        it needs)."""
+        blend = self.fb_blend if self.fb_check else 0.0
+        return {"lk_bias_correction": self.corrects_lk_bias(side_px), "fb_blend": blend}
 
     @property
     def target_tracks(self) -> int:

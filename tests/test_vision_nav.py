@@ -309,3 +309,82 @@ def test_divergence_noise_is_consistent_with_its_reported_variance():
     n = len(nees)
     lo, hi = chi2.ppf([0.0005, 0.9995], n) / n
     assert lo < np.mean(nees) < hi, (np.mean(nees), lo, hi)
+
+
+def _cells_scene(rng, cells, common_px, n_per_cell=12, noise_px=0.05):
+    """Tracks in ``cells`` (column, row) cells of 64 px only, each cell's tracks displaced together by their
+    own N(0, common_px) offset in the second frame (a template that slipped) plus N(0, noise_px) each; level
+    flight at 300 m, 1 m/s along x. Returns (tracks, r0, r1, q)."""
+    q = _q([0.0, 0.0, 0.0])
+    r0, r1 = np.array([0.0, 0.0, 300.0]), np.array([0.1, 0.0, 300.0])
+    tracks, _ = _scene(rng, r0, r1, q, q, n=4000)
+    cell = np.floor(tracks.prev_xy / 64.0).astype(int)
+    xy, prev = [], []
+    for cx, cy in cells:
+        idx = np.flatnonzero((cell[:, 0] == cx) & (cell[:, 1] == cy))[:n_per_cell]
+        xy.append(tracks.xy[idx] + rng.normal(0.0, common_px, 2) + rng.normal(0.0, noise_px, (idx.size, 2)))
+        prev.append(tracks.prev_xy[idx])
+    xy, prev = np.concatenate(xy), np.concatenate(prev)
+    n = xy.shape[0]
+    return Tracks(ids=np.arange(n, dtype=np.int64), xy=xy, prev_xy=prev, age=np.ones(n, np.int64)), r0, r1, q
+
+
+def test_tracks_in_too_few_image_cells_give_no_measurement():
+    """The covariance is cluster-robust over 64 px cells: it estimates the error a cell's tracks share (one
+    template's features slip together) from the spread between the cells. With one cell that spread is zero by
+    construction (the residuals sum to zero), so a slip of a few tenths of a pixel came out with the floor's
+    1-sigma of hundredths (on a featureless mare: velocities metres per second off, believed to centimetres per
+    second); with two cells the two sums are opposite and the covariance has rank one: no variance across the
+    line between the cells but the floor's. Below ``min_clusters`` (5) cells vision gives no measurement; from 5 cells on it
+    does, the same one as without the limit."""
+    rng = np.random.default_rng(11)
+    one_cell = VisionNavConfig(min_clusters=1)
+    nis = []
+    for trial in range(100):
+        tracks, r0, r1, q = _cells_scene(rng, [(1, 1)], common_px=0.3)
+        assert _measure(tracks, r0, r1, q, q) is None
+        m = _measure(tracks, r0, r1, q, q, cfg=one_cell)
+        e = m.z - m.hx
+        nis.append(float(e @ np.linalg.solve(m.R + 2.0 * m.R_frame, e)))
+        tracks, r0, r1, q = _cells_scene(rng, [(1, 1), (2, 1)], common_px=0.3)
+        assert _measure(tracks, r0, r1, q, q) is None
+        m = _measure(tracks, r0, r1, q, q, cfg=one_cell)
+        floor = CFG.covariance_inflation * (CFG.pixel_sigma_px / K[0, 0]) ** 2 / m.n_used  # the mean's, per axis
+        assert np.linalg.eigvalsh(m.R)[0] <= floor * (1.0 + 1e-9)  # rank one but for the floor
+    # A consistent 2-dof NIS exceeds 13.8 once in a thousand; with one cell the shared slip is not in it at all.
+    assert np.mean(np.array(nis) > 13.8) > 0.9
+    for cells in ([(0, 0), (3, 0), (1, 3)], [(0, 0), (3, 0), (1, 3), (2, 2)]):
+        tracks, r0, r1, q = _cells_scene(rng, cells, common_px=0.3)
+        assert _measure(tracks, r0, r1, q, q) is None
+    for cells in ([(0, 0), (3, 0), (1, 3), (2, 2), (3, 3)], [(0, 0), (3, 0), (1, 3), (2, 2), (3, 3), (0, 2), (2, 0)]):
+        tracks, r0, r1, q = _cells_scene(rng, cells, common_px=0.3)
+        m, m1 = _measure(tracks, r0, r1, q, q), _measure(tracks, r0, r1, q, q, cfg=one_cell)
+        assert m is not None and np.array_equal(m.R, m1.R) and np.array_equal(m.z, m1.z)
+        lo, hi = np.linalg.eigvalsh(m.R)
+        assert lo > 1e-2 * hi  # full rank
+
+
+def test_the_cells_keep_their_share_of_the_frame():
+    """The cells are ``cluster_px`` (64 px) in a frame of 256 px or more and shrink with a smaller one: 32 px at
+    128 px, 48 px in a 192 x 256 frame (its shorter side, read from the principal point). So a 128 px frame,
+    whose 64 px cells were four, can still give a measurement: tracks in five of its 32 px cells do."""
+    from gnc.vision_nav import cluster_cell_px
+
+    def k_for(w, h):
+        return np.array([[200.0, 0.0, (w - 1) / 2], [0.0, 200.0, (h - 1) / 2], [0.0, 0.0, 1.0]])
+
+    for (w, h), cell in (((256, 256), 64.0), ((128, 128), 32.0), ((512, 512), 64.0), ((640, 480), 64.0),
+                         ((192, 256), 48.0)):
+        assert cluster_cell_px(k_for(w, h), CFG) == cell
+    rng = np.random.default_rng(5)
+    tracks, r0, r1, q = _cells_scene(rng, [(0, 0), (1, 0), (0, 1), (1, 1), (2, 1)], common_px=0.1, n_per_cell=40)
+    # The same tracks seen as a 128 px frame's (its 32 px cells): scale the pixel coordinates about the centre.
+    k128 = K.copy()
+    k128[:2, 2] = 63.5
+    small = Tracks(ids=tracks.ids, xy=tracks.xy - 64.0, prev_xy=tracks.prev_xy - 64.0, age=tracks.age)
+    inside = np.all((small.prev_xy >= 0) & (small.prev_xy < 128) & (small.xy >= 0) & (small.xy < 128), axis=1)
+    small = Tracks(ids=small.ids[inside], xy=small.xy[inside], prev_xy=small.prev_xy[inside], age=small.age[inside])
+    cells = np.unique(np.floor(small.prev_xy / 32.0).astype(int), axis=0)
+    assert len(cells) >= 5 and len(np.unique(np.floor(small.prev_xy / 64.0).astype(int), axis=0)) <= 4
+    m = vision_measurement(small, 0, 100_000_000, k128, R_BC, R_CAM_B, _R(q), _R(q), r0, r1, 0.0, 0.0, CFG)
+    assert m is not None

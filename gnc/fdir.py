@@ -241,6 +241,11 @@ class FdirConfig(BaseModel):
     vision_window: int = Field(20, ge=5, description="vision measurements in the rejection-rate window [-]")
     vision_rejected_max: float = Field(0.5, gt=0.0, le=1.0,
                                        description="largest fraction of them the filter's gate may reject [-]")
+    vision_unusable_max: float = Field(
+        0.5, ge=0.0, le=1.0,
+        description="at vision's altitude cut-off, beyond this share of the descent's frame pairs that gave no "
+                    "measurement (a featureless ground) the lateral accelerometer bias is taken as unobserved: its "
+                    "variance is raised to its specification for the terminal descent on the IMU alone [-]")
     vision_attribution_s: float = Field(
         20.0, gt=0.0, description="vision excluded for good within this of an inertial fault's detection (IMU, "
                                   "star tracker, computer) is that fault's doing: the lateral bias vision gave is "

@@ -108,7 +108,7 @@ class VisionStats:
     track_counts: list[int] = field(default_factory=list)
     measurements: int = 0  # measurements formed
     rejected: int = 0  # ... of which the filter's gate rejected
-    unusable: int = 0  # frame pairs that gave no measurement (too few tracks)
+    unusable: int = 0  # frame pairs that gave no measurement (too few tracks, or in too few image cells)
     last: VisionMeasurement | None = None
     last_record: UpdateRecord | None = None
     last_tracks: Tracks | None = None
@@ -204,6 +204,7 @@ class FlightSoftware:
         self._alt_buffer: list[tuple[int, float, float]] = []  # (t, height less expected, sigma)
         self._discounted = False  # the vertical covariance was re-inflated on a noisy-altimeter detection
         self._altimeter_lost = False  # no usable altimeter (health monitoring): vision's divergence is used
+        self._vision_cut_off = False  # vision has reached its altitude cut-off (:meth:`_at_vision_cutoff`)
         # Non-volatile memory: (t_ns, filter state (24,), covariance (24, 24), mass [kg], attitude q_LB (4,) or
         # None). The hand-over's data until the first control tick writes it (a reset before that restarts there).
         self.checkpoint: tuple[int, np.ndarray, np.ndarray, float, np.ndarray | None] = self._checkpoint(
@@ -374,6 +375,7 @@ class FlightSoftware:
         """A camera frame went by that :meth:`wants_image` said would not be used (``t_ns``: its time)."""
         if self._monitoring() and t_ns is not None:
             self.fdir.image(t_ns, None)
+            self._at_vision_cutoff(t_ns)
         self._end_vision()
 
     def on_image(self, msg: ImageMessage) -> Tracks | None:
@@ -384,6 +386,7 @@ class FlightSoftware:
             self.map_nav.on_frame(msg.t_ns, msg.image, self.filter)
             self._check_map_lock(msg.t_ns)
         if not self.wants_image():
+            self._at_vision_cutoff(msg.t_ns)
             self._end_vision()
             return None
         tracks = self.tracker.step(msg.image)
@@ -465,6 +468,38 @@ class FlightSoftware:
         """
         sig_b = self.filter.cfg.init_accel_bias_sigma_mps2
         self._reset_lateral_bias(t_ns, (0.0, 0.0, sig_b**2), since_s=window_s)
+
+    def _at_vision_cutoff(self, t_ns: int) -> None:
+        """Once, at the first frame vision does not use because the estimated altitude is at its cut-off: when
+        most of the descent's frame pairs gave no measurement (``fdir.vision_unusable_max``: a featureless
+        ground, whose few tracks sat in too few image cells), the lateral accelerometer bias, which only vision
+        observes, is taken as unobserved from here on. Its estimate is kept and its variance raised to at least
+        its specification's (``init_accel_bias_sigma_mps2`` squared, per axis; adding to a diagonal keeps the
+        covariance positive semi-definite), so that the horizontal velocity's variance grows as the bias's over
+        the terminal descent on the IMU alone, where the safe-abort criterion judges it
+        (``fdir.abort_sigma_vh_mps``).
+
+        Why: the few measurements such a descent keeps are over-trusted as a group (their cluster-robust
+        covariance rests on a handful of cells), and a velocity error they leave is, after a gap, read by the
+        filter as a bias (the velocity-bias correlation the gap builds): a bias error of 0.01 m/s^2 that the
+        filter is sure of, and 0.5 m/s of horizontal speed after 50 s on the IMU, unseen.
+        """
+        if self._vision_cut_off or not self._monitoring() or not self.fdir.cfg.recovery:
+            return
+        if not self.vision_enabled or self.tracker is None or "vision" in self.fdir.failed or self.vision_active():
+            return
+        self._vision_cut_off = True
+        pairs = self.vision.measurements + self.vision.unusable
+        share = self.vision.unusable / pairs if pairs else 0.0
+        if not share > self.fdir.cfg.vision_unusable_max:
+            return
+        var = self.filter.cfg.init_accel_bias_sigma_mps2 ** 2
+        P = self.filter.ekf.P
+        ib = IDX_BA.start
+        for i in (ib, ib + 1):
+            P[i, i] += max(var - float(P[i, i]), 0.0)
+        self.fdir.note(t_ns, "vision", f"{100 * share:.0f} % of vision's frame pairs gave no measurement",
+                       "lateral accelerometer bias taken as unobserved: its variance raised to its specification")
 
     def _end_vision(self) -> None:
         """No vision at this frame: the next frame starts a new pair."""

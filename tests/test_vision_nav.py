@@ -335,8 +335,8 @@ def test_tracks_in_too_few_image_cells_give_no_measurement():
     construction (the residuals sum to zero), so a slip of a few tenths of a pixel came out with the floor's
     1-sigma of hundredths (on a featureless mare: velocities metres per second off, believed to centimetres per
     second); with two cells the two sums are opposite and the covariance has rank one: no variance across the
-    line between the cells but the floor's. Below ``min_clusters`` (5) cells vision gives no measurement; from 5 cells on it
-    does, the same one as without the limit."""
+    line between the cells but the floor's. Below ``min_clusters`` (5) cells vision gives no measurement; from 5
+    cells on it does, the same one as without the limit."""
     rng = np.random.default_rng(11)
     one_cell = VisionNavConfig(min_clusters=1)
     nis = []
@@ -378,7 +378,7 @@ def test_the_cells_keep_their_share_of_the_frame():
         assert cluster_cell_px(k_for(w, h), CFG) == cell
     rng = np.random.default_rng(5)
     tracks, r0, r1, q = _cells_scene(rng, [(0, 0), (1, 0), (0, 1), (1, 1), (2, 1)], common_px=0.1, n_per_cell=40)
-    # The same tracks seen as a 128 px frame's (its 32 px cells): scale the pixel coordinates about the centre.
+    # The same tracks moved 64 px up and left, into a 128 px frame (its 32 px cells); those that leave it dropped.
     k128 = K.copy()
     k128[:2, 2] = 63.5
     small = Tracks(ids=tracks.ids, xy=tracks.xy - 64.0, prev_xy=tracks.prev_xy - 64.0, age=tracks.age)

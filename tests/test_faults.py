@@ -615,3 +615,38 @@ def test_overlapping_misalignments_or_stuck_throttles_are_refused():
     # One after the other, or of different kinds: accepted.
     load_scenario(None, ['faults=[{kind = "misalignment", angle_deg = 1.0, t_s = 10.0, duration_s = 5.0}, '
                          '{kind = "misalignment", angle_deg = 2.0, t_s = 15.0}, {kind = "stuck_throttle", t_s = 12.0}]'])
+
+
+def test_a_terrain_step_acts_from_when_the_altimeter_ranges_it_not_when_the_body_flies_over_it():
+    """Seed 7's case 6 of the Hakuto-R preset started 35 m inside the 60 m plateau at 496 m, tilted: its beam
+    reached the ground 100 m away, beyond the edge, so the step never acted on a sensor, yet it was scored a
+    missed detection (9 of 10). The step now starts at the first valid range whose footprint (the mount and
+    boresight carried by the true attitude, out to the reported range) lies on the disc, computed here by hand
+    for a tilt about y: a body inside the disc whose beam lands outside never triggers it; a body outside whose
+    beam lands inside does, at its first valid sample."""
+    from types import SimpleNamespace
+
+    from bench.sim.run import _beam_on_disc_ns
+    from models.lander import LanderConfig, altimeter_position_B
+
+    lander = LanderConfig()
+    mx, _, mz = altimeter_position_B(lander)
+    step = SimpleNamespace(center_xy_m=[0.0, 0.0], radius_m=60.0)
+    theta = math.radians(11.6)
+    q = [math.cos(theta / 2), 0.0, math.sin(theta / 2), 0.0]  # about +y: x' = x cos + z sin
+    z = 496.0
+    rng = z / math.cos(theta)  # flat ground at 0 m
+    n = 4
+
+    def tel(x0, valid):
+        return {"t_s": np.arange(n) * 0.02, "r_x_m": np.full(n, x0), "r_y_m": np.zeros(n), "r_z_m": np.full(n, z),
+                "q_w": np.full(n, q[0]), "q_x": np.zeros(n), "q_y": np.full(n, q[2]), "q_z": np.zeros(n),
+                "alt_range_m": np.full(n, rng), "alt_valid": np.array(valid)}
+
+    def foot_x(x0):  # the boresight (0, 0, -1) out to the range, plus the mount
+        return x0 + mx * math.cos(theta) + (mz - rng) * math.sin(theta)
+
+    assert foot_x(35.0) < -60.0 and abs(foot_x(70.0)) < 60.0
+    assert _beam_on_disc_ns(tel(35.0, [True] * n), step, lander) is None  # the body over the disc throughout
+    assert _beam_on_disc_ns(tel(70.0, [False, True, True, True]), step, lander) == 20_000_000  # never over it
+    assert _beam_on_disc_ns(tel(70.0, [False] * n), step, lander) is None

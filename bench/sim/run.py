@@ -84,8 +84,10 @@ from gnc.navstate import NavState
 from gnc.plugins import LawOutputError
 from models.camera import R_BC
 from models.render_context import free_shared_contexts
+from models.sensors import ALTIMETER_BORESIGHT_B
 from vision.tracks import Tracks
-from models.lander import LanderConfig, com_position_B, footpad_positions_B, static_tipover_deg, support_margin_m
+from models.lander import (LanderConfig, altimeter_position_B, com_position_B, footpad_positions_B,
+                           static_tipover_deg, support_margin_m)
 from models.terrain import Terrain
 from models.world import PhysicsDivergedError, TruthState, World
 
@@ -689,12 +691,26 @@ DETECTS = {"imu": ("imu", "accel_thrust"), "altimeter": ("altimeter",), "star_tr
            "terrain": ("altimeter",), "rcs": ("rcs",)}
 
 
-def _over_disc_ns(tel: dict[str, np.ndarray], step: Any) -> int | None:
-    """The first control tick with the body over a terrain step's disc [ns]; None: never."""
+def _beam_on_disc_ns(tel: dict[str, np.ndarray], step: Any, lander: LanderConfig) -> int | None:
+    """The first control tick at which the altimeter's beam lands on a terrain step's disc [ns]; None: never.
+
+    The footprint is the truth: the altimeter's mount and boresight carried into L by the true attitude and
+    position, out to the range it reported (a valid sample). A lander whose body starts over the disc while
+    its tilted beam reaches the ground beyond the edge (seed 7's case 6 of the Hakuto-R preset: 35 m inside a
+    60 m disc at 496 m, the beam 100 m out) never ranges the step, which then never acts on a sensor.
+    """
     if not tel:
         return None
-    inside = np.hypot(tel["r_x_m"] - step.center_xy_m[0], tel["r_y_m"] - step.center_xy_m[1]) <= step.radius_m
-    return int(round(float(tel["t_s"][np.argmax(inside)]) * NS_PER_S)) if inside.any() else None
+    q = np.column_stack([tel[f"q_{c}"] for c in "wxyz"])
+    valid = np.asarray(tel["alt_valid"], bool) & np.isfinite(tel["alt_range_m"])
+    if not valid.any():
+        return None
+    idx = np.flatnonzero(valid)
+    R_LB = Rotation.from_quat(q[idx], scalar_first=True)
+    ray_B = altimeter_position_B(lander)[None, :] + tel["alt_range_m"][idx, None] * ALTIMETER_BORESIGHT_B[None, :]
+    hit_L = np.column_stack([tel["r_x_m"][idx], tel["r_y_m"][idx], tel["r_z_m"][idx]]) + R_LB.apply(ray_B)
+    inside = np.hypot(hit_L[:, 0] - step.center_xy_m[0], hit_L[:, 1] - step.center_xy_m[1]) <= step.radius_m
+    return int(round(float(tel["t_s"][idx[np.argmax(inside)]]) * NS_PER_S)) if inside.any() else None
 
 
 def _fault_summary(scenario: Scenario, faults: Any, events: list[dict],
@@ -703,14 +719,15 @@ def _fault_summary(scenario: Scenario, faults: Any, events: list[dict],
 
     Detected: a detection of a subsystem the fault's target maps to (``DETECTS``)
     at or after the fault's start and before its end plus 5 s. A terrain step
-    starts when the body first flies over it (never: not triggered).
+    starts when the altimeter's beam first lands on it (never: not triggered;
+    :func:`_beam_on_disc_ns`).
     """
     if faults is None:
         return []
     out = []
     for f, (start, end) in zip(scenario.faults, faults.windows()):
-        if f.kind == "terrain_step":  # it acts from when the lander first flies over it
-            start, end = _over_disc_ns(tel, f), None
+        if f.kind == "terrain_step":  # it acts from when the altimeter first ranges it
+            start, end = _beam_on_disc_ns(tel, f, scenario.lander), None
         subs = DETECTS[f.subsystem]
         hit = None
         if start is not None:

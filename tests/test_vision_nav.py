@@ -148,7 +148,8 @@ def test_wrong_tracks_are_rejected():
     e = m.z - m.hx
     assert e @ np.linalg.solve(m.R + 2.0 * m.R_frame, e) < chi2.ppf(0.999, 2)  # consistent with its covariance
     # Without the rejection the burst would have pulled the estimate far off.
-    naive = _measure(bad, r0, r1, q, q, cfg=VisionNavConfig(outlier_iterations=0, outlier_mad_k=1e9))
+    naive = _measure(bad, r0, r1, q, q, cfg=VisionNavConfig(outlier_iterations=0, outlier_mad_k=1e9,
+                                                                  max_track_scatter_px=1e9))
     assert np.linalg.norm(naive.z - naive.hx) > 5 * np.linalg.norm(e)
 
 
@@ -362,6 +363,36 @@ def test_tracks_in_too_few_image_cells_give_no_measurement():
         assert m is not None and np.array_equal(m.R, m1.R) and np.array_equal(m.z, m1.z)
         lo, hi = np.linalg.eigvalsh(m.R)
         assert lo > 1e-2 * hi  # full rank
+
+
+def test_tracks_that_do_not_follow_the_ground_give_no_measurement():
+    """LK tracks of ground texture scatter about their common motion by tenths of a pixel (rendered descents: at
+    most 0.16 px); on a near-featureless frame they wander over the detector noise by pixels, all the same way or
+    none, so their mean is no ground flow at all (a 75 deg camera over the featureless mare at 500 m: 1.6-5.7 px,
+    velocities 10-200 m/s off, each within its own wide covariance, and eighty of them moved the filter's
+    velocity 2.5 m/s). Beyond ``max_track_scatter_px`` (1 px RMS per axis) the pair gives no measurement; below
+    it, the same measurement as without the limit."""
+    rng = np.random.default_rng(12)
+    q = _q([0.0, 0.0, 0.0])
+    r0, r1 = np.array([0.0, 0.0, 450.0]), np.array([0.6, -0.3, 449.0])  # 6 m/s, 3 m/s and 10 m/s down
+    no_limit = VisionNavConfig(max_track_scatter_px=1e9)
+    for sigma_px, given in ((0.05, True), (0.7, True), (1.4, False), (3.0, False)):
+        for trial in range(20):
+            tracks, _ = _scene(rng, r0, r1, q, q, n=80)
+            wandered = Tracks(ids=tracks.ids, xy=tracks.xy + rng.normal(0.0, sigma_px, tracks.xy.shape),
+                              prev_xy=tracks.prev_xy, age=tracks.age)
+            m, m_all = _measure(wandered, r0, r1, q, q), _measure(wandered, r0, r1, q, q, cfg=no_limit)
+            assert m_all is not None
+            assert (m is not None) == given, (sigma_px, m_all.residual_px)
+            if given:
+                assert np.array_equal(m.z, m_all.z) and np.array_equal(m.R, m_all.R)
+            else:
+                assert m_all.residual_px > CFG.max_track_scatter_px
+    # Tracks that wander together by pixels while their scatter stays small are a slip, not noise: the
+    # cluster-robust covariance carries them (the cells' test above), this limit does not refuse them.
+    tracks, _ = _scene(rng, r0, r1, q, q, n=80, noise_px=0.05)
+    slipped = Tracks(ids=tracks.ids, xy=tracks.xy + [2.0, -1.0], prev_xy=tracks.prev_xy, age=tracks.age)
+    assert _measure(slipped, r0, r1, q, q) is not None
 
 
 def test_the_cells_keep_their_share_of_the_frame():

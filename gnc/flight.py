@@ -42,14 +42,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from gnc.control import ActuatorCommand, Controller, VehicleParams
 from gnc.estimator import IDX_BA, IDX_C, IDX_G, IDX_H, IDX_R, IDX_SV, IDX_V, NavFilter, UpdateRecord, quat_to_matrix
-from gnc.fdir import NAVIGATION, HealthMonitor, line_fit
-from gnc.guidance import GuidanceCommand, GuidanceLaw, LandingTarget
+from gnc.fdir import ABORT_ACCEL_MAX_MPS2, NAVIGATION, HealthMonitor, line_fit
+from gnc.guidance import PHASE_APPROACH, GuidanceCommand, GuidanceLaw, LandingTarget
 from gnc.hda import HazardAvoidance
 from gnc.map_nav import MapNavigator
 from gnc.messages import AltimeterMessage, AttitudeMessage, ContactMessage, ImageMessage, ImuMessage, LidarScanMessage
@@ -63,6 +64,8 @@ NS_PER_S = 1_000_000_000
 HAZARD = "hazard"  # the subsystem of a "no safe site" event
 RESCAN_DEADLINE_FRAC = 0.5  # a second hazard scan still due below this fraction of its height is given up [-]
 RESCAN_LAST_CALL_M = 5.0  # ... or below this height above the target, where no divert is left to fly [m]
+RAW_GROUND_SAMPLES = 5  # valid altimeter returns whose median ground the approach's clearance check reads [-]
+RAW_GROUND_MAX_AGE_NS = 500_000_000  # ... the oldest of them at most this old [ns]
 G0_MPS2 = 9.80665  # defines Isp
 
 
@@ -202,6 +205,9 @@ class FlightSoftware:
         self.hda = hda
         self._on_ground = False  # footpad contact seen: health monitoring ends (the descent is over)
         self._alt_buffer: list[tuple[int, float, float]] = []  # (t, height less expected, sigma)
+        # The ground elevation each of the last valid altimeter returns implies (t, z - range cos(nadir)) [ns, m],
+        # whatever the monitor made of the sensor: the approach's ground-clearance check reads their median.
+        self._raw_ground: deque[tuple[int, float]] = deque(maxlen=RAW_GROUND_SAMPLES)
         self._discounted = False  # the vertical covariance was re-inflated on a noisy-altimeter detection
         self._altimeter_lost = False  # no usable altimeter (health monitoring): vision's divergence is used
         self._vision_cut_off = False  # vision has reached its altitude cut-off (:meth:`_at_vision_cutoff`)
@@ -234,6 +240,8 @@ class FlightSoftware:
             self.filter.update_altimeter(msg)
             return
         x = self.filter.ekf.x
+        if msg.valid and math.isfinite(msg.range_m):
+            self._raw_ground.append((msg.t_ns, float(x[2]) - float(msg.range_m) * self._cos_nadir(msg)))
         est_range = float(x[2] - x[IDX_H])  # the altimeter's height above the filter's ground (nadir)
         sigma = self.filter.altimeter_sigma_m(max(est_range, 0.0), include_relief=False)
         used = self.fdir.altimeter(msg, est_range, float(x[5]), sigma)
@@ -577,6 +585,28 @@ class FlightSoftware:
             return
         self._declare_no_site(msg.t_ns)
 
+    def _ground_under_m(self, t_ns: int, observed: bool) -> float:
+        """The elevation of the ground under the altimeter's footprint in L [m], for the approach's
+        ground-clearance check: the higher of the filter's terrain height (while the altimeter is observed) and
+        the median of the last ``RAW_GROUND_SAMPLES`` valid returns' (the oldest at most
+        ``RAW_GROUND_MAX_AGE_NS`` old), whatever the monitor made of the sensor. A ground that the altimeter
+        shows nearer than planned is taken as possibly there: crossing a plateau's edge, the returns were
+        excluded as inconsistent (they moved faster than the descent) and the lander flew into the plateau
+        believing the ground 150 m lower; a faulty altimeter that reads short can at worst declare a safe abort.
+        NaN: neither is known."""
+        ground = float(self.filter.ekf.x[IDX_H]) if observed else math.nan
+        raw = self._raw_ground
+        if len(raw) == raw.maxlen and t_ns - raw[0][0] <= RAW_GROUND_MAX_AGE_NS:
+            median = sorted(g for _, g in raw)[len(raw) // 2]
+            ground = median if math.isnan(ground) else max(ground, median)
+        return ground
+
+    def _approach_floor_m(self) -> float:
+        """The lowest point of guidance's approach in L [m]: its gate, ``gate_altitude_m`` above the landing
+        target (NaN for a law without a gate)."""
+        gate = getattr(getattr(self.guidance, "cfg", None), "gate_altitude_m", None)
+        return float(self.target.r_L[2]) + float(gate) if isinstance(gate, (int, float)) else math.nan
+
     def _t_go_plan_s(self) -> float | None:
         """The guidance plan's time left to touchdown [s]: to the gate plus the terminal descent (None: unknown)."""
         cmd, gcfg = self.last_guidance, getattr(self.guidance, "cfg", None)
@@ -726,10 +756,15 @@ class FlightSoftware:
         veh = self.controller.vehicle
         decel = veh.thrust_max_N * self._thrust_scale / self.mass_kg - float(-self.controller.g_L[2]) \
             if self.mass_kg > 0.0 else -math.inf
+        cmd = self.last_guidance
         fd.abort_reason(t_ns, float(x[2]), math.sqrt(max(float(P[2, 2]), 0.0)), observed, _any_leg(contact),
                         # the horizontal-velocity knowledge is judged when vision is meant to provide it
                         math.sqrt(max(float(P[3, 3] + P[4, 4]), 0.0)) if self.vision_enabled else 0.0,
-                        float(x[5]), decel, math.hypot(x[3], x[4]))
+                        float(x[5]), decel, math.hypot(x[3], x[4]),
+                        # the ground under the altimeter's footprint and the approach's floor: its gate (a law
+                        # without one: unknown)
+                        self._ground_under_m(t_ns, observed), self._approach_floor_m(),
+                        cmd is not None and cmd.phase == PHASE_APPROACH)
 
     def _reset_lateral_bias(self, t_ns: int, reset: tuple[float, float, float], since_s: float | None = None) -> None:
         """Re-initialise the filter's lateral accelerometer bias (to the measured mean lateral specific force,
@@ -772,7 +807,8 @@ class FlightSoftware:
         c = self.fdir.cfg
         v = np.asarray(nav.v_BL_L, float)
         a = c.abort_hover_gain_per_s * (np.array([0.0, 0.0, c.abort_climb_mps]) - v)
-        return GuidanceCommand(int(nav.t_ns), np.clip(a, -2.0, 2.0), "abort", math.nan)
+        a = np.clip(a, -ABORT_ACCEL_MAX_MPS2, ABORT_ACCEL_MAX_MPS2)
+        return GuidanceCommand(int(nav.t_ns), a, "abort", math.nan)
 
     def on_flown_command(self, t_ns: int, thrust_cmd_N: float, engine_on: bool, contact: ContactMessage | None = None,
                          torque_B_Nm: np.ndarray | None = None, oracle: bool = False) -> None:

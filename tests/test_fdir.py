@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 
 import numpy as np
 import pytest
@@ -178,6 +179,38 @@ def test_abort_criterion():
     assert m.abort_reason(0, -8.0, 1.0, True, False) == "implausible negative altitude estimate"
     m = _monitor()
     assert m.abort_reason(0, -8.0, 1.0, True, True) is None  # on the ground
+
+
+def test_ground_nearer_than_the_approach_planned_for_aborts():
+    """In the approach over ground that stands within ``abort_ground_clearance_m`` (10 m) of the approach's floor
+    (its gate, 30 m above the target) or above it, braking now at the safe abort's 2 m/s^2 must stop 10 m above
+    that ground, as the filter knows it. A held-out probe flew a hand-over 190 m off over the Hakuto-R preset's
+    150 m plateau: the guard re-initialised the terrain height to the plateau, but the approach kept descending at
+    10 m/s toward its gate 30 m above the target, 150 m lower, and hit the plateau at 8 m/s with no abort (the
+    stopping check measures the height above the target: 160 m). By hand, 200 m above the target: 9.2 m/s
+    stops in 9.2^2 / 4 = 21.16 m, so ground 31 m below aborts (9.8 m left) and 32 m below does not (10.8 m); with
+    the engine giving only 1.5 m/s^2 the stop takes 28.2 m and 32 m aborts too. Ground near the target's
+    elevation is what the approach plans to stop above: a G-FOLD approach at 16.2 m/s 70 m above it (a stop at
+    2 m/s^2 would leave 4.4 m) is not judged. Nor are the terminal phase, which descends to the ground by design,
+    a ground the altimeter does not observe (NaN), a law without a gate (NaN), a climb, or a clearance of 0."""
+    def reason(ground_below_m, v_z, height=200.0, approach=True, decel=3.0, floor=30.0, **cfg):
+        return _monitor(**cfg).abort_reason(0, height, 1.0, True, False, v_z_mps=v_z, decel_max_mps2=decel,
+                                            ground_m=height - ground_below_m, plan_floor_m=floor, approach=approach)
+    assert reason(32.0, -9.2) is None
+    assert "braking now stops 10 m above it, under 10 m" in reason(31.0, -9.2)
+    assert reason(32.0, -9.2, decel=1.5) is not None
+    assert reason(70.0, -16.2, height=70.0) is None  # ground at the target's elevation: the approach brakes for it
+    assert reason(70.0, -16.2, height=91.0) is not None  # ground 21 m up, 9 m below the floor: judged
+    m = _monitor()
+    m.abort_reason(7 * NS, 200.0, 1.0, True, False, v_z_mps=-9.2, decel_max_mps2=3.0, ground_m=169.0,
+                   plan_floor_m=30.0, approach=True)
+    assert m.abort is not None and m.abort.t_ns == 7 * NS
+    assert reason(31.0, -9.2, approach=False) is None  # the terminal descent
+    assert reason(math.nan, -9.2) is None  # the altimeter does not observe the ground
+    assert reason(31.0, -9.2, floor=math.nan) is None  # a law without a gate
+    assert reason(5.0, 0.5) is None  # climbing
+    assert reason(31.0, -9.2, abort_ground_clearance_m=0.0) is None  # off
+    assert reason(31.0, -9.2, abort_ground_clearance_m=9.0) is None  # 9.84 m left is more than 9
 
 
 def _throttle_steps(monitor: HealthMonitor, efficiency: float = 1.0, deep_N: float = 1600.0, full_N: float = 7000.0,

@@ -1094,10 +1094,10 @@ class HealthMonitor:
                       f"{decel_max_mps2:.2f} m/s^2 of net deceleration")
         elif (approach and v_z_mps < 0.0 and c.abort_ground_clearance_m > 0.0
               and ground_m > plan_floor_m - c.abort_ground_clearance_m
-              and height_m - ground_m - _stop_distance_m(v_z_mps, decel_max_mps2) < c.abort_ground_clearance_m):
+              and (stop_above_m := height_m - ground_m - _stop_distance_m(v_z_mps, decel_max_mps2))
+              < c.abort_ground_clearance_m):
             reason = (f"ground {ground_m - plan_floor_m:+.0f} m from the approach's floor, {height_m - ground_m:.0f} m "
-                      f"below at {-v_z_mps:.1f} m/s: braking now stops "
-                      f"{height_m - ground_m - _stop_distance_m(v_z_mps, decel_max_mps2):.0f} m above it, under "
+                      f"below at {-v_z_mps:.1f} m/s: braking now stops {stop_above_m:.0f} m above it, under "
                       f"{c.abort_ground_clearance_m:g} m")
         elif height_m < c.touchdown_check_height_m and v_z_mps < 0.0 and v_h_mps > c.touchdown_vh_max_mps:
             reason = (f"descending at {height_m:.1f} m with {v_h_mps:.2f} m/s of horizontal speed, beyond "

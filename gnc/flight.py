@@ -757,14 +757,15 @@ class FlightSoftware:
         decel = veh.thrust_max_N * self._thrust_scale / self.mass_kg - float(-self.controller.g_L[2]) \
             if self.mass_kg > 0.0 else -math.inf
         cmd = self.last_guidance
+        approach = cmd is not None and cmd.phase == PHASE_APPROACH
         fd.abort_reason(t_ns, float(x[2]), math.sqrt(max(float(P[2, 2]), 0.0)), observed, _any_leg(contact),
                         # the horizontal-velocity knowledge is judged when vision is meant to provide it
                         math.sqrt(max(float(P[3, 3] + P[4, 4]), 0.0)) if self.vision_enabled else 0.0,
                         float(x[5]), decel, math.hypot(x[3], x[4]),
-                        # the ground under the altimeter's footprint and the approach's floor: its gate (a law
-                        # without one: unknown)
-                        self._ground_under_m(t_ns, observed), self._approach_floor_m(),
-                        cmd is not None and cmd.phase == PHASE_APPROACH)
+                        # the ground under the altimeter's footprint and the approach's floor, its gate (a law
+                        # without one: unknown); read only in the approach, the one phase the check judges
+                        self._ground_under_m(t_ns, observed) if approach else math.nan,
+                        self._approach_floor_m() if approach else math.nan, approach)
 
     def _reset_lateral_bias(self, t_ns: int, reset: tuple[float, float, float], since_s: float | None = None) -> None:
         """Re-initialise the filter's lateral accelerometer bias (to the measured mean lateral specific force,

@@ -124,6 +124,7 @@ ACCEL_THRUST = "accel_thrust"
 ENGINE = "engine"
 COMPUTER = "computer"
 NAVIGATION = "navigation"
+PROPELLANT = "propellant"  # the terminal phase's propellant bingo (gnc.flight.FlightSoftware)
 
 
 def _stop_distance_m(v_z_mps: float, decel_max_mps2: float) -> float:

@@ -49,8 +49,8 @@ import numpy as np
 
 from gnc.control import ActuatorCommand, Controller, VehicleParams
 from gnc.estimator import IDX_BA, IDX_C, IDX_G, IDX_H, IDX_R, IDX_SV, IDX_V, NavFilter, UpdateRecord, quat_to_matrix
-from gnc.fdir import ABORT_ACCEL_MAX_MPS2, NAVIGATION, HealthMonitor, line_fit
-from gnc.guidance import PHASE_APPROACH, GuidanceCommand, GuidanceLaw, LandingTarget
+from gnc.fdir import ABORT_ACCEL_MAX_MPS2, NAVIGATION, PROPELLANT, HealthMonitor, line_fit
+from gnc.guidance import PHASE_APPROACH, PHASE_TERMINAL, GuidanceCommand, GuidanceLaw, LandingTarget
 from gnc.hda import HazardAvoidance
 from gnc.map_nav import MapNavigator
 from gnc.messages import AltimeterMessage, AttitudeMessage, ContactMessage, ImageMessage, ImuMessage, LidarScanMessage
@@ -497,10 +497,10 @@ class FlightSoftware:
         if not self.vision_enabled or self.tracker is None or "vision" in self.fdir.failed or self.vision_active():
             return
         self._vision_cut_off = True
-        pairs = self.vision.measurements + self.vision.unusable
-        share = self.vision.unusable / pairs if pairs else 0.0
-        if not share > self.fdir.cfg.vision_unusable_max:
+        if not self._vision_mostly_unusable():
             return
+        pairs = self.vision.measurements + self.vision.unusable
+        share = self.vision.unusable / pairs
         var = self.filter.cfg.init_accel_bias_sigma_mps2 ** 2
         P = self.filter.ekf.P
         ib = IDX_BA.start
@@ -517,12 +517,35 @@ class FlightSoftware:
 
     def vision_active(self) -> bool:
         """Vision is enabled and the estimated altitude is above the cut-off (without an altimeter, above
-        the divergence's lower cut-off)."""
+        the divergence's lower cut-off; in a terminal fly-out, above ``flyout_cutoff_m``)."""
         if not self.vision_enabled or (self.fdir is not None and "vision" in self.fdir.failed):
             return False
         cfg = self.vision_cfg
         cutoff = min(cfg.cutoff_altitude_m, cfg.divergence_cutoff_m) if self._altimeter_lost else cfg.cutoff_altitude_m
-        return float(self.filter.ekf.x[2]) > cutoff
+        z = float(self.filter.ekf.x[2])
+        if z > cutoff:
+            return True
+        return z > cfg.flyout_cutoff_m and self._flying_out() and not self._vision_mostly_unusable()
+
+    def _vision_mostly_unusable(self) -> bool:
+        """More than ``fdir.vision_unusable_max`` of the descent's frame pairs gave no measurement (a featureless
+        ground; without health monitoring: never). Vision is then not used in a terminal fly-out below its
+        cut-off: the few measurements such a ground gives are over-trusted as a group, and the fly-out would
+        bring back the over-confident lateral bias that :meth:`_at_vision_cutoff` takes as unobserved."""
+        if self.fdir is None:
+            return False
+        pairs = self.vision.measurements + self.vision.unusable
+        return bool(pairs) and self.vision.unusable / pairs > self.fdir.cfg.vision_unusable_max
+
+    def _flying_out(self) -> bool:
+        """A built-in law's terminal phase is flying out a missed gate: the estimated position is more than twice
+        ``terminal_hold_radius_m`` from the target, so guidance hovers and translates
+        (:meth:`GuidanceLaw.terminal_accel_L`); not after a bingo, which lands where it is."""
+        g = self.guidance
+        if not isinstance(g, GuidanceLaw) or g.phase != PHASE_TERMINAL or getattr(g, "bingo", False):
+            return False
+        x, target = self.filter.ekf.x, self.target.r_L
+        return math.hypot(float(x[0]) - float(target[0]), float(x[1]) - float(target[1])) > 2.0 * g.cfg.terminal_hold_radius_m
 
     # ------------------------------------------------------------------ hazard avoidance
     def wants_lidar_scan(self) -> bool:
@@ -627,6 +650,7 @@ class FlightSoftware:
         if self.fdir is not None and self.fdir.abort is not None:
             cmd = self._abort_command(nav)
         else:
+            self._bingo_check(t_ns, nav)
             cmd = self._law_call(self.guidance, "guidance.law", t_ns, nav, self.target)
             # GuidanceLaw.update checks its formulas' output itself; a law that overrides it is checked here.
             if type(self.guidance).update is not GuidanceLaw.update:
@@ -636,6 +660,47 @@ class FlightSoftware:
         self.last_guidance = cmd
         self._command_issued(t_ns, act.thrust_N if act.engine_on else 0.0, act.torque_B_Nm, contact)
         return act
+
+    def _bingo_check(self, t_ns: int, nav: NavState) -> None:
+        """The propellant bingo of a built-in law's terminal phase (``guidance.terminal_bingo``).
+
+        While the terminal phase flies out a missed gate (the vehicle more than twice ``terminal_hold_radius_m``
+        from the target: guidance hovers and translates), the propellant the gauge says is left (the mass
+        estimate less the vehicle's dry mass), less ``terminal_reserve_kg``, must cover the terminal phase's own
+        descent from the height above the filter's ground at ``terminal_descent_rate_mps``, at the hover's flow
+        ``m g / (Isp g0)``. Once it does not, guidance lands where the vehicle is (:meth:`GuidanceLaw.land_here`),
+        by a faster descent (:meth:`GuidanceLaw.bingo_rate_mps`) that needs less than that, and an event is
+        recorded: a touchdown away from the target instead of a tank run dry above the ground. The ground is
+        :meth:`_ground_under_m`'s, given to guidance again every tick of the bingo's descent.
+        """
+        g = self.guidance
+        if not isinstance(g, GuidanceLaw) or g.phase != PHASE_TERMINAL:
+            return
+        # The ground as the approach's clearance check reads it: the higher of the filter's terrain height and the
+        # altimeter's fresh returns (a filter whose terrain state went wrong must not set a fast descent's floor).
+        ground_z = self._ground_under_m(t_ns, observed=True)
+        if getattr(g, "bingo", False):
+            g.bingo_ground_z_L = ground_z  # the ground under the vehicle as it goes
+            return
+        cfg = g.cfg
+        if not cfg.terminal_bingo:
+            return
+        r, target = nav.r_BL_L, self.target.r_L
+        away_m = math.hypot(float(r[0]) - float(target[0]), float(r[1]) - float(target[1]))
+        if not away_m > 2.0 * cfg.terminal_hold_radius_m:
+            return
+        height_m = max(float(r[2]) - ground_z, 0.0)
+        need_kg = nav.mass_kg * cfg.gravity_mps2 / self._isp_g0 * height_m / cfg.terminal_descent_rate_mps
+        left_kg = nav.mass_kg - self.controller.vehicle.dry_mass_kg
+        if left_kg - cfg.terminal_reserve_kg >= need_kg:
+            return
+        g.land_here(ground_z)
+        if self.fdir is not None:
+            self.fdir.note(t_ns, PROPELLANT,
+                           f"propellant bingo: {left_kg:.1f} kg left by the gauge, {need_kg:.1f} kg to descend "
+                           f"{height_m:.1f} m at {cfg.terminal_descent_rate_mps:g} m/s and {cfg.terminal_reserve_kg:g} "
+                           f"kg of reserve; the target is {away_m:.1f} m away",
+                           f"landing where it is, down at up to {cfg.bingo_descent_rate_mps:g} m/s", once_key="bingo")
 
     def _monitor_before_command(self, t_ns: int, contact: ContactMessage, oracle: bool) -> None:
         """A control tick's health monitoring before the command is made (:meth:`control`, and a replay's

@@ -45,7 +45,13 @@ Phases:
         horizontal velocity and holds over the target. If the gate was missed
         by more than ``terminal_hold_radius_m`` the descent rate blends to a
         hover (zero at twice that distance) while the vehicle translates back
-        over the target at up to ``terminal_speed_max_mps``.
+        over the target at up to ``terminal_speed_max_mps``. That fly-out burns
+        hover propellant: the flight software calls a **bingo** when what its
+        gauge says is left, less ``terminal_reserve_kg``, would no longer cover
+        the descent from where the vehicle is, and the law then lands there
+        (:meth:`GuidanceLaw.land_here`) rather than run dry in the air: once its
+        horizontal speed is nulled, down at up to ``bingo_descent_rate_mps``,
+        slowing at 0.2 m/s^2 to the terminal rate 5 m above the ground.
 
 Time to go (both laws): a fixed final time, planned and re-planned only when
 needed. At the first call (and after a target change, or new limits from
@@ -137,6 +143,13 @@ GATE_UNDERSHOOT_TOL_M = 1.0
 GATE_FLOOR_M = 2.0 * GATE_UNDERSHOOT_TOL_M
 # Apollo's targeted total acceleration at the gate (zero: hover-like hand-off) [m/s^2].
 APOLLO_GATE_ACCEL_L = np.zeros(3)
+# A bingo descent (GuidanceLaw.land_here) slows at this rate to the terminal rate, which it reaches this high
+# above the ground it was given (the body origin's height) [m/s^2, m].
+BINGO_BRAKE_MPS2 = 0.2
+BINGO_PAD_M = 5.0
+# A bingo descends faster than the terminal rate only once the fly-out's horizontal speed is nulled: fully below
+# the first speed, not at all above the second (the low tilt limit brakes slowly near the ground) [m/s].
+BINGO_VH_FULL_MPS, BINGO_VH_NONE_MPS = 0.3, 0.5
 # Denominators below this are treated as zero.
 _EPS = 1e-9
 _PLAN_SIGMA = np.linspace(0.0, 1.0, PLAN_SAMPLES)  # the sampled fractions of a path's time to go
@@ -258,6 +271,24 @@ class GuidanceConfig(BaseModel):
     )
     terminal_rate_gain_per_s: float = Field(
         1.0, gt=0.0, le=10.0, description="terminal vertical-rate loop gain [1/s]"
+    )
+    terminal_bingo: bool = Field(
+        True,
+        description="propellant bingo: while the terminal phase flies out a missed gate (hovering more than "
+                    "twice terminal_hold_radius_m from the target), the flight software lands where the "
+                    "vehicle is once its propellant gauge less terminal_reserve_kg no longer covers a descent "
+                    "from its height (bingo_descent_rate_mps); false: fly out whatever is left",
+    )
+    terminal_reserve_kg: float = Field(
+        18.0, ge=0.0,
+        description="propellant the bingo keeps beyond that descent's need, for the gauge's error (the loaded "
+                    "mass is not measured on board: 18 kg is 15 % of the default load) [kg]",
+    )
+    bingo_descent_rate_mps: float = Field(
+        2.0, gt=0.0, le=5.0,
+        description="a bingo's descent: at most this fast, slowing at 0.2 m/s^2 to terminal_descent_rate_mps, "
+                    "which it keeps for its last 5 m above the ground (the body origin's height), once the "
+                    "horizontal speed is below 0.3 m/s [m/s]",
     )
 
     @field_validator("law")
@@ -533,6 +564,32 @@ class GuidanceLaw(ABC):
         self._target_L: np.ndarray | None = None
         # Open-loop end of the approach: (start time [ns], (c0, c1, c2)), once started.
         self._open_loop: tuple[int, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
+        # Once the target was given up (:meth:`land_here`, a bingo): the ground's elevation under the vehicle [m]
+        # and, once the horizontal speed was nulled, the point the terminal phase holds over (2,) [m], in L.
+        self.bingo = False
+        self.bingo_ground_z_L = 0.0
+        self.hold_xy_L: np.ndarray | None = None
+
+    def land_here(self, ground_z_L: float) -> None:
+        """Give up the target (a propellant bingo, :class:`gnc.flight.FlightSoftware`): the terminal phase nulls
+        the horizontal speed, then holds where the vehicle is when it falls below ``BINGO_VH_FULL_MPS``, and
+        descends to the ground at ``ground_z_L`` [m] (L; the caller may update :attr:`bingo_ground_z_L` as the
+        vehicle goes, NaN: unknown) by :meth:`bingo_rate_mps`'s profile."""
+        self.bingo = True
+        self.bingo_ground_z_L = float(ground_z_L)
+
+    def bingo_rate_mps(self, height_m: float) -> tuple[float, float]:
+        """A bingo descent's vertical speed at ``height_m`` above the ground (the body origin's) [m/s], and the
+        deceleration it is slowing at there [m/s^2]: ``min(bingo_descent_rate_mps, sqrt(v_t^2 + 2 a (h - pad)))``,
+        ``v_t`` the terminal rate, ``a`` = ``BINGO_BRAKE_MPS2``, ``pad`` = ``BINGO_PAD_M`` (``v_t`` below it, and for
+        a NaN height: the ground unknown)."""
+        v_t, v_max = self.cfg.terminal_descent_rate_mps, max(self.cfg.bingo_descent_rate_mps,
+                                                             self.cfg.terminal_descent_rate_mps)
+        above = height_m - BINGO_PAD_M
+        if not above > 0.0:  # also NaN: the ground unknown, the terminal rate
+            return v_t, 0.0
+        v = math.sqrt(v_t * v_t + 2.0 * BINGO_BRAKE_MPS2 * above)
+        return (v_max, 0.0) if v >= v_max else (v, BINGO_BRAKE_MPS2)
 
     def set_limits(self, limits: GuidanceLimits) -> None:
         """New limits to plan within (the flight software found the engine delivers less than commanded and
@@ -777,7 +834,7 @@ class GuidanceLaw(ABC):
         ``terminal_hold_radius_m`` of the target, blending linearly to zero
         (hover) at twice that distance, so a missed gate is flown out at the
         gate altitude rather than into the ground; tracked with gain
-        ``terminal_rate_gain_per_s``.
+        ``terminal_rate_gain_per_s``. After :meth:`land_here`: :meth:`_bingo_accel_L`.
 
         Args:
             r_L: Position, (3,) [m].
@@ -787,6 +844,8 @@ class GuidanceLaw(ABC):
         Returns:
             Total acceleration, (3,) [m/s^2] (before capping).
         """
+        if self.bingo:
+            return self._bingo_accel_L(r_L, v_L)
         cfg = self.cfg
         w, zeta = cfg.terminal_position_bandwidth_radps, cfg.terminal_damping_ratio
         e_h = r_L[:2] - target_L[:2]
@@ -799,6 +858,27 @@ class GuidanceLaw(ABC):
         descent_frac = clip_float((2.0 * hold_r - norm(e_h)) / hold_r, 0.0, 1.0)
         a_z = cfg.terminal_rate_gain_per_s * (-descent_frac * cfg.terminal_descent_rate_mps - v_L[2])
         return np.array([a_h[0], a_h[1], a_z])
+
+    def _bingo_accel_L(self, r_L: np.ndarray, v_L: np.ndarray) -> np.ndarray:
+        """The terminal phase after a bingo (:meth:`land_here`): horizontal speed nulled (the velocity loop of
+        :meth:`terminal_accel_L` with a zero reference: a fly-out's 2 m/s braked by the low tilt limit, no
+        position loop to overshoot), then the position held where it fell below ``BINGO_VH_FULL_MPS``. Vertical:
+        :meth:`bingo_rate_mps` with its deceleration fed forward, blended from the terminal rate while the
+        horizontal speed is above ``BINGO_VH_FULL_MPS`` (fully the terminal rate above ``BINGO_VH_NONE_MPS``)."""
+        cfg = self.cfg
+        w, zeta = cfg.terminal_position_bandwidth_radps, cfg.terminal_damping_ratio
+        speed_h = norm(v_L[:2])
+        if self.hold_xy_L is None and speed_h < BINGO_VH_FULL_MPS:
+            self.hold_xy_L = np.array(r_L[:2], dtype=float)
+        if self.hold_xy_L is None:
+            a_h = -2.0 * zeta * w * v_L[:2]
+        else:
+            a_h = 2.0 * zeta * w * (-(w / (2.0 * zeta)) * (r_L[:2] - self.hold_xy_L) - v_L[:2])
+        rate, brake = self.bingo_rate_mps(float(r_L[2]) - self.bingo_ground_z_L)
+        fast = clip_float((BINGO_VH_NONE_MPS - speed_h) / (BINGO_VH_NONE_MPS - BINGO_VH_FULL_MPS), 0.0, 1.0)
+        v_t = cfg.terminal_descent_rate_mps
+        rate, brake = v_t + fast * (rate - v_t), fast * brake
+        return np.array([a_h[0], a_h[1], cfg.terminal_rate_gain_per_s * (-rate - v_L[2]) + brake])
 
 
 class ApolloGuidance(GuidanceLaw):

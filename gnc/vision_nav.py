@@ -153,6 +153,13 @@ class VisionNavConfig(BaseModel):
     cutoff_altitude_m: float = Field(
         30.0, ge=0.0, description="vision is used only above this estimated altitude; below, IMU + altimeter [m]"
     )
+    flyout_cutoff_m: float = Field(
+        10.0, ge=0.0,
+        description="while the terminal phase flies out a missed gate (a built-in law hovering more than twice "
+                    "guidance.terminal_hold_radius_m from the target), the horizontal flow is used down to "
+                    "this estimated altitude instead of cutoff_altitude_m: a fly-out below the cut-off on the IMU "
+                    "alone drifts with the accelerometer bias's error (at or above cutoff_altitude_m: off) [m]",
+    )
     divergence_cutoff_m: float = Field(
         4.0, ge=0.0,
         description="without an altimeter (failed or lost), the flow's divergence is used down to this estimated "

@@ -497,10 +497,9 @@ class FlightSoftware:
         if not self.vision_enabled or self.tracker is None or "vision" in self.fdir.failed or self.vision_active():
             return
         self._vision_cut_off = True
-        if not self._vision_mostly_unusable():
+        share = self._vision_unusable_share()
+        if not share > self.fdir.cfg.vision_unusable_max:
             return
-        pairs = self.vision.measurements + self.vision.unusable
-        share = self.vision.unusable / pairs
         var = self.filter.cfg.init_accel_bias_sigma_mps2 ** 2
         P = self.filter.ekf.P
         ib = IDX_BA.start
@@ -527,25 +526,34 @@ class FlightSoftware:
             return True
         return z > cfg.flyout_cutoff_m and self._flying_out() and not self._vision_mostly_unusable()
 
+    def _vision_unusable_share(self) -> float:
+        """The share of the descent's frame pairs that gave no measurement (0 before any pair)."""
+        pairs = self.vision.measurements + self.vision.unusable
+        return self.vision.unusable / pairs if pairs else 0.0
+
     def _vision_mostly_unusable(self) -> bool:
         """More than ``fdir.vision_unusable_max`` of the descent's frame pairs gave no measurement (a featureless
         ground; without health monitoring: never). Vision is then not used in a terminal fly-out below its
         cut-off: the few measurements such a ground gives are over-trusted as a group, and the fly-out would
         bring back the over-confident lateral bias that :meth:`_at_vision_cutoff` takes as unobserved."""
-        if self.fdir is None:
-            return False
-        pairs = self.vision.measurements + self.vision.unusable
-        return bool(pairs) and self.vision.unusable / pairs > self.fdir.cfg.vision_unusable_max
+        return self.fdir is not None and self._vision_unusable_share() > self.fdir.cfg.vision_unusable_max
 
     def _flying_out(self) -> bool:
-        """A built-in law's terminal phase is flying out a missed gate: the estimated position is more than twice
-        ``terminal_hold_radius_m`` from the target, so guidance hovers and translates
-        (:meth:`GuidanceLaw.terminal_accel_L`); not after a bingo, which lands where it is."""
+        """A built-in law's terminal phase is flying out a missed gate at the filter's position
+        (:meth:`_fly_out_m`)."""
+        return not math.isnan(self._fly_out_m(self.filter.ekf.x))
+
+    def _fly_out_m(self, r_L: np.ndarray) -> float:
+        """How far [m] from the target a built-in law's terminal phase is flying out a missed gate at ``r_L``:
+        more than twice ``terminal_hold_radius_m``, so guidance hovers and translates
+        (:meth:`GuidanceLaw.terminal_accel_L`); NaN when it is not (another phase, nearer, a plug-in without the
+        terminal phase, or after a bingo, which lands where it is)."""
         g = self.guidance
         if not isinstance(g, GuidanceLaw) or g.phase != PHASE_TERMINAL or getattr(g, "bingo", False):
-            return False
-        x, target = self.filter.ekf.x, self.target.r_L
-        return math.hypot(float(x[0]) - float(target[0]), float(x[1]) - float(target[1])) > 2.0 * g.cfg.terminal_hold_radius_m
+            return math.nan
+        target = self.target.r_L
+        away_m = math.hypot(float(r_L[0]) - float(target[0]), float(r_L[1]) - float(target[1]))
+        return away_m if away_m > 2.0 * g.cfg.terminal_hold_radius_m else math.nan
 
     # ------------------------------------------------------------------ hazard avoidance
     def wants_lidar_scan(self) -> bool:
@@ -610,7 +618,7 @@ class FlightSoftware:
 
     def _ground_under_m(self, t_ns: int, observed: bool) -> float:
         """The elevation of the ground under the altimeter's footprint in L [m], for the approach's
-        ground-clearance check: the higher of the filter's terrain height (while the altimeter is observed) and
+        ground-clearance check and the terminal phase's propellant bingo: the higher of the filter's terrain height (while the altimeter is observed) and
         the median of the last ``RAW_GROUND_SAMPLES`` valid returns' (the oldest at most
         ``RAW_GROUND_MAX_AGE_NS`` old), whatever the monitor made of the sensor. A ground that the altimeter
         shows nearer than planned is taken as possibly there: crossing a plateau's edge, the returns were
@@ -674,21 +682,17 @@ class FlightSoftware:
         :meth:`_ground_under_m`'s, given to guidance again every tick of the bingo's descent.
         """
         g = self.guidance
-        if not isinstance(g, GuidanceLaw) or g.phase != PHASE_TERMINAL:
-            return
         # The ground as the approach's clearance check reads it: the higher of the filter's terrain height and the
         # altimeter's fresh returns (a filter whose terrain state went wrong must not set a fast descent's floor).
-        ground_z = self._ground_under_m(t_ns, observed=True)
-        if getattr(g, "bingo", False):
-            g.bingo_ground_z_L = ground_z  # the ground under the vehicle as it goes
+        if isinstance(g, GuidanceLaw) and g.phase == PHASE_TERMINAL and getattr(g, "bingo", False):
+            g.bingo_ground_z_L = self._ground_under_m(t_ns, observed=True)  # the ground under the vehicle as it goes
+            return
+        r = nav.r_BL_L
+        away_m = self._fly_out_m(r)
+        if math.isnan(away_m) or not g.cfg.terminal_bingo:  # not NaN: a built-in law (GuidanceLaw)
             return
         cfg = g.cfg
-        if not cfg.terminal_bingo:
-            return
-        r, target = nav.r_BL_L, self.target.r_L
-        away_m = math.hypot(float(r[0]) - float(target[0]), float(r[1]) - float(target[1]))
-        if not away_m > 2.0 * cfg.terminal_hold_radius_m:
-            return
+        ground_z = self._ground_under_m(t_ns, observed=True)
         height_m = max(float(r[2]) - ground_z, 0.0)
         need_kg = nav.mass_kg * cfg.gravity_mps2 / self._isp_g0 * height_m / cfg.terminal_descent_rate_mps
         left_kg = nav.mass_kg - self.controller.vehicle.dry_mass_kg

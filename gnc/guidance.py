@@ -847,17 +847,24 @@ class GuidanceLaw(ABC):
         if self.bingo:
             return self._bingo_accel_L(r_L, v_L)
         cfg = self.cfg
-        w, zeta = cfg.terminal_position_bandwidth_radps, cfg.terminal_damping_ratio
         e_h = r_L[:2] - target_L[:2]
-        v_ref_h = -(w / (2.0 * zeta)) * e_h
-        speed = norm(v_ref_h)
-        if speed > cfg.terminal_speed_max_mps:
-            v_ref_h *= cfg.terminal_speed_max_mps / speed
-        a_h = 2.0 * zeta * w * (v_ref_h - v_L[:2])
+        a_h = self._hold_accel_h(e_h, v_L[:2])
         hold_r = cfg.terminal_hold_radius_m
         descent_frac = clip_float((2.0 * hold_r - norm(e_h)) / hold_r, 0.0, 1.0)
         a_z = cfg.terminal_rate_gain_per_s * (-descent_frac * cfg.terminal_descent_rate_mps - v_L[2])
         return np.array([a_h[0], a_h[1], a_z])
+
+    def _hold_accel_h(self, e_h: np.ndarray, v_h: np.ndarray) -> np.ndarray:
+        """The terminal phase's horizontal position hold (:meth:`terminal_accel_L`), (2,) [m/s^2]: the velocity
+        reference ``-(w / 2 zeta) e_h`` (``e_h`` [m] from the held point), limited to ``terminal_speed_max_mps``,
+        tracked with gain ``2 zeta w``."""
+        cfg = self.cfg
+        w, zeta = cfg.terminal_position_bandwidth_radps, cfg.terminal_damping_ratio
+        v_ref_h = -(w / (2.0 * zeta)) * e_h
+        speed = norm(v_ref_h)
+        if speed > cfg.terminal_speed_max_mps:
+            v_ref_h *= cfg.terminal_speed_max_mps / speed
+        return 2.0 * zeta * w * (v_ref_h - v_h)
 
     def _bingo_accel_L(self, r_L: np.ndarray, v_L: np.ndarray) -> np.ndarray:
         """The terminal phase after a bingo (:meth:`land_here`): horizontal speed nulled (the velocity loop of
@@ -873,7 +880,7 @@ class GuidanceLaw(ABC):
         if self.hold_xy_L is None:
             a_h = -2.0 * zeta * w * v_L[:2]
         else:
-            a_h = 2.0 * zeta * w * (-(w / (2.0 * zeta)) * (r_L[:2] - self.hold_xy_L) - v_L[:2])
+            a_h = self._hold_accel_h(r_L[:2] - self.hold_xy_L, v_L[:2])
         rate, brake = self.bingo_rate_mps(float(r_L[2]) - self.bingo_ground_z_L)
         fast = clip_float((BINGO_VH_NONE_MPS - speed_h) / (BINGO_VH_NONE_MPS - BINGO_VH_FULL_MPS), 0.0, 1.0)
         v_t = cfg.terminal_descent_rate_mps
